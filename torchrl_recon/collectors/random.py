@@ -1,0 +1,50 @@
+"""Random-action data collection through TorchRL's own ``Collector`` (the paper's random exploration)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+
+def collect_random(
+    env: EnvBase,
+    *,
+    frames: int,
+    seed: int,
+    frames_per_batch: int | None = None,
+    progress: bool = False,
+) -> TensorDictBase:
+    """Collect ``frames`` steps of uniform random actions from ``env``.
+
+    Episode length is the env's own (see ``make_env(..., max_episode_steps=...)``).
+    Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
+    ``SliceSampler`` never crosses an episode. Same ``seed`` → same data.
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> data = collect_random(make_env("drone", seed=0, max_episode_steps=100), frames=200, seed=0)
+        >>> data["observation"].shape
+        torch.Size([200, 12])
+    """
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}.")
+    torch.manual_seed(seed)
+    frames_per_batch = frames_per_batch or min(frames, 1000)
+    collector = Collector(
+        env,
+        policy=None,
+        frames_per_batch=frames_per_batch,
+        total_frames=frames,
+        split_trajs=False,
+    )
+    collector.set_seed(seed)
+    batches = []
+    with tqdm(total=frames, desc="random collection", disable=not progress, leave=False) as bar:
+        for batch in collector:
+            batches.append(batch.reshape(-1).clone())
+            bar.update(batch.numel())
+    collector.shutdown()
+    return torch.cat(batches, 0)[:frames]

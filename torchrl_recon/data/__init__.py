@@ -1,0 +1,14 @@
+"""Replay-buffer helpers: sequence sampling, trajectory splits, save and load."""
+
+from __future__ import annotations
+
+from torchrl_recon.data.buffers import (
+    TRAJ_KEY,
+    buffer_contents,
+    load_buffer,
+    make_sequence_buffer,
+    save_buffer,
+    split_by_trajectory,
+)
+
+__all__ = ["TRAJ_KEY", "buffer_contents", "load_buffer", "make_sequence_buffer", "save_buffer", "split_by_trajectory"]

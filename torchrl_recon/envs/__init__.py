@@ -1,0 +1,8 @@
+"""Environments of the paper (gymnasium) and the factory that wraps them for TorchRL."""
+
+from __future__ import annotations
+
+from torchrl_recon.envs.factory import make_env
+from torchrl_recon.envs.registry import ENVS, EnvEntry, get_entry, register_envs
+
+__all__ = ["ENVS", "EnvEntry", "get_entry", "make_env", "register_envs"]

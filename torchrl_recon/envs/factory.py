@@ -1,0 +1,93 @@
+"""One factory that turns a torchrl_recon gymnasium environment into a TorchRL env."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from functools import partial
+
+import torch
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    EnvBase,
+    GymEnv,
+    InitTracker,
+    ParallelEnv,
+    SerialEnv,
+    StepCounter,
+    TransformedEnv,
+)
+
+from torchrl_recon.envs.registry import get_entry, register_envs
+
+
+def _check_env_kwargs(entry_point: str, kwargs: dict) -> None:
+    module, attr = entry_point.split(":")
+    cls = getattr(importlib.import_module(module), attr)
+    params = inspect.signature(cls.__init__).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return
+    allowed = sorted(k for k in params if k != "self")
+    unknown = sorted(set(kwargs) - set(allowed))
+    if unknown:
+        raise TypeError(f"{cls.__name__} got unknown keyword(s) {unknown}; expected a subset of {allowed}.")
+
+
+def make_env(
+    name: str,
+    *,
+    seed: int,
+    num_envs: int = 1,
+    device: str | torch.device = "cpu",
+    parallel: bool = True,
+    max_episode_steps: int | None = None,
+    **env_kwargs,
+) -> EnvBase:
+    """Build the TorchRL env for ``name`` with the transforms every recipe expects.
+
+    The result is ``TransformedEnv(GymEnv(...), Compose(DoubleToFloat(), StepCounter(),
+    InitTracker()))``; with ``num_envs > 1`` the base is a ``ParallelEnv`` (or ``SerialEnv``
+    when ``parallel=False``) of ``num_envs`` workers, seeded ``seed, seed + 1, ...``.
+    Episode truncation comes from the gymnasium registration (``TimeLimit``).
+
+    Args:
+        name: short name (``"industrial_benchmark"``, ``"drone"``, ``"minitaur"``) or gymnasium id.
+
+    Keyword Args:
+        seed: seed of the (first) environment.
+        num_envs: number of environments in the batch.
+        device: device of the TorchRL env.
+        parallel: use worker processes when ``num_envs > 1``.
+        max_episode_steps: truncate episodes here instead of at the registered limit.
+        **env_kwargs: keyword arguments of the gymnasium environment's constructor.
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> env = make_env("drone", seed=0)
+        >>> td = env.rollout(3)
+        >>> td["next", "observation"].shape, td["next", "observation"].dtype
+        (torch.Size([3, 12]), torch.float32)
+        >>> env.close()
+    """
+    register_envs()
+    entry = get_entry(name)
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+    if not isinstance(seed, int):
+        raise TypeError(f"seed must be an int, got {seed!r}.")
+    _check_env_kwargs(entry.entry_point, env_kwargs)
+    if max_episode_steps is not None:
+        if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be a positive int, got {max_episode_steps!r}.")
+        env_kwargs["max_episode_steps"] = max_episode_steps
+
+    create = partial(GymEnv, entry.gym_id, device=device, **env_kwargs)
+    if num_envs == 1:
+        base = create()
+    else:
+        batched = ParallelEnv if parallel else SerialEnv
+        base = batched(num_envs, create, device=device)
+    env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker()))
+    env.set_seed(seed)
+    return env

@@ -1,0 +1,81 @@
+"""The one table of environments: names, gymnasium ids, classes and torch cost functions."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium as gym
+import torch
+
+CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class EnvEntry:
+    """One environment: its short name, gymnasium id, class path and cost function path."""
+
+    name: str
+    gym_id: str
+    entry_point: str
+    cost_fn_path: str
+    max_episode_steps: int
+
+    def cost_fn(self) -> CostFn:
+        """Import and return the batched torch cost ``cost(obs, action, next_obs) -> [...]``."""
+        module, attr = self.cost_fn_path.split(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+ENVS: dict[str, EnvEntry] = {
+    e.name: e
+    for e in (
+        EnvEntry(
+            "industrial_benchmark",
+            "torchrl_recon/IndustrialBenchmark-v0",
+            "torchrl_recon.envs.industrial_benchmark:IndustrialBenchmarkEnv",
+            "torchrl_recon.envs.industrial_benchmark:industrial_benchmark_cost",
+            1000,
+        ),
+        EnvEntry(
+            "drone",
+            "torchrl_recon/Drone-v0",
+            "torchrl_recon.envs.drone:DroneEnv",
+            "torchrl_recon.envs.drone:drone_cost",
+            500,
+        ),
+        EnvEntry(
+            "minitaur",
+            "torchrl_recon/Minitaur-v0",
+            "torchrl_recon.envs.minitaur:MinitaurEnv",
+            "torchrl_recon.envs.minitaur:minitaur_cost",
+            500,
+        ),
+    )
+}
+
+
+def get_entry(name: str) -> EnvEntry:
+    """Look an environment up by short name (``"drone"``) or gymnasium id.
+
+    Examples:
+        >>> get_entry("torchrl_recon/Drone-v0").name
+        'drone'
+    """
+    for entry in ENVS.values():
+        if name in (entry.name, entry.gym_id):
+            return entry
+    known = sorted(list(ENVS) + [e.gym_id for e in ENVS.values()])
+    raise ValueError(f"Unknown environment {name!r}; expected one of {known}.")
+
+
+def register_envs() -> None:
+    """Register every environment with gymnasium (idempotent)."""
+    for entry in ENVS.values():
+        if entry.gym_id not in gym.registry:
+            gym.register(
+                id=entry.gym_id,
+                entry_point=entry.entry_point,
+                max_episode_steps=entry.max_episode_steps,
+            )

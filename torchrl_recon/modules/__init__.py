@@ -1,0 +1,10 @@
+"""Learnable modules: the LSTM world model and the uncertainty estimators."""
+
+from __future__ import annotations
+
+from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.world_model import LSTMWorldModel
+
+__all__ = ["LSTMWorldModel", "Normalizer", "ReconstructionUncertainty", "UncertaintyEstimator"]

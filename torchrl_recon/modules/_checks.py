@@ -1,0 +1,28 @@
+"""Shape and value checks with errors that name the bad value and what was expected."""
+
+from __future__ import annotations
+
+import torch
+
+
+def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -> None:
+    """Raise if ``x`` is not a tensor with last dimension ``dim`` and at least ``min_ndim`` dims."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}.")
+    if x.ndim < min_ndim or x.shape[-1] != dim:
+        raise ValueError(f"{name} has shape {tuple(x.shape)}; expected at least {min_ndim} dims with last dim {dim}.")
+
+
+def check_finite(name: str, x: torch.Tensor) -> None:
+    """Raise if ``x`` holds NaN or inf (skipped for tensors that require grad inside autograd)."""
+    if not torch.isfinite(x).all():
+        bad = (~torch.isfinite(x)).nonzero()[0].tolist()
+        raise ValueError(f"{name} contains NaN or inf (first at index {bad}); expected finite values.")
+
+
+def check_window(name: str, x: torch.Tensor, window: int) -> None:
+    """Raise if the time dimension (-2) of ``x`` is shorter than ``window``."""
+    if x.ndim < 2 or x.shape[-2] < window:
+        raise ValueError(
+            f"{name} has shape {tuple(x.shape)}; expected a time dimension (-2) of at least window={window} steps."
+        )

@@ -1,0 +1,90 @@
+"""The paper's reconstruction-uncertainty estimator: an autoencoder over T-step (s, a) windows."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import NestedKey
+from torch import nn
+from torch.nn import functional as F
+
+from torchrl_recon.modules._checks import check_features
+from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+
+_ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
+
+
+class ReconstructionUncertainty(UncertaintyEstimator):
+    """Feed-forward autoencoder whose reconstruction error is the uncertainty u (paper §2.2).
+
+    The input is the flattened window of T consecutive standardised (s, a) pairs,
+    size T·(N + M), with one hidden layer (paper: 100 units). For the window ending at t,
+
+        u_t = (1/T) · sqrt( Σ_{i=t-T+1..t} ‖x_i − x̂_i‖² )            (paper eq. 2)
+
+    where x_i = ((s_i − μ_s)/σ_s, (a_i − μ_a)/σ_a) are standardised with statistics fitted
+    on the training data. Standardising makes every feature count equally whatever its
+    units (IB states span 0–100, actions ±1); the paper does not state its normalisation.
+    Training minimises the mean of u over windows (paper eq. 1), see
+    :class:`~torchrl_recon.objectives.ReconstructionLoss`.
+
+    Args:
+        obs_dim: state size N.
+        action_dim: action size M.
+
+    Keyword Args:
+        window: T, the number of steps per window (paper: 10).
+        hidden_size: hidden units (paper: 100).
+        activation: ``"relu"``, ``"tanh"`` or ``"elu"``.
+        obs_key, action_key, out_key: TensorDict keys used by ``forward``.
+
+    Examples:
+        >>> ae = ReconstructionUncertainty(6, 3, window=10)
+        >>> ae.score(torch.randn(4, 30, 6), torch.randn(4, 30, 3)).shape
+        torch.Size([4, 21])
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        *,
+        window: int = 10,
+        hidden_size: int = 100,
+        activation: str = "relu",
+        obs_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        out_key: NestedKey = "uncertainty",
+    ) -> None:
+        super().__init__(obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key)
+        if activation not in _ACTIVATIONS:
+            raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
+        if not isinstance(hidden_size, int) or hidden_size < 1:
+            raise ValueError(f"hidden_size must be a positive int, got {hidden_size!r}.")
+        self.hidden_size, self.activation = hidden_size, activation
+        size = window * self.feature_dim
+        self.encoder = nn.Linear(size, hidden_size)
+        self.decoder = nn.Linear(hidden_size, size)
+        self.input_norm = Normalizer(self.feature_dim)
+
+    def config(self) -> dict:
+        return {
+            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "window": self.window,
+            "hidden_size": self.hidden_size, "activation": self.activation,
+        }
+
+    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
+        check_features("obs", obs, self.obs_dim)
+        check_features("action", action, self.action_dim)
+        self.input_norm.fit(torch.cat([obs, action], -1))
+
+    def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
+        rows, length, dim = x.shape
+        num_windows = length - self.window + 1
+        x = self.input_norm.normalize(x).contiguous()
+        # Each window of T rows is one contiguous run of T*D values: a strided view, copied once.
+        windows = x.as_strided((rows, num_windows, self.window * dim), (length * dim, dim, 1))
+        windows = windows.reshape(rows * num_windows, self.window * dim)
+        hidden = _ACTIVATIONS[self.activation](torch.addmm(self.encoder.bias, windows, self.encoder.weight.t()))
+        error = torch.addmm(self.decoder.bias, hidden, self.decoder.weight.t()).sub_(windows)
+        return (torch.linalg.vector_norm(error, dim=-1) / self.window).reshape(rows, num_windows)

@@ -1,0 +1,97 @@
+"""The interface every uncertainty estimator implements: score T-step windows of (s, a)."""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_recon.modules._checks import check_features, check_finite, check_window
+
+
+class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
+    """Scores how unfamiliar windows of ``window`` consecutive (s, a) pairs are.
+
+    Model-agnostic: an estimator reads only states and actions, never a world model.
+    Subclasses implement :meth:`fit_normalization` and :meth:`score_windows`; everything
+    else (trajectory scoring, TensorDict ``forward``) is shared.
+
+    ``forward`` reads ``obs_key`` ``[*B, L, N]`` and ``action_key`` ``[*B, L, M]`` and writes
+    ``out_key`` ``[*B, L]``: the u of the window *ending* at each step; the first
+    ``window - 1`` steps have no full window and hold NaN.
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        window: int,
+        *,
+        obs_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        out_key: NestedKey = "uncertainty",
+    ) -> None:
+        super().__init__()
+        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("window", window)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
+        self.in_keys = [obs_key, action_key]
+        self.out_keys = [out_key]
+
+    @property
+    def feature_dim(self) -> int:
+        """Features per step, N + M."""
+        return self.obs_dim + self.action_dim
+
+    @abc.abstractmethod
+    def config(self) -> dict:
+        """Constructor arguments, stored in checkpoints and checked on load."""
+
+    @abc.abstractmethod
+    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
+        """Fit input statistics from real data ``[..., N]``, ``[..., M]``."""
+
+    @abc.abstractmethod
+    def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
+        """Score every T-window of raw (s, a) sequences ``x`` ``[R, L, N + M]`` → ``[R, L - T + 1]``."""
+
+    def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Training loss on real sequences ``[*B, L, N]``, ``[*B, L, M]`` (default: mean u, paper eq. 1)."""
+        return self.score(obs, action).mean()
+
+    def _check_pair(self, obs: torch.Tensor, action: torch.Tensor) -> None:
+        check_features("obs", obs, self.obs_dim, min_ndim=2)
+        check_features("action", action, self.action_dim, min_ndim=2)
+        if obs.shape[:-1] != action.shape[:-1]:
+            raise ValueError(f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims.")
+        check_window("obs", obs, self.window)
+
+    def score(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """u for every window of trajectories ``[*B, L, N]``, ``[*B, L, M]`` → ``[*B, L - T + 1]``.
+
+        One batched call over all windows; differentiable w.r.t. both inputs.
+        """
+        self._check_pair(obs, action)
+        check_finite("obs", obs.detach())
+        check_finite("action", action.detach())
+        batch, length = obs.shape[:-2], obs.shape[-2]
+        x = torch.cat([obs, action], -1).reshape(-1, length, self.feature_dim)
+        return self.score_sequence(x).reshape(*batch, length - self.window + 1)
+
+    def score_windows(self, windows: torch.Tensor) -> torch.Tensor:
+        """u of single windows ``[*B, T, N + M]`` → ``[*B]``."""
+        check_features("windows", windows, self.feature_dim, min_ndim=2)
+        if windows.shape[-2] != self.window:
+            raise ValueError(f"windows has shape {tuple(windows.shape)}; expected [*B, {self.window}, {self.feature_dim}].")
+        batch = windows.shape[:-2]
+        return self.score_sequence(windows.reshape(-1, self.window, self.feature_dim)).reshape(batch)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])
+        u = self.score(obs, action)
+        pad = u.new_full((*u.shape[:-1], self.window - 1), float("nan"))
+        tensordict.set(self.out_keys[0], torch.cat([pad, u], -1))
+        return tensordict

@@ -1,0 +1,192 @@
+"""The paper's recurrent world model: an LSTM that predicts state changes Δs."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torch.nn import functional as F
+
+from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules.normalization import Normalizer
+
+_ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
+
+
+class LSTMWorldModel(TensorDictModuleBase):
+    """LSTM → dense → linear world model predicting Δs_{t+1} from past (s, a) (paper §2.1).
+
+    Inputs and targets are standardised with statistics fitted by :meth:`fit_normalization`
+    and stored as buffers, so ``state_dict`` is self-contained.
+
+    Two uses, both batched:
+
+    * ``forward(td)``: teacher-forced one-step predictions along the time dim of
+      ``td[obs_key]`` ``[*B, L, N]`` and ``td[action_key]`` ``[*B, L, M]``; writes the
+      predicted next observations ``[*B, L, N]`` to ``out_key``.
+    * :meth:`imagine`: warm up on a real context of ``window`` (s, a) pairs, then roll out
+      ``[*B, K, H, M]`` candidate action sequences autoregressively, all candidates at once,
+      differentiably with respect to the actions.
+
+    Args:
+        obs_dim: state size N.
+        action_dim: action size M.
+
+    Keyword Args:
+        hidden_size: LSTM units (paper: 32).
+        dense_size: units of the dense hidden layer.
+        window: context length T used to warm the LSTM up (paper: 10).
+        activation: ``"relu"``, ``"tanh"`` or ``"elu"`` after the dense layer.
+        obs_key, action_key: input keys.
+        out_key: where ``forward`` writes predicted next observations.
+
+    Examples:
+        >>> model = LSTMWorldModel(6, 3)
+        >>> ctx_s, ctx_a, s0 = torch.randn(2, 10, 6), torch.randn(2, 10, 3), torch.randn(2, 6)
+        >>> model.imagine(ctx_s, ctx_a, s0, torch.rand(2, 100, 30, 3)).shape
+        torch.Size([2, 100, 30, 6])
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        *,
+        hidden_size: int = 32,
+        dense_size: int = 32,
+        window: int = 10,
+        activation: str = "relu",
+        obs_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        out_key: NestedKey = ("next", "predicted_observation"),
+    ) -> None:
+        super().__init__()
+        if activation not in _ACTIVATIONS:
+            raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
+        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("hidden_size", hidden_size),
+                            ("dense_size", dense_size), ("window", window)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
+        self.hidden_size, self.dense_size, self.activation = hidden_size, dense_size, activation
+        self.in_keys = [obs_key, action_key]
+        self.out_keys = [out_key]
+        self.lstm = nn.LSTM(obs_dim + action_dim, hidden_size, batch_first=True)
+        self.dense = nn.Linear(hidden_size, dense_size)
+        self.head = nn.Linear(dense_size, obs_dim)
+        self.obs_norm = Normalizer(obs_dim)
+        self.action_norm = Normalizer(action_dim)
+        self.delta_norm = Normalizer(obs_dim)
+
+    def config(self) -> dict:
+        """Constructor arguments, stored in checkpoints and checked on load."""
+        return {
+            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "hidden_size": self.hidden_size,
+            "dense_size": self.dense_size, "window": self.window, "activation": self.activation,
+        }
+
+    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> None:
+        """Fit input and target statistics from real transitions ``[..., N]``, ``[..., M]``, ``[..., N]``."""
+        check_features("obs", obs, self.obs_dim)
+        check_features("action", action, self.action_dim)
+        check_features("next_obs", next_obs, self.obs_dim)
+        self.obs_norm.fit(obs)
+        self.action_norm.fit(action)
+        self.delta_norm.fit(next_obs - obs)
+
+    def _inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
+
+    def predict_delta(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Teacher-forced normalised Δs predictions for sequences ``[*B, L, N]``, ``[*B, L, M]``."""
+        check_features("obs", obs, self.obs_dim, min_ndim=2)
+        check_features("action", action, self.action_dim, min_ndim=2)
+        if obs.shape[:-1] != action.shape[:-1]:
+            raise ValueError(f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims.")
+        x = self._inputs(obs, action)
+        batch, length = x.shape[:-2], x.shape[-2]
+        out, _ = self.lstm(x.reshape(-1, length, x.shape[-1]))
+        z = _ACTIVATIONS[self.activation](self.dense(out))
+        return self.head(z).reshape(*batch, length, self.obs_dim)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])
+        delta = self.delta_norm.denormalize(self.predict_delta(obs, action))
+        tensordict.set(self.out_keys[0], obs + delta)
+        return tensordict
+
+    def warmup(self, context_obs: torch.Tensor, context_action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Run the LSTM over a real context ``[*B, T, N]``, ``[*B, T, M]``; return ``(h, c)`` ``[*B, hidden]``."""
+        check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
+        check_features("context_action", context_action, self.action_dim, min_ndim=2)
+        check_window("context_obs", context_obs, self.window)
+        if context_obs.shape[:-1] != context_action.shape[:-1]:
+            raise ValueError(
+                f"context_obs {tuple(context_obs.shape)} and context_action {tuple(context_action.shape)} "
+                "disagree on batch/time dims."
+            )
+        check_finite("context_obs", context_obs)
+        x = self._inputs(context_obs[..., -self.window:, :], context_action[..., -self.window:, :])
+        batch = x.shape[:-2]
+        _, (h, c) = self.lstm(x.reshape(-1, self.window, x.shape[-1]))
+        return h[0].reshape(*batch, self.hidden_size), c[0].reshape(*batch, self.hidden_size)
+
+    def _folded_weights(self) -> tuple[torch.Tensor, ...]:
+        """Fold the normalisations into the weights so the rollout works in raw units."""
+        n = self.obs_dim
+        w_ih, w_hh = self.lstm.weight_ih_l0, self.lstm.weight_hh_l0
+        w_s = w_ih[:, :n] / self.obs_norm.scale
+        w_a = w_ih[:, n:] / self.action_norm.scale
+        bias = self.lstm.bias_ih_l0 + self.lstm.bias_hh_l0 - w_s @ self.obs_norm.loc - w_a @ self.action_norm.loc
+        w_sh = torch.cat([w_s, w_hh], 1).t()  # [N + hidden, 4 hidden]
+        w_out = (self.head.weight * self.delta_norm.scale[:, None]).t()  # [dense, N]
+        b_out = self.head.bias * self.delta_norm.scale + self.delta_norm.loc
+        return w_a.t(), bias, w_sh, self.dense.weight.t(), self.dense.bias, w_out, b_out
+
+    def imagine(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+    ) -> torch.Tensor:
+        """Predict states for candidate action sequences, all candidates in one batch.
+
+        Args:
+            context_obs: real past states s_{t-T..t-1}, ``[*B, T', N]`` with T' >= window.
+            context_action: real past actions a_{t-T..t-1}, ``[*B, T', M]``.
+            observation: the current real state s_t, ``[*B, N]``.
+            actions: candidates a_{t..t+H-1}, ``[*B, K, H, M]``.
+
+        Returns:
+            Predicted states s_{t+1..t+H}, ``[*B, K, H, N]`` (differentiable w.r.t. ``actions``).
+        """
+        check_features("observation", observation, self.obs_dim)
+        check_features("actions", actions, self.action_dim, min_ndim=3)
+        batch = observation.shape[:-1]
+        if actions.shape[:-3] != batch:
+            raise ValueError(
+                f"actions has shape {tuple(actions.shape)}; expected [*B, K, H, {self.action_dim}] with *B = {tuple(batch)}."
+            )
+        check_finite("observation", observation)
+        h, c = self.warmup(context_obs, context_action)
+        k, horizon = actions.shape[-3], actions.shape[-2]
+        rows = int(torch.Size(batch).numel()) * k
+        w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
+        act = _ACTIVATIONS[self.activation]
+        hid = self.hidden_size
+        # Action contribution to the gates for every step in one matmul.
+        gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(rows, horizon, 4 * hid)
+        s = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)
+        h = h.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
+        c = c.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
+        states = []
+        for t in range(horizon):
+            gates = torch.addmm(gates_a[:, t], torch.cat([s, h], 1), w_sh)
+            sig = torch.sigmoid(gates)
+            c = sig[:, hid:2 * hid] * c + sig[:, :hid] * torch.tanh(gates[:, 2 * hid:3 * hid])
+            h = sig[:, 3 * hid:] * torch.tanh(c)
+            s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
+            states.append(s)
+        return torch.stack(states, 1).reshape(*batch, k, horizon, self.obs_dim)

@@ -1,0 +1,8 @@
+"""TorchRL loss modules for the world model and the uncertainty estimators."""
+
+from __future__ import annotations
+
+from torchrl_recon.objectives.uncertainty_loss import UncertaintyLoss
+from torchrl_recon.objectives.world_model_loss import WorldModelPredictionLoss
+
+__all__ = ["UncertaintyLoss", "WorldModelPredictionLoss"]

@@ -1,0 +1,25 @@
+"""Turn replay-buffer samples into ``[B, L]`` sequences."""
+
+from __future__ import annotations
+
+from tensordict import TensorDictBase
+
+
+def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDictBase:
+    """Return ``tensordict`` shaped ``[B, L]``.
+
+    A 2-D batch is returned as it is; a flat ``[B * L]`` batch from a ``SliceSampler`` is
+    reshaped with ``slice_len``.
+    """
+    if tensordict.batch_dims >= 2:
+        return tensordict
+    if slice_len is None:
+        raise ValueError(
+            f"Got a flat batch of shape {tuple(tensordict.batch_size)}; pass slice_len= to the loss "
+            "(the SliceSampler's slice_len) or give a [B, L] tensordict."
+        )
+    if tensordict.batch_dims != 1 or tensordict.batch_size[0] % slice_len:
+        raise ValueError(
+            f"Batch of shape {tuple(tensordict.batch_size)} cannot be split into slices of {slice_len} steps."
+        )
+    return tensordict.reshape(-1, slice_len)

@@ -1,0 +1,51 @@
+"""Training loss of any uncertainty estimator (the autoencoder's is paper eq. 1)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from torchrl.objectives import LossModule
+
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.objectives._sequences import as_sequences
+
+
+class UncertaintyLoss(LossModule):
+    """Fit an :class:`~torchrl_recon.modules.UncertaintyEstimator` on real (s, a) sequences.
+
+    Delegates to ``estimator.loss``; for :class:`~torchrl_recon.modules.ReconstructionUncertainty`
+    that is the mean reconstruction error u over all windows (paper eq. 1).
+
+    Args:
+        estimator: the estimator to train.
+
+    Keyword Args:
+        slice_len: length of the sequences in a flat ``SliceSampler`` batch.
+        obs_key, action_key: TensorDict keys.
+
+    Examples:
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> loss = UncertaintyLoss(ReconstructionUncertainty(6, 3, window=4), slice_len=8)
+        >>> td = TensorDict({"observation": torch.randn(16, 6), "action": torch.randn(16, 3)}, [16])
+        >>> loss(td)["loss_uncertainty"].shape
+        torch.Size([])
+    """
+
+    def __init__(
+        self,
+        estimator: UncertaintyEstimator,
+        *,
+        slice_len: int | None = None,
+        obs_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+    ) -> None:
+        super().__init__()
+        self.estimator, self.slice_len = estimator, slice_len
+        self.obs_key, self.action_key = obs_key, action_key
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        td = as_sequences(tensordict, self.slice_len)
+        loss = self.estimator.loss(td.get(self.obs_key), td.get(self.action_key))
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"uncertainty loss is {loss.item()}; check the data and the learning rate.")
+        return TensorDict({"loss_uncertainty": loss}, [])

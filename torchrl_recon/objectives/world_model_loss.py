@@ -1,0 +1,78 @@
+"""Training loss of the LSTM world model."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from torchrl.objectives import LossModule
+
+from torchrl_recon.modules.world_model import LSTMWorldModel
+from torchrl_recon.objectives._sequences import as_sequences
+
+
+class WorldModelPredictionLoss(LossModule):
+    """Δs prediction error of an :class:`~torchrl_recon.modules.LSTMWorldModel`.
+
+    Two modes:
+
+    * ``"one_step"``: teacher-forced; the squared error of the standardised Δs_{t+1} at every step.
+    * ``"multi_step"``: warm up on the first ``window`` steps of each sequence, then roll out
+      the rest with the real actions, feeding predictions back (as the planner does); the
+      squared error of the predicted states, standardised by the state statistics.
+
+    Args:
+        world_model: the model to train.
+
+    Keyword Args:
+        mode: ``"multi_step"`` (default) or ``"one_step"``.
+        slice_len: length of the sequences in a flat ``SliceSampler`` batch.
+        obs_key, action_key, next_obs_key: TensorDict keys.
+
+    Examples:
+        >>> model = LSTMWorldModel(6, 3, window=4)
+        >>> loss = WorldModelPredictionLoss(model, slice_len=8)
+        >>> td = TensorDict({"observation": torch.randn(16, 6), "action": torch.randn(16, 3),
+        ...                  ("next", "observation"): torch.randn(16, 6)}, [16])
+        >>> loss(td)["loss_world_model"].shape
+        torch.Size([])
+    """
+
+    def __init__(
+        self,
+        world_model: LSTMWorldModel,
+        *,
+        mode: Literal["multi_step", "one_step"] = "multi_step",
+        slice_len: int | None = None,
+        obs_key: NestedKey = "observation",
+        action_key: NestedKey = "action",
+        next_obs_key: NestedKey = ("next", "observation"),
+    ) -> None:
+        super().__init__()
+        if mode not in ("multi_step", "one_step"):
+            raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
+        self.world_model, self.mode, self.slice_len = world_model, mode, slice_len
+        self.obs_key, self.action_key, self.next_obs_key = obs_key, action_key, next_obs_key
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        td = as_sequences(tensordict, self.slice_len)
+        obs, action, next_obs = td.get(self.obs_key), td.get(self.action_key), td.get(self.next_obs_key)
+        model = self.world_model
+        if self.mode == "one_step":
+            pred = model.predict_delta(obs, action)
+            target = model.delta_norm.normalize(next_obs - obs)
+            loss = (pred - target).pow(2).mean()
+        else:
+            window = model.window
+            if obs.shape[-2] <= window:
+                raise ValueError(
+                    f"multi_step loss needs sequences longer than window={window}, got length {obs.shape[-2]}."
+                )
+            pred = model.imagine(
+                obs[..., :window, :], action[..., :window, :], obs[..., window, :], action[..., None, window:, :]
+            )[..., 0, :, :]
+            loss = ((pred - next_obs[..., window:, :]) / model.obs_norm.scale).pow(2).mean()
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"world-model loss is {loss.item()}; check the data and the learning rate.")
+        return TensorDict({"loss_world_model": loss}, [])

@@ -11,4 +11,11 @@ from torchrl_recon.data.buffers import (
     split_by_trajectory,
 )
 
-__all__ = ["TRAJ_KEY", "buffer_contents", "load_buffer", "make_sequence_buffer", "save_buffer", "split_by_trajectory"]
+__all__ = [
+    "TRAJ_KEY",
+    "buffer_contents",
+    "load_buffer",
+    "make_sequence_buffer",
+    "save_buffer",
+    "split_by_trajectory",
+]

@@ -79,7 +79,9 @@ def save_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> None:
     prefetch, so that file is removed and :func:`load_buffer` never unpickles anything.
     """
     if getattr(buffer, "_prefetch_cap", 0):
-        raise ValueError("save_buffer supports buffers without prefetch only (prefetch state is pickled).")
+        raise ValueError(
+            "save_buffer supports buffers without prefetch only (prefetch state is pickled)."
+        )
     Path(path).mkdir(parents=True, exist_ok=True)
     buffer.dumps(path)
     Path(path, _PREFETCH_FILE).unlink(missing_ok=True)
@@ -88,7 +90,9 @@ def save_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> None:
 def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictReplayBuffer:
     """Restore ``buffer`` (built with the same components) from ``path`` written by :func:`save_buffer`."""
     if not Path(path, "storage").exists():
-        raise FileNotFoundError(f"No saved replay buffer at {path} (expected a 'storage' folder from save_buffer).")
+        raise FileNotFoundError(
+            f"No saved replay buffer at {path} (expected a 'storage' folder from save_buffer)."
+        )
     if Path(path, _PREFETCH_FILE).exists():
         raise ValueError(
             f"{Path(path, _PREFETCH_FILE)} is a pickle; refusing to load it. Buffers written by save_buffer have none."

@@ -31,7 +31,9 @@ def _check_env_kwargs(entry_point: str, kwargs: dict) -> None:
     allowed = sorted(k for k in params if k != "self")
     unknown = sorted(set(kwargs) - set(allowed))
     if unknown:
-        raise TypeError(f"{cls.__name__} got unknown keyword(s) {unknown}; expected a subset of {allowed}.")
+        raise TypeError(
+            f"{cls.__name__} got unknown keyword(s) {unknown}; expected a subset of {allowed}."
+        )
 
 
 def make_env(
@@ -79,7 +81,9 @@ def make_env(
     _check_env_kwargs(entry.entry_point, env_kwargs)
     if max_episode_steps is not None:
         if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be a positive int, got {max_episode_steps!r}.")
+            raise ValueError(
+                f"max_episode_steps must be a positive int, got {max_episode_steps!r}."
+            )
         env_kwargs["max_episode_steps"] = max_episode_steps
 
     create = partial(GymEnv, entry.gym_id, device=device, **env_kwargs)

@@ -10,14 +10,18 @@ def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}.")
     if x.ndim < min_ndim or x.shape[-1] != dim:
-        raise ValueError(f"{name} has shape {tuple(x.shape)}; expected at least {min_ndim} dims with last dim {dim}.")
+        raise ValueError(
+            f"{name} has shape {tuple(x.shape)}; expected at least {min_ndim} dims with last dim {dim}."
+        )
 
 
 def check_finite(name: str, x: torch.Tensor) -> None:
     """Raise if ``x`` holds NaN or inf (skipped for tensors that require grad inside autograd)."""
     if not torch.isfinite(x).all():
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()
-        raise ValueError(f"{name} contains NaN or inf (first at index {bad}); expected finite values.")
+        raise ValueError(
+            f"{name} contains NaN or inf (first at index {bad}); expected finite values."
+        )
 
 
 def check_window(name: str, x: torch.Tensor, window: int) -> None:

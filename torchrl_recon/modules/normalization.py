@@ -42,7 +42,9 @@ class Normalizer(nn.Module):
     def fit(self, data: torch.Tensor) -> None:
         """Fit the statistics on ``data`` of shape ``[..., num_features]``."""
         if data.shape[-1] != self.num_features:
-            raise ValueError(f"Normalizer expects last dim {self.num_features}, got data of shape {tuple(data.shape)}.")
+            raise ValueError(
+                f"Normalizer expects last dim {self.num_features}, got data of shape {tuple(data.shape)}."
+            )
         flat = data.reshape(-1, self.num_features).to(torch.float64)
         if flat.shape[0] < 2:
             raise ValueError(f"Normalizer needs at least 2 samples to fit, got {flat.shape[0]}.")

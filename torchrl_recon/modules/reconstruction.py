@@ -56,7 +56,9 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         action_key: NestedKey = "action",
         out_key: NestedKey = "uncertainty",
     ) -> None:
-        super().__init__(obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key)
+        super().__init__(
+            obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key
+        )
         if activation not in _ACTIVATIONS:
             raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
         if not isinstance(hidden_size, int) or hidden_size < 1:
@@ -69,8 +71,11 @@ class ReconstructionUncertainty(UncertaintyEstimator):
 
     def config(self) -> dict:
         return {
-            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "window": self.window,
-            "hidden_size": self.hidden_size, "activation": self.activation,
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "window": self.window,
+            "hidden_size": self.hidden_size,
+            "activation": self.activation,
         }
 
     def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
@@ -85,6 +90,8 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         # Each window of T rows is one contiguous run of T*D values: a strided view, copied once.
         windows = x.as_strided((rows, num_windows, self.window * dim), (length * dim, dim, 1))
         windows = windows.reshape(rows * num_windows, self.window * dim)
-        hidden = _ACTIVATIONS[self.activation](torch.addmm(self.encoder.bias, windows, self.encoder.weight.t()))
+        hidden = _ACTIVATIONS[self.activation](
+            torch.addmm(self.encoder.bias, windows, self.encoder.weight.t())
+        )
         error = torch.addmm(self.decoder.bias, hidden, self.decoder.weight.t()).sub_(windows)
         return (torch.linalg.vector_norm(error, dim=-1) / self.window).reshape(rows, num_windows)

@@ -66,7 +66,9 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
         check_features("obs", obs, self.obs_dim, min_ndim=2)
         check_features("action", action, self.action_dim, min_ndim=2)
         if obs.shape[:-1] != action.shape[:-1]:
-            raise ValueError(f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims.")
+            raise ValueError(
+                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
+            )
         check_window("obs", obs, self.window)
 
     def score(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -85,9 +87,13 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
         """u of single windows ``[*B, T, N + M]`` → ``[*B]``."""
         check_features("windows", windows, self.feature_dim, min_ndim=2)
         if windows.shape[-2] != self.window:
-            raise ValueError(f"windows has shape {tuple(windows.shape)}; expected [*B, {self.window}, {self.feature_dim}].")
+            raise ValueError(
+                f"windows has shape {tuple(windows.shape)}; expected [*B, {self.window}, {self.feature_dim}]."
+            )
         batch = windows.shape[:-2]
-        return self.score_sequence(windows.reshape(-1, self.window, self.feature_dim)).reshape(batch)
+        return self.score_sequence(windows.reshape(-1, self.window, self.feature_dim)).reshape(
+            batch
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])

@@ -64,8 +64,13 @@ class LSTMWorldModel(TensorDictModuleBase):
         super().__init__()
         if activation not in _ACTIVATIONS:
             raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
-        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("hidden_size", hidden_size),
-                            ("dense_size", dense_size), ("window", window)):
+        for name, value in (
+            ("obs_dim", obs_dim),
+            ("action_dim", action_dim),
+            ("hidden_size", hidden_size),
+            ("dense_size", dense_size),
+            ("window", window),
+        ):
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
         self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
@@ -82,11 +87,17 @@ class LSTMWorldModel(TensorDictModuleBase):
     def config(self) -> dict:
         """Constructor arguments, stored in checkpoints and checked on load."""
         return {
-            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "hidden_size": self.hidden_size,
-            "dense_size": self.dense_size, "window": self.window, "activation": self.activation,
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "hidden_size": self.hidden_size,
+            "dense_size": self.dense_size,
+            "window": self.window,
+            "activation": self.activation,
         }
 
-    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> None:
+    def fit_normalization(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> None:
         """Fit input and target statistics from real transitions ``[..., N]``, ``[..., M]``, ``[..., N]``."""
         check_features("obs", obs, self.obs_dim)
         check_features("action", action, self.action_dim)
@@ -103,7 +114,9 @@ class LSTMWorldModel(TensorDictModuleBase):
         check_features("obs", obs, self.obs_dim, min_ndim=2)
         check_features("action", action, self.action_dim, min_ndim=2)
         if obs.shape[:-1] != action.shape[:-1]:
-            raise ValueError(f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims.")
+            raise ValueError(
+                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
+            )
         x = self._inputs(obs, action)
         batch, length = x.shape[:-2], x.shape[-2]
         out, _ = self.lstm(x.reshape(-1, length, x.shape[-1]))
@@ -116,7 +129,9 @@ class LSTMWorldModel(TensorDictModuleBase):
         tensordict.set(self.out_keys[0], obs + delta)
         return tensordict
 
-    def warmup(self, context_obs: torch.Tensor, context_action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def warmup(
+        self, context_obs: torch.Tensor, context_action: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Run the LSTM over a real context ``[*B, T, N]``, ``[*B, T, M]``; return ``(h, c)`` ``[*B, hidden]``."""
         check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
         check_features("context_action", context_action, self.action_dim, min_ndim=2)
@@ -127,7 +142,9 @@ class LSTMWorldModel(TensorDictModuleBase):
                 "disagree on batch/time dims."
             )
         check_finite("context_obs", context_obs)
-        x = self._inputs(context_obs[..., -self.window:, :], context_action[..., -self.window:, :])
+        x = self._inputs(
+            context_obs[..., -self.window :, :], context_action[..., -self.window :, :]
+        )
         batch = x.shape[:-2]
         _, (h, c) = self.lstm(x.reshape(-1, self.window, x.shape[-1]))
         return h[0].reshape(*batch, self.hidden_size), c[0].reshape(*batch, self.hidden_size)
@@ -138,7 +155,12 @@ class LSTMWorldModel(TensorDictModuleBase):
         w_ih, w_hh = self.lstm.weight_ih_l0, self.lstm.weight_hh_l0
         w_s = w_ih[:, :n] / self.obs_norm.scale
         w_a = w_ih[:, n:] / self.action_norm.scale
-        bias = self.lstm.bias_ih_l0 + self.lstm.bias_hh_l0 - w_s @ self.obs_norm.loc - w_a @ self.action_norm.loc
+        bias = (
+            self.lstm.bias_ih_l0
+            + self.lstm.bias_hh_l0
+            - w_s @ self.obs_norm.loc
+            - w_a @ self.action_norm.loc
+        )
         w_sh = torch.cat([w_s, w_hh], 1).t()  # [N + hidden, 4 hidden]
         w_out = (self.head.weight * self.delta_norm.scale[:, None]).t()  # [dense, N]
         b_out = self.head.bias * self.delta_norm.scale + self.delta_norm.loc
@@ -177,7 +199,9 @@ class LSTMWorldModel(TensorDictModuleBase):
         act = _ACTIVATIONS[self.activation]
         hid = self.hidden_size
         # Action contribution to the gates for every step in one matmul.
-        gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(rows, horizon, 4 * hid)
+        gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(
+            rows, horizon, 4 * hid
+        )
         s = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)
         h = h.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
         c = c.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
@@ -185,8 +209,8 @@ class LSTMWorldModel(TensorDictModuleBase):
         for t in range(horizon):
             gates = torch.addmm(gates_a[:, t], torch.cat([s, h], 1), w_sh)
             sig = torch.sigmoid(gates)
-            c = sig[:, hid:2 * hid] * c + sig[:, :hid] * torch.tanh(gates[:, 2 * hid:3 * hid])
-            h = sig[:, 3 * hid:] * torch.tanh(c)
+            c = sig[:, hid : 2 * hid] * c + sig[:, :hid] * torch.tanh(gates[:, 2 * hid : 3 * hid])
+            h = sig[:, 3 * hid :] * torch.tanh(c)
             s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
             states.append(s)
         return torch.stack(states, 1).reshape(*batch, k, horizon, self.obs_dim)

@@ -47,5 +47,7 @@ class UncertaintyLoss(LossModule):
         td = as_sequences(tensordict, self.slice_len)
         loss = self.estimator.loss(td.get(self.obs_key), td.get(self.action_key))
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"uncertainty loss is {loss.item()}; check the data and the learning rate.")
+            raise FloatingPointError(
+                f"uncertainty loss is {loss.item()}; check the data and the learning rate."
+            )
         return TensorDict({"loss_uncertainty": loss}, [])

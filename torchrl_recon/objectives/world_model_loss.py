@@ -57,7 +57,11 @@ class WorldModelPredictionLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = as_sequences(tensordict, self.slice_len)
-        obs, action, next_obs = td.get(self.obs_key), td.get(self.action_key), td.get(self.next_obs_key)
+        obs, action, next_obs = (
+            td.get(self.obs_key),
+            td.get(self.action_key),
+            td.get(self.next_obs_key),
+        )
         model = self.world_model
         if self.mode == "one_step":
             pred = model.predict_delta(obs, action)
@@ -70,9 +74,14 @@ class WorldModelPredictionLoss(LossModule):
                     f"multi_step loss needs sequences longer than window={window}, got length {obs.shape[-2]}."
                 )
             pred = model.imagine(
-                obs[..., :window, :], action[..., :window, :], obs[..., window, :], action[..., None, window:, :]
+                obs[..., :window, :],
+                action[..., :window, :],
+                obs[..., window, :],
+                action[..., None, window:, :],
             )[..., 0, :, :]
             loss = ((pred - next_obs[..., window:, :]) / model.obs_norm.scale).pow(2).mean()
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"world-model loss is {loss.item()}; check the data and the learning rate.")
+            raise FloatingPointError(
+                f"world-model loss is {loss.item()}; check the data and the learning rate."
+            )
         return TensorDict({"loss_world_model": loss}, [])

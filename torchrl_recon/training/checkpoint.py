@@ -18,7 +18,9 @@ def _module_classes() -> dict[str, type[nn.Module]]:
     return {cls.__name__: cls for cls in (LSTMWorldModel, ReconstructionUncertainty)}
 
 
-def save_checkpoint(path: str | Path, modules: dict[str, nn.Module], *, extra: dict[str, Any] | None = None) -> None:
+def save_checkpoint(
+    path: str | Path, modules: dict[str, nn.Module], *, extra: dict[str, Any] | None = None
+) -> None:
     """Atomically write ``modules`` (each with a ``config()`` method) and plain-data ``extra`` to ``path``.
 
     Examples:
@@ -59,13 +61,23 @@ def load_checkpoint(path: str | Path, modules: dict[str, nn.Module]) -> dict[str
     payload = _read(path)
     for name, module in modules.items():
         if name not in payload["modules"]:
-            raise KeyError(f"Checkpoint {path} has no module {name!r}; it has {sorted(payload['modules'])}.")
+            raise KeyError(
+                f"Checkpoint {path} has no module {name!r}; it has {sorted(payload['modules'])}."
+            )
         saved = payload["modules"][name]
         if saved["class"] != type(module).__name__:
-            raise ValueError(f"Checkpoint {path}: {name!r} is a {saved['class']}, not a {type(module).__name__}.")
+            raise ValueError(
+                f"Checkpoint {path}: {name!r} is a {saved['class']}, not a {type(module).__name__}."
+            )
         if saved["config"] != module.config():
-            diff = {k: (saved["config"].get(k), v) for k, v in module.config().items() if saved["config"].get(k) != v}
-            raise ValueError(f"Checkpoint {path}: {name!r} config mismatch (saved, expected): {diff}.")
+            diff = {
+                k: (saved["config"].get(k), v)
+                for k, v in module.config().items()
+                if saved["config"].get(k) != v
+            }
+            raise ValueError(
+                f"Checkpoint {path}: {name!r} config mismatch (saved, expected): {diff}."
+            )
         module.load_state_dict(saved["state_dict"])
     return payload["extra"]
 
@@ -77,7 +89,9 @@ def load_modules(path: str | Path) -> dict[str, nn.Module]:
     out = {}
     for name, saved in payload["modules"].items():
         if saved["class"] not in classes:
-            raise ValueError(f"Checkpoint {path}: unknown module class {saved['class']!r}; expected one of {sorted(classes)}.")
+            raise ValueError(
+                f"Checkpoint {path}: unknown module class {saved['class']!r}; expected one of {sorted(classes)}."
+            )
         module = classes[saved["class"]](**saved["config"])
         module.load_state_dict(saved["state_dict"])
         out[name] = module

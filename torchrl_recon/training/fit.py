@@ -81,7 +81,9 @@ def train_loss_module(
         20
     """
     if steps < 1 or eval_every < 1 or val_batches < 1:
-        raise ValueError(f"steps, eval_every and val_batches must be >= 1, got {steps}, {eval_every}, {val_batches}.")
+        raise ValueError(
+            f"steps, eval_every and val_batches must be >= 1, got {steps}, {eval_every}, {val_batches}."
+        )
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
     torch.manual_seed(seed)
@@ -91,7 +93,9 @@ def train_loss_module(
     fixed_val = [val_source.sample() for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
-    bar = tqdm(range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False)
+    bar = tqdm(
+        range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False
+    )
     step = 0
     for step in bar:
         try:
@@ -117,7 +121,11 @@ def train_loss_module(
                 best_loss, since_best = val_loss, 0
                 best_state = copy.deepcopy(loss_module.state_dict())
                 if checkpoint_path is not None and checkpoint_modules:
-                    save_checkpoint(checkpoint_path, checkpoint_modules, extra={"step": step, "val_loss": val_loss})
+                    save_checkpoint(
+                        checkpoint_path,
+                        checkpoint_modules,
+                        extra={"step": step, "val_loss": val_loss},
+                    )
             else:
                 since_best += 1
                 if patience is not None and since_best >= patience:
@@ -129,7 +137,9 @@ def train_loss_module(
 def _slice_len(buffer: TensorDictReplayBuffer) -> int:
     slice_len = getattr(buffer.sampler, "slice_len", None)
     if slice_len is None:
-        raise ValueError("The buffer's sampler must be a SliceSampler with slice_len set (see make_sequence_buffer).")
+        raise ValueError(
+            "The buffer's sampler must be a SliceSampler with slice_len set (see make_sequence_buffer)."
+        )
     return slice_len
 
 

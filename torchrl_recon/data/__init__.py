@@ -5,6 +5,7 @@ from __future__ import annotations
 from torchrl_recon.data.buffers import (
     TRAJ_KEY,
     buffer_contents,
+    cut_sequences,
     load_buffer,
     make_sequence_buffer,
     save_buffer,

@@ -99,3 +99,28 @@ def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictR
         )
     buffer.loads(path)
     return buffer
+
+
+def cut_sequences(data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY) -> TensorDictBase:
+    """Cut flat transitions into non-overlapping ``[V, length]`` sequences that stay inside one trajectory.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"x": torch.arange(25.), ("collector", "traj_ids"): torch.arange(25) // 10}, [25])
+        >>> cut_sequences(td, 4)["x"][:, 0].tolist()
+        [0.0, 4.0, 10.0, 14.0, 20.0]
+    """
+    if length < 1:
+        raise ValueError(f"length must be >= 1, got {length}.")
+    ids = data.get(traj_key)
+    starts = []
+    for traj in torch.unique_consecutive(ids):
+        idx = (ids == traj).nonzero().squeeze(-1)
+        first, count = int(idx[0]), idx.numel()
+        if count != int(idx[-1]) - first + 1:
+            raise ValueError(f"Trajectory {int(traj)} is not contiguous in the data; sort it by time first.")
+        starts.extend(range(first, first + count - length + 1, length))
+    if not starts:
+        raise ValueError(f"No trajectory has {length} steps; collect longer episodes.")
+    index = torch.tensor(starts)[:, None] + torch.arange(length)
+    return data[index]

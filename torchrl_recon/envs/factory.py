@@ -36,6 +36,14 @@ def _check_env_kwargs(entry_point: str, kwargs: dict) -> None:
         )
 
 
+def _make_gym_env(gym_id: str, **kwargs) -> GymEnv:
+    # ParallelEnv workers are spawned processes that never import torchrl_recon unless the main
+    # module does; unpickling this function imports it, and register_envs() makes sure the
+    # torchrl_recon/* ids exist in the worker before gymnasium.make looks them up.
+    register_envs()
+    return GymEnv(gym_id, **kwargs)
+
+
 def make_env(
     name: str,
     *,
@@ -50,7 +58,8 @@ def make_env(
 
     The result is ``TransformedEnv(GymEnv(...), Compose(DoubleToFloat(), StepCounter(),
     InitTracker()))``; with ``num_envs > 1`` the base is a ``ParallelEnv`` (or ``SerialEnv``
-    when ``parallel=False``) of ``num_envs`` workers, seeded ``seed, seed + 1, ...``.
+    when ``parallel=False``) of ``num_envs`` workers; the first is seeded with ``seed``, the
+    next ones with seeds derived from it by TorchRL's ``seed_generator`` chain.
     Episode truncation comes from the gymnasium registration (``TimeLimit``).
 
     Args:
@@ -86,7 +95,7 @@ def make_env(
             )
         env_kwargs["max_episode_steps"] = max_episode_steps
 
-    create = partial(GymEnv, entry.gym_id, device=device, **env_kwargs)
+    create = partial(_make_gym_env, entry.gym_id, device=device, **env_kwargs)
     if num_envs == 1:
         base = create()
     else:

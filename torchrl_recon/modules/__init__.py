@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from torchrl_recon.modules.baselines import LinearDeltaModel
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
-__all__ = ["LSTMWorldModel", "Normalizer", "ReconstructionUncertainty", "UncertaintyEstimator"]
+__all__ = ["LinearDeltaModel", "LSTMWorldModel", "Normalizer", "ReconstructionUncertainty", "UncertaintyEstimator"]

@@ -47,6 +47,7 @@ def train_loss_module(
     val_buffer: TensorDictReplayBuffer | None = None,
     steps: int = 2000,
     lr: float = 1e-3,
+    lr_decay: bool = True,
     weight_decay: float = 0.0,
     clip_norm: float | None = 10.0,
     eval_every: int = 100,
@@ -61,6 +62,8 @@ def train_loss_module(
 ) -> FitResult:
     """Adam on ``loss_module`` with batches sampled from ``buffer``; early stopping on ``val_buffer``.
 
+    The learning rate follows a cosine decay from ``lr`` to ``lr / 20`` over ``steps``
+    (``lr_decay=False`` keeps it constant).
     Every ``eval_every`` steps the validation loss (on ``val_batches`` batches drawn once,
     or on training batches when there is no ``val_buffer``) is measured; the best weights
     are kept, saved to ``checkpoint_path`` when given, and restored at the end. Training
@@ -89,6 +92,7 @@ def train_loss_module(
     torch.manual_seed(seed)
     params = [p for p in loss_module.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05) if lr_decay else None
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     fixed_val = [val_source.sample() for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
@@ -109,6 +113,8 @@ def train_loss_module(
         if clip_norm is not None:
             torch.nn.utils.clip_grad_norm_(params, clip_norm)
         optimizer.step()
+        if schedule is not None:
+            schedule.step()
         if step % eval_every == 0 or step == steps:
             val_loss = _evaluate(loss_module, fixed_val)
             record = {"step": step, "train_loss": float(loss.detach()), "val_loss": val_loss}

@@ -1,0 +1,45 @@
+"""Multi-step prediction error of a dynamics model on real trajectories."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+
+def multi_step_errors(
+    model,
+    trajectories: TensorDictBase,
+    *,
+    window: int,
+    scale: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Squared prediction error per trajectory and step, ``[V, H]``, averaged over state dims.
+
+    Each trajectory ``[V, window + H]`` gives the model a real context of ``window`` steps;
+    the model then predicts the next ``H`` states open loop from the real actions (as a planner
+    would), and the predictions are compared with the real next states. Errors are in units of
+    ``scale`` (per state dim; e.g. the standard deviation of a fixed reference dataset), raw
+    units when ``scale`` is None.
+
+    Args:
+        model: anything with ``imagine(context_obs, context_action, observation, actions)``.
+        trajectories: TensorDict ``[V, L]`` with ``observation``, ``action`` and ``("next", "observation")``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import LinearDeltaModel
+        >>> td = TensorDict({"observation": torch.zeros(2, 15, 3), "action": torch.zeros(2, 15, 1),
+        ...                  ("next", "observation"): torch.ones(2, 15, 3)}, [2, 15])
+        >>> multi_step_errors(LinearDeltaModel(3, 1), td, window=5).shape
+        torch.Size([2, 10])
+    """
+    obs, action = trajectories["observation"], trajectories["action"]
+    next_obs = trajectories["next", "observation"]
+    if obs.ndim != 3 or obs.shape[1] <= window:
+        raise ValueError(f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}.")
+    with torch.no_grad():
+        pred = model.imagine(obs[:, :window], action[:, :window], obs[:, window], action[:, None, window:])[:, 0]
+    err = pred - next_obs[:, window:]
+    if scale is not None:
+        err = err / scale
+    return err.pow(2).mean(-1)

@@ -20,14 +20,18 @@ def _demo(args: argparse.Namespace) -> int:
         env.close()
         episodes = int(data["collector", "traj_ids"].unique().numel())
         reward = float(data["next", "reward"].mean())
-        print(f"{name:<22}{data.numel():>7}{episodes:>10}{reward:>14.3f}  {data['observation'].shape[-1]}")
+        print(
+            f"{name:<22}{data.numel():>7}{episodes:>10}{reward:>14.3f}  {data['observation'].shape[-1]}"
+        )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchrl-recon", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="collect random data in each environment and print a summary")
+    demo = sub.add_parser(
+        "demo", help="collect random data in each environment and print a summary"
+    )
     demo.add_argument("--steps", type=int, default=200)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(func=_demo)

@@ -14,7 +14,9 @@ def _ae(window: int = 5) -> ReconstructionUncertainty:
     return ae
 
 
-def _naive_u(ae: ReconstructionUncertainty, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+def _naive_u(
+    ae: ReconstructionUncertainty, obs: torch.Tensor, action: torch.Tensor
+) -> torch.Tensor:
     x = ae.input_norm.normalize(torch.cat([obs, action], -1))
     out = []
     for t in range(x.shape[0] - ae.window + 1):
@@ -33,7 +35,9 @@ def test_score_matches_paper_equation_for_every_window(batch):
     flat_u = u.reshape(-1, 8)
     flat_o, flat_a = obs.reshape(-1, 12, 3), action.reshape(-1, 12, 2)
     for i in range(flat_u.shape[0]):
-        torch.testing.assert_close(flat_u[i], _naive_u(ae, flat_o[i], flat_a[i]), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(
+            flat_u[i], _naive_u(ae, flat_o[i], flat_a[i]), atol=1e-5, rtol=1e-5
+        )
 
 
 def test_score_windows_and_forward():

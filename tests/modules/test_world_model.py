@@ -10,20 +10,32 @@ from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel
 def _model(window: int = 4) -> LSTMWorldModel:
     torch.manual_seed(0)
     model = LSTMWorldModel(3, 2, hidden_size=8, dense_size=8, window=window)
-    model.fit_normalization(torch.randn(50, 3) * 2 + 1, torch.rand(50, 2), torch.randn(50, 3) * 2 + 1.5)
+    model.fit_normalization(
+        torch.randn(50, 3) * 2 + 1, torch.rand(50, 2), torch.randn(50, 3) * 2 + 1.5
+    )
     return model
 
 
 @pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
 def test_imagine_shapes(batch):
     model = _model()
-    states = model.imagine(torch.randn(*batch, 4, 3), torch.randn(*batch, 4, 2), torch.randn(*batch, 3), torch.rand(*batch, 5, 7, 2))
+    states = model.imagine(
+        torch.randn(*batch, 4, 3),
+        torch.randn(*batch, 4, 2),
+        torch.randn(*batch, 3),
+        torch.rand(*batch, 5, 7, 2),
+    )
     assert states.shape == (*batch, 5, 7, 3)
 
 
 def test_imagine_equals_teacher_forced_recursion():
     model = _model()
-    ctx_s, ctx_a, s0, acts = torch.randn(4, 3), torch.randn(4, 2), torch.randn(3), torch.rand(2, 5, 2)
+    ctx_s, ctx_a, s0, acts = (
+        torch.randn(4, 3),
+        torch.randn(4, 2),
+        torch.randn(3),
+        torch.rand(2, 5, 2),
+    )
     states = model.imagine(ctx_s, ctx_a, s0, acts)
     for k in range(2):
         obs, act = torch.cat([ctx_s, s0[None]]), torch.cat([ctx_a, acts[k, :1]])
@@ -36,8 +48,15 @@ def test_imagine_equals_teacher_forced_recursion():
 
 def test_context_longer_than_window_uses_last_window_steps():
     model = _model(window=4)
-    ctx_s, ctx_a, s0, acts = torch.randn(9, 3), torch.randn(9, 2), torch.randn(3), torch.rand(2, 5, 2)
-    torch.testing.assert_close(model.imagine(ctx_s, ctx_a, s0, acts), model.imagine(ctx_s[-4:], ctx_a[-4:], s0, acts))
+    ctx_s, ctx_a, s0, acts = (
+        torch.randn(9, 3),
+        torch.randn(9, 2),
+        torch.randn(3),
+        torch.rand(2, 5, 2),
+    )
+    torch.testing.assert_close(
+        model.imagine(ctx_s, ctx_a, s0, acts), model.imagine(ctx_s[-4:], ctx_a[-4:], s0, acts)
+    )
 
 
 def test_gradients_reach_actions_and_parameters():
@@ -65,11 +84,25 @@ def test_normalization_is_in_state_dict():
 @pytest.mark.parametrize(
     "args, match",
     [
-        ((torch.randn(4, 5), torch.randn(4, 2), torch.randn(3), torch.rand(2, 5, 2)), "context_obs"),
+        (
+            (torch.randn(4, 5), torch.randn(4, 2), torch.randn(3), torch.rand(2, 5, 2)),
+            "context_obs",
+        ),
         ((torch.randn(2, 3), torch.randn(2, 2), torch.randn(3), torch.rand(2, 5, 2)), "window=4"),
         ((torch.randn(4, 3), torch.randn(4, 2), torch.randn(3), torch.rand(5, 2)), "actions"),
-        ((torch.randn(4, 3), torch.randn(4, 2), torch.tensor([0.0, float("nan"), 0.0]), torch.rand(2, 5, 2)), "NaN"),
-        ((torch.randn(2, 4, 3), torch.randn(2, 4, 2), torch.randn(2, 3), torch.rand(3, 2, 5, 2)), "actions"),
+        (
+            (
+                torch.randn(4, 3),
+                torch.randn(4, 2),
+                torch.tensor([0.0, float("nan"), 0.0]),
+                torch.rand(2, 5, 2),
+            ),
+            "NaN",
+        ),
+        (
+            (torch.randn(2, 4, 3), torch.randn(2, 4, 2), torch.randn(2, 3), torch.rand(3, 2, 5, 2)),
+            "actions",
+        ),
     ],
 )
 def test_bad_input_is_a_clear_error(args, match):

@@ -11,7 +11,9 @@ from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 def _batch(n: int = 24) -> TensorDict:
     torch.manual_seed(0)
     obs = torch.randn(n, 3)
-    return TensorDict({"observation": obs, "action": torch.randn(n, 2), ("next", "observation"): obs + 0.1}, [n])
+    return TensorDict(
+        {"observation": obs, "action": torch.randn(n, 2), ("next", "observation"): obs + 0.1}, [n]
+    )
 
 
 @pytest.mark.parametrize("mode", ["multi_step", "one_step"])

@@ -37,15 +37,22 @@ def _synthetic(n_traj: int = 6, length: int = 40) -> TensorDict:
             obs.append(s), act.append(a), nxt.append(s2), ids.append(i)
             s = s2
     return TensorDict(
-        {"observation": torch.stack(obs), "action": torch.stack(act), ("next", "observation"): torch.stack(nxt),
-         ("collector", "traj_ids"): torch.tensor(ids)},
+        {
+            "observation": torch.stack(obs),
+            "action": torch.stack(act),
+            ("next", "observation"): torch.stack(nxt),
+            ("collector", "traj_ids"): torch.tensor(ids),
+        },
         [len(ids)],
     )
 
 
 def _buffers(slice_len: int = 12):
     train, val = split_by_trajectory(_synthetic(), 0.34, seed=0)
-    rb, vrb = make_sequence_buffer(1000, slice_len=slice_len, num_slices=8), make_sequence_buffer(1000, slice_len=slice_len, num_slices=8)
+    rb, vrb = (
+        make_sequence_buffer(1000, slice_len=slice_len, num_slices=8),
+        make_sequence_buffer(1000, slice_len=slice_len, num_slices=8),
+    )
     rb.extend(train), vrb.extend(val)
     return rb, vrb
 
@@ -56,7 +63,11 @@ def test_fit_world_model_reduces_validation_loss_and_is_reproducible(tmp_path):
     for _ in range(2):
         torch.manual_seed(1)
         model = LSTMWorldModel(3, 2, window=4, hidden_size=16, dense_size=16)
-        results.append(fit_world_model(model, rb, val_buffer=vrb, steps=150, eval_every=50, progress=False, seed=3))
+        results.append(
+            fit_world_model(
+                model, rb, val_buffer=vrb, steps=150, eval_every=50, progress=False, seed=3
+            )
+        )
     first, second = results
     assert first.history[-1]["val_loss"] < first.history[0]["val_loss"]
     assert [h["val_loss"] for h in first.history] == [h["val_loss"] for h in second.history]
@@ -67,9 +78,20 @@ def test_fit_uncertainty_logs_and_checkpoints(tmp_path):
     ae = ReconstructionUncertainty(3, 2, window=4, hidden_size=16)
     logger = CSVLogger("fit", log_dir=str(tmp_path))
     ckpt = tmp_path / "ae.pt"
-    result = fit_uncertainty(ae, rb, val_buffer=vrb, steps=100, eval_every=25, progress=False, logger=logger, checkpoint_path=ckpt)
+    result = fit_uncertainty(
+        ae,
+        rb,
+        val_buffer=vrb,
+        steps=100,
+        eval_every=25,
+        progress=False,
+        logger=logger,
+        checkpoint_path=ckpt,
+    )
     assert result.best_val_loss < result.history[0]["val_loss"] or len(result.history) == 1
-    assert (tmp_path / "fit" / "scalars" / "uncertainty" / "val_loss.csv").exists() or list(tmp_path.rglob("*val_loss*"))
+    assert (tmp_path / "fit" / "scalars" / "uncertainty" / "val_loss.csv").exists() or list(
+        tmp_path.rglob("*val_loss*")
+    )
     loaded = load_modules(ckpt)["uncertainty"]
     x = torch.randn(2, 9, 3), torch.randn(2, 9, 2)
     torch.testing.assert_close(loaded.score(*x), ae.score(*x))
@@ -78,7 +100,17 @@ def test_fit_uncertainty_logs_and_checkpoints(tmp_path):
 def test_early_stopping_stops_before_steps():
     rb, vrb = _buffers()
     ae = ReconstructionUncertainty(3, 2, window=4, hidden_size=16)
-    result = fit_uncertainty(ae, rb, val_buffer=vrb, steps=5000, eval_every=5, patience=2, lr=1e-1, lr_decay=False, progress=False)
+    result = fit_uncertainty(
+        ae,
+        rb,
+        val_buffer=vrb,
+        steps=5000,
+        eval_every=5,
+        patience=2,
+        lr=1e-1,
+        lr_decay=False,
+        progress=False,
+    )
     assert result.steps < 5000
 
 
@@ -86,16 +118,29 @@ def test_non_finite_training_stops_clearly_and_keeps_the_last_good_checkpoint(tm
     rb, vrb = _buffers()
     model = LSTMWorldModel(3, 2, window=4, hidden_size=16, dense_size=16)
     ckpt = tmp_path / "wm.pt"
-    fit_world_model(model, rb, val_buffer=vrb, steps=20, eval_every=10, progress=False, checkpoint_path=ckpt)
+    fit_world_model(
+        model, rb, val_buffer=vrb, steps=20, eval_every=10, progress=False, checkpoint_path=ckpt
+    )
     good = {k: v.clone() for k, v in model.state_dict().items()}
 
-    def explode(module, inputs, output):  # the LSTM starts returning inf: the loss becomes non-finite
+    def explode(
+        module, inputs, output
+    ):  # the LSTM starts returning inf: the loss becomes non-finite
         out, (h, c) = output
         return out, (h * float("inf"), c)
 
     handle = model.lstm.register_forward_hook(explode)
     with pytest.raises(FloatingPointError, match="last good checkpoint"):
-        fit_world_model(model, rb, val_buffer=vrb, fit_normalization=False, steps=20, eval_every=10, progress=False, checkpoint_path=ckpt)
+        fit_world_model(
+            model,
+            rb,
+            val_buffer=vrb,
+            fit_normalization=False,
+            steps=20,
+            eval_every=10,
+            progress=False,
+            checkpoint_path=ckpt,
+        )
     handle.remove()
     restored = load_modules(ckpt)["world_model"]
     for key, value in restored.state_dict().items():
@@ -138,7 +183,11 @@ def test_buffer_save_load_round_trip(tmp_path):
 
 def test_empty_buffer_is_a_clear_error():
     with pytest.raises(ValueError, match="empty"):
-        fit_world_model(LSTMWorldModel(3, 2), make_sequence_buffer(10, slice_len=12, num_slices=1), progress=False)
+        fit_world_model(
+            LSTMWorldModel(3, 2),
+            make_sequence_buffer(10, slice_len=12, num_slices=1),
+            progress=False,
+        )
 
 
 @pytest.mark.parametrize("which", ["world_model", "uncertainty"])
@@ -148,7 +197,9 @@ def test_losses_train_inside_torchrl_trainer(which):
     first = env.rollout(200, break_when_any_done=False)
     if which == "world_model":
         module = LSTMWorldModel(6, 3, window=8)
-        module.fit_normalization(first["observation"], first["action"], first["next", "observation"])
+        module.fit_normalization(
+            first["observation"], first["action"], first["next", "observation"]
+        )
         loss = WorldModelPredictionLoss(module, slice_len=16)
     else:
         module = ReconstructionUncertainty(6, 3, window=8)
@@ -160,8 +211,14 @@ def test_losses_train_inside_torchrl_trainer(which):
     collector = Collector(env, policy=None, frames_per_batch=200, total_frames=1200)
     rb = make_sequence_buffer(2000, slice_len=16, num_slices=8)
     trainer = Trainer(
-        collector=collector, total_frames=1200, frame_skip=1, optim_steps_per_batch=20, loss_module=loss,
-        optimizer=torch.optim.Adam(module.parameters(), lr=3e-3), progress_bar=False, save_trainer_interval=0,
+        collector=collector,
+        total_frames=1200,
+        frame_skip=1,
+        optim_steps_per_batch=20,
+        loss_module=loss,
+        optimizer=torch.optim.Adam(module.parameters(), lr=3e-3),
+        progress_bar=False,
+        save_trainer_interval=0,
     )
     ReplayBufferTrainer(rb, flatten_tensordicts=True).register(trainer)
     trainer.train()
@@ -174,7 +231,9 @@ def test_losses_train_inside_torchrl_trainer(which):
 def test_train_loss_module_argument_checks():
     rb, _ = _buffers()
     with pytest.raises(ValueError, match="steps"):
-        train_loss_module(UncertaintyLoss(ReconstructionUncertainty(3, 2, window=4), slice_len=12), rb, steps=0)
+        train_loss_module(
+            UncertaintyLoss(ReconstructionUncertainty(3, 2, window=4), slice_len=12), rb, steps=0
+        )
 
 
 if __name__ == "__main__":

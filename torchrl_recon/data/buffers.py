@@ -101,7 +101,9 @@ def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictR
     return buffer
 
 
-def cut_sequences(data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY) -> TensorDictBase:
+def cut_sequences(
+    data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY
+) -> TensorDictBase:
     """Cut flat transitions into non-overlapping ``[V, length]`` sequences that stay inside one trajectory.
 
     Examples:
@@ -118,7 +120,9 @@ def cut_sequences(data: TensorDictBase, length: int, *, traj_key: NestedKey = TR
         idx = (ids == traj).nonzero().squeeze(-1)
         first, count = int(idx[0]), idx.numel()
         if count != int(idx[-1]) - first + 1:
-            raise ValueError(f"Trajectory {int(traj)} is not contiguous in the data; sort it by time first.")
+            raise ValueError(
+                f"Trajectory {int(traj)} is not contiguous in the data; sort it by time first."
+            )
         starts.extend(range(first, first + count - length + 1, length))
     if not starts:
         raise ValueError(f"No trajectory has {length} steps; collect longer episodes.")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchrl_recon.evaluation.calibration import auroc, imagined_uncertainty_and_error, spearman
 from torchrl_recon.evaluation.prediction import multi_step_errors
 
-__all__ = ["multi_step_errors"]
+__all__ = ["auroc", "imagined_uncertainty_and_error", "multi_step_errors", "spearman"]

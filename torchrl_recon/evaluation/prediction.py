@@ -36,9 +36,13 @@ def multi_step_errors(
     obs, action = trajectories["observation"], trajectories["action"]
     next_obs = trajectories["next", "observation"]
     if obs.ndim != 3 or obs.shape[1] <= window:
-        raise ValueError(f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}.")
+        raise ValueError(
+            f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}."
+        )
     with torch.no_grad():
-        pred = model.imagine(obs[:, :window], action[:, :window], obs[:, window], action[:, None, window:])[:, 0]
+        pred = model.imagine(
+            obs[:, :window], action[:, :window], obs[:, window], action[:, None, window:]
+        )[:, 0]
     err = pred - next_obs[:, window:]
     if scale is not None:
         err = err / scale

@@ -8,4 +8,10 @@ from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
-__all__ = ["LinearDeltaModel", "LSTMWorldModel", "Normalizer", "ReconstructionUncertainty", "UncertaintyEstimator"]
+__all__ = [
+    "LinearDeltaModel",
+    "LSTMWorldModel",
+    "Normalizer",
+    "ReconstructionUncertainty",
+    "UncertaintyEstimator",
+]

@@ -33,13 +33,21 @@ class LinearDeltaModel(nn.Module):
         """Least-squares fit (float64, small ridge term) on transitions ``[..., N]``, ``[..., M]``, ``[..., N]``."""
         check_features("obs", obs, self.obs_dim)
         check_features("action", action, self.action_dim)
-        x = torch.cat([obs, action, torch.ones_like(obs[..., :1])], -1).reshape(-1, self.weight.shape[0]).double()
+        x = (
+            torch.cat([obs, action, torch.ones_like(obs[..., :1])], -1)
+            .reshape(-1, self.weight.shape[0])
+            .double()
+        )
         y = (next_obs - obs).reshape(-1, self.obs_dim).double()
         gram = x.T @ x + 1e-6 * torch.eye(x.shape[1], dtype=x.dtype)
         self.weight.copy_(torch.linalg.solve(gram, x.T @ y).to(self.weight.dtype))
 
     def imagine(
-        self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor, actions: torch.Tensor
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
     ) -> torch.Tensor:
         """Roll out ``actions`` ``[*B, K, H, M]`` from ``observation`` ``[*B, N]``; the context is unused."""
         k, horizon = actions.shape[-3], actions.shape[-2]

@@ -92,7 +92,11 @@ def train_loss_module(
     torch.manual_seed(seed)
     params = [p for p in loss_module.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05) if lr_decay else None
+    schedule = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05)
+        if lr_decay
+        else None
+    )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     fixed_val = [val_source.sample() for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0

@@ -1,0 +1,87 @@
+"""How well an uncertainty estimate tells familiar from unfamiliar, and ranks real prediction error."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+
+
+def _ranks(x: torch.Tensor) -> torch.Tensor:
+    """Average ranks (ties share their mean rank), 1-based, as float64."""
+    x = x.double().flatten()
+    order = torch.argsort(x)
+    ranks = torch.empty_like(x)
+    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64)
+    unique, inverse = torch.unique(x, return_inverse=True)
+    if len(unique) < len(x):
+        sums = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, ranks)
+        counts = torch.zeros(len(unique), dtype=torch.float64).index_add_(
+            0, inverse, torch.ones_like(ranks)
+        )
+        ranks = (sums / counts)[inverse]
+    return ranks
+
+
+def auroc(negatives: torch.Tensor, positives: torch.Tensor) -> float:
+    """Probability that a random positive scores above a random negative (ties count half).
+
+    Examples:
+        >>> auroc(torch.tensor([0.1, 0.2]), torch.tensor([0.3, 0.15]))
+        0.75
+    """
+    n_neg, n_pos = negatives.numel(), positives.numel()
+    if n_neg == 0 or n_pos == 0:
+        raise ValueError(f"auroc needs both classes, got {n_neg} negatives and {n_pos} positives.")
+    ranks = _ranks(torch.cat([negatives.flatten(), positives.flatten()]))
+    return float((ranks[n_neg:].sum() - n_pos * (n_pos + 1) / 2) / (n_neg * n_pos))
+
+
+def spearman(x: torch.Tensor, y: torch.Tensor) -> float:
+    """Spearman rank correlation of two equally long vectors.
+
+    Examples:
+        >>> round(spearman(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([10.0, 30.0, 20.0])), 6)
+        0.5
+    """
+    if x.numel() != y.numel() or x.numel() < 3:
+        raise ValueError(
+            f"spearman needs two vectors of equal length >= 3, got {x.numel()} and {y.numel()}."
+        )
+    rx, ry = _ranks(x), _ranks(y)
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    return float((rx * ry).sum() / (rx.norm() * ry.norm()))
+
+
+@torch.no_grad()
+def imagined_uncertainty_and_error(
+    world_model,
+    estimator: UncertaintyEstimator,
+    trajectories: TensorDictBase,
+    *,
+    window: int,
+    scale: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cumulative u of each imagined trajectory and the world model's real error on it.
+
+    For each real trajectory ``[V, window + H]``, the world model imagines the last ``H``
+    states from the real actions after a real context of ``window`` steps; the estimator
+    scores every window of (context + imagined states, actions) ending in the imagined part.
+
+    Returns:
+        ``(cumulative_u [V], mean_squared_error [V])``, the error in units of ``scale``.
+    """
+    obs, action = trajectories["observation"], trajectories["action"]
+    next_obs = trajectories["next", "observation"]
+    pred = world_model.imagine(
+        obs[:, :window], action[:, :window], obs[:, window], action[:, None, window:]
+    )[:, 0]
+    t = estimator.window
+    # States entering each step: real context, then the real s_window, then predictions.
+    states = torch.cat([obs[:, window - t + 1 : window + 1], pred[:, :-1]], 1)
+    u = estimator.score(states, action[:, window - t + 1 :])
+    err = pred - next_obs[:, window:]
+    if scale is not None:
+        err = err / scale
+    return u.sum(-1), err.pow(2).mean((-1, -2))

@@ -15,6 +15,7 @@ from torchrl_recon.data.buffers import (
 __all__ = [
     "TRAJ_KEY",
     "buffer_contents",
+    "cut_sequences",
     "load_buffer",
     "make_sequence_buffer",
     "save_buffer",

@@ -23,9 +23,9 @@ class LinearDeltaModel(nn.Module):
 
     weight: torch.Tensor
 
-    def __init__(self, obs_dim: int, action_dim: int) -> None:
+    def __init__(self, obs_dim: int, action_dim: int, *, window: int = 1) -> None:
         super().__init__()
-        self.obs_dim, self.action_dim = obs_dim, action_dim
+        self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
         self.register_buffer("weight", torch.zeros(obs_dim + action_dim + 1, obs_dim))
 
     @torch.no_grad()

@@ -195,16 +195,28 @@ class LSTMWorldModel(TensorDictModuleBase):
         h, c = self.warmup(context_obs, context_action)
         k, horizon = actions.shape[-3], actions.shape[-2]
         rows = int(torch.Size(batch).numel()) * k
+        s0 = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)
+        h = h.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
+        c = c.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
+        flat_actions = actions.reshape(rows, horizon, self.action_dim)
+        needs_grad = torch.is_grad_enabled() and (
+            actions.requires_grad or any(p.requires_grad for p in self.parameters())
+        )
+        rollout = self._rollout_autograd if needs_grad else self._rollout_inplace
+        states = rollout(s0, h, c, flat_actions)
+        return states.reshape(*batch, k, horizon, self.obs_dim)
+
+    def _rollout_autograd(
+        self, s: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
+        """Out-of-place rollout ``[R, N]`` → ``[R, H, N]``, differentiable w.r.t. actions and weights."""
         w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
-        act = _ACTIVATIONS[self.activation]
-        hid = self.hidden_size
+        act, hid = _ACTIVATIONS[self.activation], self.hidden_size
+        rows, horizon = actions.shape[:2]
         # Action contribution to the gates for every step in one matmul.
         gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(
             rows, horizon, 4 * hid
         )
-        s = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)
-        h = h.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
-        c = c.reshape(-1, 1, hid).expand(-1, k, -1).reshape(rows, hid)
         states = []
         for t in range(horizon):
             gates = torch.addmm(gates_a[:, t], torch.cat([s, h], 1), w_sh)
@@ -213,4 +225,41 @@ class LSTMWorldModel(TensorDictModuleBase):
             h = sig[:, 3 * hid :] * torch.tanh(c)
             s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
             states.append(s)
-        return torch.stack(states, 1).reshape(*batch, k, horizon, self.obs_dim)
+        return torch.stack(states, 1)
+
+    @torch.no_grad()
+    def _rollout_inplace(
+        self, s: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
+        """The same rollout without autograd: preallocated buffers, in-place ops, no per-step allocation.
+
+        Gates live in one ``[H, R, 4·hidden]`` slab (one contiguous slice per step, filled by
+        in-place matmuls), biases are added after bias-free matmuls (no broadcast copies),
+        and states are written straight into the ``[H + 1, R, N]`` output.
+        """
+        w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
+        n, hid = self.obs_dim, self.hidden_size
+        w_s, w_hh = w_sh[:n].contiguous(), w_sh[n:].contiguous()
+        w_d, w_out = w_d.contiguous(), w_out.contiguous()
+        rows, horizon = actions.shape[:2]
+        gates_all = torch.mm(actions.transpose(0, 1).reshape(-1, self.action_dim), w_a.contiguous())
+        gates_all = gates_all.add_(bias).view(horizon, rows, 4 * hid)
+        states = torch.empty(horizon + 1, rows, n, dtype=s.dtype)
+        states[0] = s
+        h, c = h.contiguous().clone(), c.contiguous().clone()
+        sig = torch.empty(rows, 4 * hid, dtype=s.dtype)
+        tg = torch.empty(rows, hid, dtype=s.dtype)
+        z = torch.empty(rows, self.dense_size, dtype=s.dtype)
+        delta = torch.empty(rows, n, dtype=s.dtype)
+        act_ = {"relu": torch.relu_, "tanh": torch.tanh_, "elu": F.elu_}[self.activation]
+        for t in range(horizon):
+            gates = gates_all[t].addmm_(states[t], w_s).addmm_(h, w_hh)
+            torch.sigmoid(gates, out=sig)
+            torch.tanh(gates[:, 2 * hid : 3 * hid], out=tg)
+            c.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], tg)
+            torch.tanh(c, out=tg)
+            torch.mul(sig[:, 3 * hid :], tg, out=h)
+            act_(torch.mm(h, w_d, out=z).add_(b_d))
+            torch.mm(z, w_out, out=delta).add_(b_out)
+            torch.add(states[t], delta, out=states[t + 1])
+        return states[1:].transpose(0, 1)

@@ -1,0 +1,195 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import (
+    CEMPlanner,
+    GradientPlanner,
+    InfeasiblePlanError,
+    Objective,
+    PlanningModel,
+    RandomShootingPlanner,
+    UncertaintyBand,
+)
+
+from .conftest import integrator_cost, integrator_model, optimal_cost
+
+H = 8
+
+
+def _planners(model, objective, budget: int = 1000):
+    return {
+        "shooting": RandomShootingPlanner(model, objective, horizon=H, num_candidates=budget),
+        "cem": CEMPlanner(
+            model, objective, horizon=H, num_candidates=budget // 5, num_elites=20, iterations=5
+        ),
+        "gradient": GradientPlanner(
+            model, objective, horizon=H, restarts=4, steps=budget // 4 - 1, lr=0.05
+        ),
+    }
+
+
+def test_each_optimiser_approaches_the_closed_form_optimum(context):
+    """Gap = (planner cost − optimum) / (mean cost of uniform random sequences − optimum), equal budget of 1000 rollouts."""
+    torch.manual_seed(0)
+    best = optimal_cost(H)
+    model = PlanningModel(integrator_model(), integrator_cost)
+    random_cost = float(model(*context, torch.rand(1000, H, 1) * 2 - 1).cumulative_cost.mean())
+    gaps = {
+        name: (float(p.plan(*context).cost.sum()) - best) / (random_cost - best)
+        for name, p in _planners(model, Objective()).items()
+    }
+    print("optimum", best, "random", random_cost, "gaps", gaps)
+    assert all(gap >= -1e-4 for gap in gaps.values())  # nobody beats the closed-form optimum
+    assert gaps["gradient"] < 0.005
+    assert gaps["cem"] < 0.02
+    assert gaps["shooting"] < 0.25
+    assert gaps["cem"] < gaps["shooting"] and gaps["gradient"] < gaps["shooting"]
+
+
+def test_plan_result_is_consistent_with_the_model(context):
+    torch.manual_seed(0)
+    model = PlanningModel(integrator_model(), integrator_cost)
+    result = CEMPlanner(model, Objective(), horizon=H, num_candidates=50, num_elites=5).plan(
+        *context
+    )
+    pred = model(*context, result.actions[None])
+    torch.testing.assert_close(pred.states[0], result.states)
+    torch.testing.assert_close(pred.cost[0], result.cost)
+    torch.testing.assert_close(result.objective, -result.cost.sum())
+    assert result.feasible
+
+
+def _ae_model(seed: int = 0):
+    torch.manual_seed(seed)
+    world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
+    est = ReconstructionUncertainty(3, 2, window=4, hidden_size=8)
+    est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
+    return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)
+
+
+@pytest.mark.parametrize("planner_cls", [RandomShootingPlanner, CEMPlanner])
+def test_beta_lowers_the_chosen_plans_uncertainty(planner_cls):
+    model = _ae_model()
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    kwargs = (
+        {"num_candidates": 200}
+        if planner_cls is RandomShootingPlanner
+        else {"num_candidates": 200, "num_elites": 20}
+    )
+    u = {}
+    for beta in (0.0, 10.0):
+        torch.manual_seed(1)
+        u[beta] = float(
+            planner_cls(model, Objective(beta=beta), horizon=H, **kwargs)
+            .plan(*ctx)
+            .uncertainty.sum()
+        )
+    assert u[10.0] < u[0.0]
+
+
+def test_gradient_with_beta_lowers_uncertainty():
+    model = _ae_model()
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    u = {}
+    for beta in (0.0, 10.0):
+        torch.manual_seed(1)
+        u[beta] = float(
+            GradientPlanner(model, Objective(beta=beta), horizon=H, restarts=4, steps=20)
+            .plan(*ctx)
+            .uncertainty.sum()
+        )
+    assert u[10.0] < u[0.0]
+
+
+@pytest.mark.parametrize(
+    "kind, low, high", [("quantile", 0.4, 0.6), ("mean_ratio", 1.1, 1.3), ("absolute", None, None)]
+)
+def test_band_is_respected(kind, low, high):
+    model = _ae_model()
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    if kind == "absolute":  # an absolute band in the middle of what uniform candidates reach
+        torch.manual_seed(2)
+        ref = model(*ctx, torch.rand(300, H, 2) * 2 - 1).cumulative_uncertainty
+        low, high = float(ref.quantile(0.3)), float(ref.quantile(0.5))
+    band = UncertaintyBand(low=low, high=high, kind=kind)
+    torch.manual_seed(3)
+    planner = RandomShootingPlanner(model, Objective(band=band), horizon=H, num_candidates=300)
+    result = planner.plan(*ctx)
+    torch.manual_seed(3)
+    reference = model(*ctx, planner._uniform(torch.Size([]), 300)).cumulative_uncertainty
+    lo, hi = band.resolve(reference)
+    assert result.feasible
+    assert lo.item() - 1e-5 <= float(result.uncertainty.sum()) <= hi.item() + 1e-5
+
+
+def test_no_feasible_candidate_is_reported_or_raised():
+    model = _ae_model()
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    band = UncertaintyBand(low=1e6, high=2e6)
+    with pytest.warns(RuntimeWarning, match="No candidate met the constraints"):
+        result = RandomShootingPlanner(
+            model, Objective(band=band), horizon=H, num_candidates=50
+        ).plan(*ctx)
+    assert not result.feasible
+    with pytest.raises(InfeasiblePlanError, match="No candidate"):
+        RandomShootingPlanner(
+            model, Objective(band=band), horizon=H, num_candidates=50, on_infeasible="raise"
+        ).plan(*ctx)
+
+
+def test_cost_threshold_is_respected(context):
+    torch.manual_seed(0)
+    model = PlanningModel(integrator_model(), integrator_cost)
+    ref = model(*context, torch.rand(500, H, 1) * 2 - 1).cumulative_cost
+    threshold = float(ref.quantile(0.5))
+    objective = Objective(alpha=0.0, beta=0.0, cost_threshold=threshold)
+    result = RandomShootingPlanner(model, objective, horizon=H, num_candidates=200).plan(*context)
+    assert result.feasible and float(result.cost.sum()) <= threshold
+
+
+@pytest.mark.parametrize("batch", [(), (3,)])
+def test_batched_contexts(batch):
+    model = _ae_model()
+    ctx = torch.zeros(*batch, 4, 3), torch.zeros(*batch, 4, 2), torch.zeros(*batch, 3)
+    for planner in (
+        RandomShootingPlanner(model, Objective(beta=1.0), horizon=H, num_candidates=20),
+        CEMPlanner(
+            model, Objective(beta=1.0), horizon=H, num_candidates=20, num_elites=4, iterations=2
+        ),
+        GradientPlanner(model, Objective(beta=1.0), horizon=H, restarts=2, steps=2),
+    ):
+        result = planner.plan(*ctx)
+        assert result.actions.shape == (*batch, H, 2)
+        assert result.uncertainty.shape == (*batch, H)
+        assert result.feasible.shape == batch
+        assert (result.actions.abs() <= 1).all()
+
+
+def test_bad_input_is_a_clear_error():
+    model = _ae_model()
+    with pytest.raises(ValueError, match="finite"):
+        PlanningModel(model.world_model, integrator_cost, action_low=-float("inf"))
+    with pytest.raises(ValueError, match="horizon"):
+        RandomShootingPlanner(model, Objective(), horizon=0)
+    with pytest.raises(ValueError, match="num_candidates"):
+        RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=0)
+    with pytest.raises(ValueError, match="no estimator"):
+        RandomShootingPlanner(
+            PlanningModel(model.world_model, integrator_cost), Objective(beta=1.0), horizon=3
+        )
+    planner = RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=4)
+    with pytest.raises(ValueError, match="window=4"):
+        planner.plan(torch.zeros(2, 3), torch.zeros(2, 2), torch.zeros(3))
+    with pytest.raises(ValueError, match="NaN"):
+        planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.tensor([0.0, float("nan"), 0.0]))
+    with pytest.raises(ValueError, match="band low"):
+        UncertaintyBand(low=2.0, high=1.0)
+    with pytest.raises(ValueError, match="num_elites"):
+        CEMPlanner(model, Objective(), horizon=3, num_candidates=4, num_elites=5)
+
+
+if __name__ == "__main__":
+    pytest.main([__file__, "-q", "-s"])

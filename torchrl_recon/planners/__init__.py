@@ -1,0 +1,23 @@
+"""Batched MPC planners on one rollout engine, with uncertainty in the objective."""
+
+from __future__ import annotations
+
+from torchrl_recon.planners.base import InfeasiblePlanError, PlannerBase, PlanResult
+from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.gradient import GradientPlanner
+from torchrl_recon.planners.objective import Objective, UncertaintyBand
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.shooting import RandomShootingPlanner
+
+__all__ = [
+    "CEMPlanner",
+    "GradientPlanner",
+    "InfeasiblePlanError",
+    "Objective",
+    "PlanResult",
+    "PlannerBase",
+    "PlanningModel",
+    "Prediction",
+    "RandomShootingPlanner",
+    "UncertaintyBand",
+]

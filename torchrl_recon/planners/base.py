@@ -1,0 +1,146 @@
+"""What every planner shares: the plan result, constraint handling and the final choice."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+from torchrl_recon.planners.objective import Objective, rank_key
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
+
+OnInfeasible = Literal["fallback", "raise"]
+
+
+class InfeasiblePlanError(RuntimeError):
+    """No candidate satisfied the uncertainty band / cost threshold (with ``on_infeasible="raise"``)."""
+
+
+@dataclass
+class PlanResult:
+    """The chosen action sequence and what the model predicts for it.
+
+    Attributes:
+        actions: ``[*B, H, M]``.
+        states: predicted s_{t+1..t+H}, ``[*B, H, N]``.
+        cost: per-step predicted cost, ``[*B, H]``.
+        uncertainty: per-step u, ``[*B, H]`` or None.
+        objective: J of the chosen sequence, ``[*B]``.
+        feasible: ``[*B]`` bool; False means no candidate met the constraints and the least
+            violating one was returned (the documented fallback).
+    """
+
+    actions: torch.Tensor
+    states: torch.Tensor
+    cost: torch.Tensor
+    uncertainty: torch.Tensor | None
+    objective: torch.Tensor
+    feasible: torch.Tensor
+
+
+class PlannerBase(nn.Module):
+    """Optimise action sequences over a :class:`PlanningModel` for an :class:`Objective`.
+
+    Subclasses implement :meth:`_optimise`, returning candidates ``[*B, K, H, M]`` with their
+    prediction; the base class picks the best feasible one. When no candidate is feasible
+    the planner falls back to the least-violating candidate and reports ``feasible=False``
+    (``on_infeasible="fallback"``, with a warning), or raises :class:`InfeasiblePlanError`
+    (``on_infeasible="raise"``).
+    """
+
+    def __init__(
+        self,
+        model: PlanningModel,
+        objective: Objective,
+        *,
+        horizon: int,
+        on_infeasible: OnInfeasible = "fallback",
+    ) -> None:
+        super().__init__()
+        if not isinstance(horizon, int) or horizon < 1:
+            raise ValueError(f"horizon must be a positive int, got {horizon!r}.")
+        if objective.needs_uncertainty and model.uncertainty is None:
+            raise ValueError(
+                "The objective uses uncertainty (beta != 0 or a band) but the planning model has no estimator."
+            )
+        if on_infeasible not in ("fallback", "raise"):
+            raise ValueError(f"on_infeasible must be 'fallback' or 'raise', got {on_infeasible!r}.")
+        self.model, self.objective, self.horizon, self.on_infeasible = (
+            model,
+            objective,
+            horizon,
+            on_infeasible,
+        )
+
+    def _uniform(
+        self, batch: torch.Size, k: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        low, high = self.model.action_low, self.model.action_high
+        u = torch.rand(*batch, k, self.horizon, self.model.action_dim, generator=generator)
+        return low + (high - low) * u
+
+    def _clamp(self, actions: torch.Tensor) -> torch.Tensor:
+        return torch.maximum(torch.minimum(actions, self.model.action_high), self.model.action_low)
+
+    def _bounds(self, prediction: Prediction) -> tuple[torch.Tensor, torch.Tensor] | None:
+        band = self.objective.band
+        return None if band is None else band.resolve(prediction.cumulative_uncertainty)
+
+    def plan(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        *,
+        init: torch.Tensor | None = None,
+    ) -> PlanResult:
+        """Plan from a real context ``[*B, T, N]``, ``[*B, T, M]`` and state ``[*B, N]``.
+
+        Args:
+            init: optional warm start ``[*B, H, M]`` (e.g. the previous plan shifted by one step).
+        """
+        self.model.check_context(context_obs, context_action, observation)
+        if init is not None and init.shape != (
+            *observation.shape[:-1],
+            self.horizon,
+            self.model.action_dim,
+        ):
+            raise ValueError(
+                f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
+            )
+        candidates, prediction, bounds = self._optimise(
+            context_obs, context_action, observation, init
+        )
+        return self._choose(candidates, prediction, bounds)
+
+    def _optimise(self, context_obs, context_action, observation, init):
+        raise NotImplementedError
+
+    def _choose(self, candidates: torch.Tensor, prediction: Prediction, bounds) -> PlanResult:
+        objective = self.objective.score(prediction)
+        violation = self.objective.violation(prediction, bounds)
+        best = rank_key(objective, violation).argmax(-1, keepdim=True)  # [*B, 1]
+        feasible = (violation.gather(-1, best) <= 0).squeeze(-1)
+        if not feasible.all():
+            message = (
+                f"No candidate met the constraints (band {self.objective.band}, cost_threshold "
+                f"{self.objective.cost_threshold}) for {int((~feasible).sum())} of {feasible.numel()} batch "
+                "element(s); returning the least-violating candidate (feasible=False)."
+            )
+            if self.on_infeasible == "raise":
+                raise InfeasiblePlanError(message)
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+        chosen = prediction.take(best)
+        dim = best.ndim - 1
+        return PlanResult(
+            actions=gather_candidates(candidates, best).squeeze(dim),
+            states=chosen.states.squeeze(dim),
+            cost=chosen.cost.squeeze(dim),
+            uncertainty=None if chosen.uncertainty is None else chosen.uncertainty.squeeze(dim),
+            objective=objective.gather(-1, best).squeeze(-1),
+            feasible=feasible,
+        )

@@ -1,0 +1,82 @@
+"""Gradient ascent on the action sequence through the world model and the estimator (BPTT)."""
+
+from __future__ import annotations
+
+import torch
+
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase
+from torchrl_recon.planners.objective import Objective
+from torchrl_recon.planners.planning_model import PlanningModel
+
+
+class GradientPlanner(PlannerBase):
+    """Maximise J by Adam on ``restarts`` action sequences at once, projected onto the bounds.
+
+    Paper §2.3: the objective is the sum of two differentiable networks' outputs, so it can be
+    optimised by backpropagation through time with respect to the actions. Every step scores
+    all restarts in one batched pass; every sample seen (all restarts, all steps) is kept and
+    the best feasible one returned, which is the paper's "stop the ascent" at an uncertainty cap.
+
+    Keyword Args:
+        horizon: H.
+        restarts: sequences optimised in parallel (uniform initialisation; the first one starts
+            from ``init`` when a warm start is given).
+        steps: Adam steps.
+        lr: Adam learning rate, in action units.
+        on_infeasible: ``"fallback"`` or ``"raise"``.
+
+    Examples:
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> planner = GradientPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost), Objective(),
+        ...                           horizon=20, restarts=4, steps=5)
+        >>> planner.plan(torch.zeros(10, 12), torch.zeros(10, 4), torch.zeros(12)).actions.shape
+        torch.Size([20, 4])
+    """
+
+    def __init__(
+        self,
+        model: PlanningModel,
+        objective: Objective,
+        *,
+        horizon: int,
+        restarts: int = 16,
+        steps: int = 50,
+        lr: float = 0.05,
+        on_infeasible: OnInfeasible = "fallback",
+    ) -> None:
+        super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
+        if not isinstance(restarts, int) or restarts < 1:
+            raise ValueError(f"restarts must be a positive int, got {restarts!r}.")
+        if not isinstance(steps, int) or steps < 1:
+            raise ValueError(f"steps must be a positive int, got {steps!r}.")
+        if not lr > 0:
+            raise ValueError(f"lr must be positive, got {lr!r}.")
+        self.restarts, self.steps, self.lr = restarts, steps, lr
+
+    def _optimise(self, context_obs, context_action, observation, init):
+        batch = observation.shape[:-1]
+        with torch.no_grad():
+            start = self._uniform(batch, self.restarts)
+            if init is not None:
+                start[..., 0, :, :] = init
+        actions = start.requires_grad_(True)
+        optimizer = torch.optim.Adam([actions], lr=self.lr)
+        seen_actions, seen = [], None
+        with torch.enable_grad():
+            for step in range(self.steps + 1):
+                prediction = self.model(context_obs, context_action, observation, actions)
+                seen_actions.append(actions.detach().clone())
+                detached = prediction.detach()
+                seen = detached if seen is None else seen.cat(detached)
+                if step == self.steps:
+                    break
+                (grad,) = torch.autograd.grad(-self.objective.score(prediction).sum(), actions)
+                actions.grad = grad
+                optimizer.step()
+                with torch.no_grad():
+                    actions.copy_(self._clamp(actions))
+        # Bands are resolved on the uniform initial restarts (the first `restarts` samples).
+        first = seen.take(torch.arange(self.restarts).expand(*batch, self.restarts))
+        bounds = self._bounds(first)
+        return torch.cat(seen_actions, -3), seen, bounds

@@ -1,0 +1,125 @@
+"""The planning objective J = Σ_t (α·r_t − β·u_t) with optional bounds on cumulative u and cost."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from torchrl_recon.planners.planning_model import Prediction
+
+BandKind = Literal["absolute", "quantile", "mean_ratio"]
+
+
+@dataclass(frozen=True)
+class UncertaintyBand:
+    """Keep candidates whose cumulative u lies in ``[low, high]`` (either side may be None).
+
+    ``kind`` says what the numbers are:
+
+    * ``"absolute"``: values of Σu (the paper's ranges, e.g. 15–30 on IB);
+    * ``"quantile"``: quantiles in [0, 1] of Σu over a batch of uniformly sampled candidates;
+    * ``"mean_ratio"``: multiples of the mean Σu over that batch (the paper's exploration
+      keeps candidates at 1.2–1.5 × the mean).
+
+    Relative bands are resolved once per planning call, from the planner's first batch of
+    uniform candidates, and then held fixed.
+
+    Examples:
+        >>> band = UncertaintyBand(low=0.25, high=0.75, kind="quantile")
+        >>> low, high = band.resolve(torch.arange(5.0)[None])
+        >>> low.item(), high.item()
+        (1.0, 3.0)
+    """
+
+    low: float | None = None
+    high: float | None = None
+    kind: BandKind = "absolute"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("absolute", "quantile", "mean_ratio"):
+            raise ValueError(
+                f"band kind must be 'absolute', 'quantile' or 'mean_ratio', got {self.kind!r}."
+            )
+        if self.low is not None and self.high is not None and self.low > self.high:
+            raise ValueError(f"band low={self.low} is above high={self.high}.")
+        if self.kind == "quantile" and any(
+            v is not None and not 0 <= v <= 1 for v in (self.low, self.high)
+        ):
+            raise ValueError(
+                f"quantile band bounds must lie in [0, 1], got low={self.low}, high={self.high}."
+            )
+
+    def resolve(self, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Absolute bounds ``([*B, 1], [*B, 1])`` from reference cumulative u ``[*B, K]``."""
+        batch = reference.shape[:-1]
+
+        def one(value: float | None, default: float) -> torch.Tensor:
+            if value is None:
+                return reference.new_full((*batch, 1), default)
+            if self.kind == "absolute":
+                return reference.new_full((*batch, 1), value)
+            if self.kind == "quantile":
+                return torch.quantile(reference, value, dim=-1, keepdim=True)
+            return value * reference.mean(-1, keepdim=True)
+
+        return one(self.low, -torch.inf), one(self.high, torch.inf)
+
+
+@dataclass(frozen=True)
+class Objective:
+    """Score candidates: J = Σ_t (α·r_t − β·u_t), r = −cost (paper eq. 3; eq. 4 is α = 0, β = −1).
+
+    Args:
+        alpha: weight of reward.
+        beta: weight of uncertainty (negative to seek uncertainty, as in exploration).
+        band: optional :class:`UncertaintyBand` on cumulative u.
+        cost_threshold: optional upper bound on predicted cumulative cost.
+
+    Examples:
+        >>> from torchrl_recon.planners.planning_model import Prediction
+        >>> pred = Prediction(states=torch.zeros(1, 2, 3, 1), cost=torch.ones(1, 2, 3), uncertainty=torch.ones(1, 2, 3))
+        >>> Objective(alpha=1.0, beta=0.5).score(pred)
+        tensor([[-4.5000, -4.5000]])
+    """
+
+    alpha: float = 1.0
+    beta: float = 0.0
+    band: UncertaintyBand | None = None
+    cost_threshold: float | None = None
+
+    @property
+    def needs_uncertainty(self) -> bool:
+        """Whether u must be computed."""
+        return self.beta != 0.0 or self.band is not None
+
+    def score(self, prediction: Prediction) -> torch.Tensor:
+        """J for every candidate, ``[*B, K]``."""
+        value = -self.alpha * prediction.cumulative_cost if self.alpha else 0.0
+        if self.beta:
+            value = value - self.beta * prediction.cumulative_uncertainty
+        if isinstance(value, float):
+            return prediction.cost.new_zeros(prediction.cost.shape[:-1])
+        return value
+
+    def violation(
+        self, prediction: Prediction, bounds: tuple[torch.Tensor, torch.Tensor] | None
+    ) -> torch.Tensor:
+        """How far each candidate is outside the constraints (0 when feasible), ``[*B, K]``."""
+        out = prediction.cost.new_zeros(prediction.cost.shape[:-1])
+        if bounds is not None:
+            cum_u = prediction.cumulative_uncertainty
+            low, high = bounds
+            out = out + (low - cum_u).clamp_min(0) + (cum_u - high).clamp_min(0)
+        if self.cost_threshold is not None:
+            out = out + (prediction.cumulative_cost - self.cost_threshold).clamp_min(0)
+        return out
+
+
+def rank_key(objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+    """A key whose top-k picks feasible candidates by J first, then the least-violating ones."""
+    feasible = violation <= 0
+    inner = torch.where(feasible, objective, -violation)
+    span = (inner.amax(-1, keepdim=True) - inner.amin(-1, keepdim=True)).nan_to_num(0.0) + 1.0
+    return torch.where(feasible, inner + span, inner)

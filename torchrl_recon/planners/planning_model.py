@@ -1,0 +1,204 @@
+"""The one rollout engine every planner uses: (context, K×H actions) → states, cost, uncertainty."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.world_model import LSTMWorldModel
+
+CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Pick candidates ``index`` ``[*B, k]`` along the candidate dim of ``x`` ``[*B, K, ...]`` → ``[*B, k, ...]``."""
+    dim = index.ndim - 1
+    expanded = index.view(*index.shape, *([1] * (x.ndim - index.ndim))).expand(
+        *index.shape, *x.shape[index.ndim :]
+    )
+    return x.gather(dim, expanded)
+
+
+@dataclass
+class Prediction:
+    """What the planning model predicts for ``K`` candidates of ``H`` steps.
+
+    Attributes:
+        states: predicted s_{t+1..t+H}, ``[*B, K, H, N]``.
+        cost: per-step cost c(s_k, a_k, s_{k+1}), ``[*B, K, H]`` (reward is ``-cost``).
+        uncertainty: per-step u of the window ending at step k, ``[*B, K, H]``, or None.
+    """
+
+    states: torch.Tensor
+    cost: torch.Tensor
+    uncertainty: torch.Tensor | None
+
+    def take(self, index: torch.Tensor) -> Prediction:
+        """The predictions of candidates ``index`` ``[*B, k]``."""
+        u = None if self.uncertainty is None else gather_candidates(self.uncertainty, index)
+        return Prediction(
+            gather_candidates(self.states, index), gather_candidates(self.cost, index), u
+        )
+
+    def detach(self) -> Prediction:
+        """A copy without autograd history."""
+        u = None if self.uncertainty is None else self.uncertainty.detach()
+        return Prediction(self.states.detach(), self.cost.detach(), u)
+
+    def cat(self, other: Prediction) -> Prediction:
+        """Candidates of ``self`` followed by those of ``other``."""
+        u = (
+            None
+            if self.uncertainty is None
+            else torch.cat([self.uncertainty, other.uncertainty], -2)
+        )
+        return Prediction(
+            torch.cat([self.states, other.states], -3), torch.cat([self.cost, other.cost], -2), u
+        )
+
+    @property
+    def cumulative_cost(self) -> torch.Tensor:
+        """Σ_k cost, ``[*B, K]``."""
+        return self.cost.sum(-1)
+
+    @property
+    def cumulative_uncertainty(self) -> torch.Tensor | None:
+        """Σ_k u, ``[*B, K]`` (None without an estimator)."""
+        return None if self.uncertainty is None else self.uncertainty.sum(-1)
+
+
+class PlanningModel(nn.Module):
+    """Compose a world model, a torch cost function and (optionally) an uncertainty estimator.
+
+    Neither network knows about the other: the world model imagines states, the estimator
+    scores every T-window of (context + imagined) (s, a) pairs in one call, and the cost
+    function scores every transition in one call.
+
+    Args:
+        world_model: anything with ``imagine(context_obs, context_action, observation, actions)``
+            and ``obs_dim``, ``action_dim``, ``window`` attributes (e.g. :class:`LSTMWorldModel`).
+        cost_fn: batched torch cost ``cost(obs, action, next_obs) -> [...]`` (see the env registry).
+
+    Keyword Args:
+        uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
+        action_low, action_high: action bounds (floats or ``[M]`` tensors); must be finite.
+
+    Examples:
+        >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> pm = PlanningModel(LSTMWorldModel(6, 3), industrial_benchmark_cost,
+        ...                    uncertainty=ReconstructionUncertainty(6, 3))
+        >>> pred = pm(torch.rand(10, 6), torch.rand(10, 3), torch.rand(6), torch.rand(100, 30, 3))
+        >>> pred.states.shape, pred.cost.shape, pred.uncertainty.shape
+        (torch.Size([100, 30, 6]), torch.Size([100, 30]), torch.Size([100, 30]))
+    """
+
+    def __init__(
+        self,
+        world_model: LSTMWorldModel,
+        cost_fn: CostFn,
+        *,
+        uncertainty: UncertaintyEstimator | None = None,
+        action_low: float | torch.Tensor = -1.0,
+        action_high: float | torch.Tensor = 1.0,
+    ) -> None:
+        super().__init__()
+        self.world_model, self.cost_fn, self.uncertainty = world_model, cost_fn, uncertainty
+        self.obs_dim, self.action_dim = world_model.obs_dim, world_model.action_dim
+        if uncertainty is not None and (uncertainty.obs_dim, uncertainty.action_dim) != (
+            self.obs_dim,
+            self.action_dim,
+        ):
+            raise ValueError(
+                f"uncertainty estimator dims (obs {uncertainty.obs_dim}, action {uncertainty.action_dim}) differ from "
+                f"the world model's (obs {self.obs_dim}, action {self.action_dim})."
+            )
+        low = torch.as_tensor(action_low, dtype=torch.float32).expand(self.action_dim).clone()
+        high = torch.as_tensor(action_high, dtype=torch.float32).expand(self.action_dim).clone()
+        if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
+            raise ValueError(
+                f"action bounds must be finite, got low={low.tolist()}, high={high.tolist()}."
+            )
+        if not (low < high).all():
+            raise ValueError(
+                f"action_low must be below action_high, got low={low.tolist()}, high={high.tolist()}."
+            )
+        self.register_buffer("action_low", low)
+        self.register_buffer("action_high", high)
+
+    @property
+    def context_length(self) -> int:
+        """Real (s, a) pairs the planner needs before the current state."""
+        u_window = 0 if self.uncertainty is None else self.uncertainty.window - 1
+        return max(self.world_model.window, u_window)
+
+    def check_context(
+        self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
+    ) -> None:
+        """Validate a real context: dims, length >= :attr:`context_length`, finite values."""
+        check_features("observation", observation, self.obs_dim)
+        check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
+        check_features("context_action", context_action, self.action_dim, min_ndim=2)
+        check_window("context_obs", context_obs, self.context_length)
+        if (
+            context_obs.shape[:-1] != context_action.shape[:-1]
+            or context_obs.shape[:-2] != observation.shape[:-1]
+        ):
+            raise ValueError(
+                f"context_obs {tuple(context_obs.shape)}, context_action {tuple(context_action.shape)} and "
+                f"observation {tuple(observation.shape)} disagree on batch dims."
+            )
+        for name, x in (
+            ("observation", observation),
+            ("context_obs", context_obs),
+            ("context_action", context_action),
+        ):
+            check_finite(name, x)
+
+    def forward(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+    ) -> Prediction:
+        """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]`` in one batched pass."""
+        states = self.world_model.imagine(context_obs, context_action, observation, actions)
+        k = actions.shape[-3]
+        start = (
+            observation.unsqueeze(-2)
+            .unsqueeze(-2)
+            .expand(*observation.shape[:-1], k, 1, self.obs_dim)
+        )
+        entering = torch.cat([start, states[..., :-1, :]], -2)  # s_k for k = 0..H-1
+        cost = self.cost_fn(entering, actions, states)
+        uncertainty = None
+        if self.uncertainty is not None:
+            uncertainty = self._score_uncertainty(context_obs, context_action, entering, actions)
+        return Prediction(states=states, cost=cost, uncertainty=uncertainty)
+
+    def _score_uncertainty(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        entering: torch.Tensor,
+        actions: torch.Tensor,
+    ) -> torch.Tensor:
+        """u of the H windows ending at each imagined step (the first ones reach into the real context)."""
+        est = self.uncertainty
+        past = est.window - 1
+        *batch, k, horizon, _ = actions.shape
+        rows = int(torch.Size(batch).numel()) * k
+        x = entering.new_empty(rows, past + horizon, self.obs_dim + self.action_dim)
+        x = x.view(*batch, k, past + horizon, -1)
+        if past:
+            x[..., :past, : self.obs_dim] = context_obs[..., None, -past:, :]
+            x[..., :past, self.obs_dim :] = context_action[..., None, -past:, :]
+        x[..., past:, : self.obs_dim] = entering
+        x[..., past:, self.obs_dim :] = actions
+        return est.score_sequence(x.view(rows, past + horizon, -1)).view(*batch, k, horizon)

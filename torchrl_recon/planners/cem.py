@@ -76,7 +76,7 @@ class CEMPlanner(PlannerBase):
         if init is not None:
             mean, std = init.unsqueeze(-3), (0.25 * span).expand_as(init).unsqueeze(-3)
         best_candidates = best_prediction = bounds = None
-        for it in range(self.iterations):
+        for _ in range(self.iterations):
             if mean is None:
                 candidates = self._uniform(batch, self.num_candidates)
             else:

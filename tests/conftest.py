@@ -1,0 +1,85 @@
+"""Shared fixtures: small world models and estimators trained once per session on real env data."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_recon.collectors import collect_random
+from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
+from torchrl_recon.envs import make_env
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.training import fit_uncertainty, fit_world_model
+
+logging.getLogger("torchrl").setLevel(logging.WARNING)
+WINDOW, HORIZON = 10, 20
+
+
+class OffsetNoisePolicy(TensorDictModuleBase):
+    """Actions = clip(offset + noise): a larger offset makes the trajectory less like uniform random data."""
+
+    in_keys: list = []
+    out_keys = ["action"]
+
+    def __init__(self, offset: torch.Tensor, generator: torch.Generator) -> None:
+        super().__init__()
+        self.offset, self.generator = offset, generator
+
+    def forward(self, td):
+        noise = torch.rand(self.offset.shape, generator=self.generator) * 2 - 1
+        td["action"] = (self.offset + 0.5 * noise).clamp(-1, 1)
+        return td
+
+
+@pytest.fixture(scope="session")
+def trained_models():
+    """``trained_models(name)`` → dict with data, world model and estimator, trained once per env."""
+    cache = {}
+
+    def get(name: str) -> dict:
+        if name not in cache:
+            cache[name] = _train(name)
+        return cache[name]
+
+    return get
+
+
+def _train(name: str) -> dict:
+    torch.manual_seed(0)
+    train = collect_random(make_env(name, seed=0, max_episode_steps=500), frames=3000, seed=0)
+    held_out = collect_random(make_env(name, seed=1, max_episode_steps=500), frames=1500, seed=1)
+    fit_part, val_part = split_by_trajectory(
+        train, 0.2, seed=0
+    )  # early stopping never sees held_out
+    rb = make_sequence_buffer(3000, slice_len=WINDOW + HORIZON, num_slices=32)
+    val_rb = make_sequence_buffer(3000, slice_len=WINDOW + HORIZON, num_slices=32)
+    rb.extend(fit_part), val_rb.extend(val_part)
+    obs_dim, action_dim = train["observation"].shape[-1], train["action"].shape[-1]
+    model = LSTMWorldModel(obs_dim, action_dim, window=WINDOW)
+    fit_world_model(
+        model, rb, val_buffer=val_rb, steps=1500, lr=3e-3, eval_every=100, progress=False, seed=0
+    )
+    estimator = ReconstructionUncertainty(obs_dim, action_dim, window=WINDOW)
+    fit_uncertainty(
+        estimator,
+        rb,
+        val_buffer=val_rb,
+        steps=3000,
+        lr=3e-3,
+        eval_every=250,
+        progress=False,
+        seed=0,
+    )
+    std = train["observation"].std(0)
+    scale = torch.where(std < 1e-6, torch.ones_like(std), std)
+    return {
+        "name": name,
+        "train": train,
+        "held_out": held_out,
+        "model": model,
+        "estimator": estimator,
+        "scale": scale,
+    }

@@ -1,0 +1,7 @@
+"""TensorDict policies on the planners: MPC control and uncertainty-seeking exploration."""
+
+from __future__ import annotations
+
+from torchrl_recon.policies.mpc import MPCPolicy
+
+__all__ = ["MPCPolicy"]

@@ -1,0 +1,243 @@
+"""MPC as a TensorDict policy: plan, execute open loop, re-plan when uncertainty says so."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import TensorDictPrimer
+
+from torchrl_recon.modules._checks import check_finite
+from torchrl_recon.planners.base import PlannerBase
+
+ReplanMode = Literal["every_step", "every_n", "uncertainty"]
+
+# State keys carried step to step (primed by make_tensordict_primer, reset where is_init is set).
+OBS_HISTORY, ACTION_HISTORY = "mpc_obs_history", "mpc_action_history"
+PLAN, PLAN_STATES, PLAN_COST, PLAN_U, PLAN_STEP, SEEN = (
+    "mpc_plan",
+    "mpc_plan_states",
+    "mpc_plan_cost",
+    "mpc_plan_u",
+    "mpc_plan_step",
+    "mpc_steps_seen",
+)
+STATE_KEYS = (OBS_HISTORY, ACTION_HISTORY, PLAN, PLAN_STATES, PLAN_COST, PLAN_U, PLAN_STEP, SEEN)
+# Per-step outputs, for plotting predicted vs real.
+REPLANNED, FEASIBLE = "mpc_replanned", "mpc_feasible"
+PRED_NEXT, PRED_U, PRED_COST = (
+    "mpc_predicted_next_observation",
+    "mpc_predicted_uncertainty",
+    "mpc_predicted_cost",
+)
+
+
+class MPCPolicy(TensorDictModuleBase):
+    """Model-predictive control with a :class:`~torchrl_recon.planners.PlannerBase`, usable by
+    ``env.rollout`` and every TorchRL collector.
+
+    Its state (the last ``C`` real (s, a) pairs and the remaining plan with its predictions)
+    travels in the TensorDict under ``mpc_*`` keys: add :meth:`make_tensordict_primer` to the
+    env (as with TorchRL's ``LSTMModule``) and keep an ``InitTracker``. Where ``is_init`` is
+    set the state is cleared. The first ``C`` steps of an episode take uniform random actions
+    to fill the context (the paper's "10 random actions after reset").
+
+    Re-planning (``replan``):
+
+    * ``"every_step"``: classic MPC, re-plan at every step, execute the first action;
+    * ``"every_n"``: re-plan every ``replan_every`` steps;
+    * ``"uncertainty"``: the paper's mode. Execute the plan open loop while the predicted
+      u of the next action (``threshold_on="step"``) or the predicted Σu since the plan was
+      made (``threshold_on="cumulative"``) is at most ``threshold``; re-plan when it crosses
+      it or the plan runs out. A fresh plan always executes at least one action.
+
+    Per step it writes ``action``, ``mpc_replanned``, ``mpc_feasible`` and the predicted next
+    observation, u and cost of the action taken, so predicted and real trajectories can be
+    compared.
+
+    Args:
+        planner: the planner (its model's ``obs_dim``/``action_dim`` and horizon are used).
+
+    Keyword Args:
+        replan: ``"every_step"``, ``"every_n"`` or ``"uncertainty"``.
+        replan_every: n for ``"every_n"``.
+        threshold: u threshold for ``"uncertainty"``.
+        threshold_on: ``"step"`` or ``"cumulative"``.
+        warm_start: pass the unexecuted rest of the previous plan to the planner as ``init``.
+        obs_key, action_key: TensorDict keys.
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+        >>> planner = CEMPlanner(PlanningModel(LSTMWorldModel(12, 4, window=3), drone_cost), Objective(),
+        ...                      horizon=10, num_candidates=32, num_elites=4, iterations=2)
+        >>> policy = MPCPolicy(planner, replan="every_n", replan_every=5)
+        >>> env = make_env("drone", seed=0).append_transform(policy.make_tensordict_primer())
+        >>> td = env.rollout(8, policy)
+        >>> td["mpc_replanned"].squeeze(-1).tolist()
+        [False, False, False, True, False, False, False, False]
+    """
+
+    def __init__(
+        self,
+        planner: PlannerBase,
+        *,
+        replan: ReplanMode = "every_step",
+        replan_every: int = 1,
+        threshold: float | None = None,
+        threshold_on: Literal["step", "cumulative"] = "step",
+        warm_start: bool = True,
+        obs_key: str = "observation",
+        action_key: str = "action",
+    ) -> None:
+        super().__init__()
+        if replan not in ("every_step", "every_n", "uncertainty"):
+            raise ValueError(
+                f"replan must be 'every_step', 'every_n' or 'uncertainty', got {replan!r}."
+            )
+        if replan == "every_n" and (not isinstance(replan_every, int) or replan_every < 1):
+            raise ValueError(f"replan_every must be a positive int, got {replan_every!r}.")
+        if replan == "uncertainty":
+            if threshold is None:
+                raise ValueError("replan='uncertainty' needs a threshold.")
+            if planner.model.uncertainty is None:
+                raise ValueError(
+                    "replan='uncertainty' needs a planning model with an uncertainty estimator."
+                )
+        if threshold_on not in ("step", "cumulative"):
+            raise ValueError(f"threshold_on must be 'step' or 'cumulative', got {threshold_on!r}.")
+        self.planner, self.replan, self.replan_every = planner, replan, replan_every
+        self.threshold, self.threshold_on, self.warm_start = threshold, threshold_on, warm_start
+        model = planner.model
+        self.obs_dim, self.action_dim, self.horizon = (
+            model.obs_dim,
+            model.action_dim,
+            planner.horizon,
+        )
+        self.context = model.context_length
+        self.obs_key, self.action_key = obs_key, action_key
+        self.in_keys = [obs_key, "is_init", *STATE_KEYS]
+        self.out_keys = [
+            action_key,
+            REPLANNED,
+            FEASIBLE,
+            PRED_NEXT,
+            PRED_U,
+            PRED_COST,
+            *[("next", k) for k in STATE_KEYS],
+        ]
+
+    def state_spec(self) -> Composite:
+        """Specs of the carried state (unbatched)."""
+        c, h, n, m = self.context, self.horizon, self.obs_dim, self.action_dim
+        return Composite(
+            {
+                OBS_HISTORY: Unbounded((c, n)),
+                ACTION_HISTORY: Unbounded((c, m)),
+                PLAN: Unbounded((h, m)),
+                PLAN_STATES: Unbounded((h, n)),
+                PLAN_COST: Unbounded((h,)),
+                PLAN_U: Unbounded((h,)),
+                PLAN_STEP: Unbounded((1,), dtype=torch.int64),
+                SEEN: Unbounded((1,), dtype=torch.int64),
+            }
+        )
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """The transform that adds and resets this policy's state in the env (append it to the env)."""
+        return TensorDictPrimer(self.state_spec(), default_value=0, expand_specs=True)
+
+    def _needs_plan(self, step: torch.Tensor, plan_u: torch.Tensor) -> torch.Tensor:
+        exhausted = step >= self.horizon
+        if self.replan == "every_step":
+            return torch.ones_like(exhausted)
+        if self.replan == "every_n":
+            return exhausted | (step >= self.replan_every)
+        idx = step.clamp(max=self.horizon - 1)
+        if self.threshold_on == "step":
+            upcoming = plan_u.gather(-1, idx[:, None]).squeeze(-1)
+        else:
+            upcoming = (plan_u.cumsum(-1)).gather(-1, idx[:, None]).squeeze(-1)
+        return exhausted | (upcoming > self.threshold)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if PLAN not in tensordict.keys():
+            raise KeyError(
+                f"MPCPolicy state {PLAN!r} is missing from the tensordict; append "
+                "policy.make_tensordict_primer() to the env (and an InitTracker)."
+            )
+        batch = tensordict.batch_size
+        flat = tensordict.reshape(-1)
+        rows = flat.shape[0]
+        obs = flat.get(self.obs_key)
+        check_finite(f"{self.obs_key!r} given to MPCPolicy", obs)
+        state = flat.select(*STATE_KEYS).clone()
+        plan, plan_u = state[PLAN], state[PLAN_U]
+        step, seen = state[PLAN_STEP].squeeze(-1), state[SEEN].squeeze(-1)
+        is_init = flat.get("is_init", torch.zeros(rows, 1, dtype=torch.bool)).reshape(rows)
+        step.masked_fill_(is_init, self.horizon)
+        seen.masked_fill_(is_init, 0)
+        feasible = torch.ones(rows, dtype=torch.bool)
+
+        ready = seen >= self.context
+        replanned = ready & self._needs_plan(step, plan_u)
+        if replanned.any():
+            idx = replanned.nonzero().squeeze(-1)
+            result = self.planner.plan(
+                state[OBS_HISTORY][idx],
+                state[ACTION_HISTORY][idx],
+                obs[idx],
+                init=self._warm_start(plan[idx], step[idx]),
+            )
+            state[PLAN][idx], state[PLAN_STATES][idx], state[PLAN_COST][idx] = (
+                result.actions,
+                result.states,
+                result.cost,
+            )
+            if result.uncertainty is not None:
+                state[PLAN_U][idx] = result.uncertainty
+            step[idx] = 0
+            feasible[idx] = result.feasible
+
+        low, high = self.planner.model.action_low, self.planner.model.action_high
+        random_action = low + (high - low) * torch.rand(rows, self.action_dim)
+        at = step.clamp(max=self.horizon - 1)
+        planned = ready[:, None]
+        action = torch.where(planned, _at_step(state[PLAN], at), random_action)
+        outputs = {
+            self.action_key: action,
+            REPLANNED: replanned[:, None],
+            FEASIBLE: feasible[:, None],
+            PRED_NEXT: torch.where(planned, _at_step(state[PLAN_STATES], at), float("nan")),
+            PRED_U: torch.where(planned, _at_step(state[PLAN_U], at)[:, None], float("nan")),
+            PRED_COST: torch.where(planned, _at_step(state[PLAN_COST], at)[:, None], float("nan")),
+        }
+        step += ready.long()
+        seen += 1
+        # The context after this step: drop the oldest pair, append (s_t, a_t).
+        state[OBS_HISTORY] = torch.cat([state[OBS_HISTORY][:, 1:], obs[:, None]], 1)
+        state[ACTION_HISTORY] = torch.cat([state[ACTION_HISTORY][:, 1:], action[:, None]], 1)
+        for key, value in outputs.items():
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]))
+        for key in STATE_KEYS:
+            tensordict.set(("next", key), state[key].reshape(*batch, *state[key].shape[1:]))
+        return tensordict
+
+    def _warm_start(self, plan: torch.Tensor, step: torch.Tensor) -> torch.Tensor | None:
+        """The unexecuted rest of each plan, padded with its last action; zeros when a plan ran out."""
+        if not self.warm_start:
+            return None
+        shift = (step[:, None] + torch.arange(self.horizon)).clamp(max=self.horizon - 1)
+        init = plan.gather(-2, shift[..., None].expand(-1, -1, self.action_dim))
+        return torch.where((step >= self.horizon)[:, None, None], torch.zeros_like(init), init)
+
+
+def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """``x[i, step[i]]`` for ``x`` ``[R, H, ...]``."""
+    index = step.view(-1, 1, *([1] * (x.ndim - 2))).expand(-1, 1, *x.shape[2:])
+    return x.gather(1, index).squeeze(1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from torchrl_recon.planners.base import InfeasiblePlanError, PlannerBase, PlanResult
 from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.gradient import GradientPlanner
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction
 from torchrl_recon.planners.shooting import RandomShootingPlanner
@@ -20,4 +21,5 @@ __all__ = [
     "Prediction",
     "RandomShootingPlanner",
     "UncertaintyBand",
+    "WorldModelPlanningEnv",
 ]

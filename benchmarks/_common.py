@@ -1,0 +1,49 @@
+"""Shared pieces of the benchmarks: paper-size models and a median timer."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+
+OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
+
+
+def paper_models(seed: int = 0) -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
+    """World model (LSTM 32, dense 32) and autoencoder (90 → 100 → 90) of the paper's sizes, IB dims."""
+    torch.manual_seed(seed)
+    world = LSTMWorldModel(OBS_DIM, ACTION_DIM, hidden_size=32, dense_size=32, window=WINDOW)
+    estimator = ReconstructionUncertainty(OBS_DIM, ACTION_DIM, window=WINDOW, hidden_size=100)
+    obs, act = torch.rand(500, OBS_DIM) * 100, torch.rand(500, ACTION_DIM) * 2 - 1
+    world.fit_normalization(obs, act, obs + torch.randn(500, OBS_DIM))
+    estimator.fit_normalization(obs, act)
+    for p in (*world.parameters(), *estimator.parameters()):
+        p.requires_grad_(False)
+    return world, estimator
+
+
+def context(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.rand(WINDOW, OBS_DIM, generator=g) * 100
+    act = torch.rand(WINDOW, ACTION_DIM, generator=g) * 2 - 1
+    return obs, act, torch.rand(OBS_DIM, generator=g) * 100
+
+
+COST = industrial_benchmark_cost
+
+
+def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+    """Median wall time of ``fn`` over ``repeats`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)

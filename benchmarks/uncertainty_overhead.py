@@ -1,0 +1,44 @@
+"""Cost of adding u to an imagined rollout: world-model-only vs world model + u for every window.
+
+Run: python benchmarks/uncertainty_overhead.py [--candidates 1000] [--horizons 30 200] [--repeats 7]
+Prints each time, then the ratio at the first horizon last, as ``ratio: X``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from _common import ACTION_DIM, COST, context, median_seconds, paper_models
+
+from torchrl_recon.planners import PlanningModel
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--candidates", type=int, default=1000)
+    parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    world, estimator = paper_models()
+    rollout_only = PlanningModel(world, COST)
+    with_u = PlanningModel(world, COST, uncertainty=estimator)
+    ctx = context()
+    print(f"K={args.candidates}, threads={args.threads}, median of {args.repeats} calls")
+    ratios = []
+    for horizon in args.horizons:
+        actions = torch.rand(args.candidates, horizon, ACTION_DIM) * 2 - 1
+        with torch.inference_mode():
+            t_rollout = median_seconds(lambda: rollout_only(*ctx, actions), args.repeats)
+            t_with_u = median_seconds(lambda: with_u(*ctx, actions), args.repeats)
+        ratios.append(t_with_u / t_rollout)
+        print(
+            f"H={horizon:4d}  rollout {t_rollout * 1e3:8.1f} ms   rollout + u {t_with_u * 1e3:8.1f} ms   ratio {ratios[-1]:.2f}"
+        )
+    print(f"ratio: {ratios[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

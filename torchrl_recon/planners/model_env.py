@@ -1,0 +1,166 @@
+"""Expose our world model (+ cost, + optional uncertainty penalty) as a TorchRL ``ModelBasedEnvBase``."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.model_based import ModelBasedEnvBase
+from torchrl.modules import LSTMModule
+
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.world_model import _ACTIVATIONS, LSTMWorldModel
+from torchrl_recon.planners.planning_model import CostFn
+
+H_KEY, C_KEY, U_HISTORY = "wm_h", "wm_c", "u_history"
+
+
+class _InputModule(TensorDictModuleBase):
+    """(s, a) → the world model's standardised LSTM input."""
+
+    def __init__(self, world_model: LSTMWorldModel) -> None:
+        super().__init__()
+        self.world_model = world_model
+        self.in_keys, self.out_keys = ["observation", "action"], ["wm_input"]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        return td.set("wm_input", self.world_model._inputs(td.get("observation"), td.get("action")))
+
+
+class _StepModule(TensorDictModuleBase):
+    """LSTM features → next observation, reward = −cost − β·u, and the rolled uncertainty history."""
+
+    def __init__(
+        self,
+        world_model: LSTMWorldModel,
+        cost_fn: CostFn,
+        estimator: UncertaintyEstimator | None,
+        beta: float,
+    ):
+        super().__init__()
+        self.world_model, self.cost_fn, self.estimator, self.beta = (
+            world_model,
+            cost_fn,
+            estimator,
+            beta,
+        )
+        self.in_keys = ["wm_features", "observation", "action"] + (
+            [U_HISTORY] if estimator is not None else []
+        )
+        self.out_keys = ["observation", "reward", "is_init"] + (
+            [U_HISTORY] if estimator is not None else []
+        )
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        wm = self.world_model
+        obs, action = td.get("observation"), td.get("action")
+        z = _ACTIVATIONS[wm.activation](wm.dense(td.get("wm_features")))
+        next_obs = obs + wm.delta_norm.denormalize(wm.head(z))
+        reward = -self.cost_fn(obs, action, next_obs)
+        if self.estimator is not None:
+            window = torch.cat([td.get(U_HISTORY), torch.cat([obs, action], -1).unsqueeze(-2)], -2)
+            reward = reward - self.beta * self.estimator.score_windows(window)
+            td.set(U_HISTORY, window[..., 1:, :])
+        td.set("observation", next_obs)
+        td.set("reward", reward.unsqueeze(-1))
+        return td.set("is_init", torch.zeros_like(reward, dtype=torch.bool).unsqueeze(-1))
+
+
+class WorldModelPlanningEnv(ModelBasedEnvBase):
+    """Our :class:`~torchrl_recon.modules.LSTMWorldModel` as a TorchRL model-based env.
+
+    Lets TorchRL's own ``CEMPlanner`` and ``MPPIPlanner`` plan on our models. The LSTM is
+    TorchRL's ``LSTMModule`` sharing the world model's ``nn.LSTM`` weights; its state
+    (``wm_h``, ``wm_c``), ``is_init`` and, with an estimator, the last ``T − 1`` (s, a) pairs
+    (``u_history``) are part of the observation spec, so they are carried through rollouts.
+    The reward is ``−cost − beta·u`` of each imagined transition. Start a rollout from
+    :meth:`initial_state`, which warms the LSTM up on a real context.
+
+    Args:
+        world_model: the world model.
+        cost_fn: batched torch cost ``cost(obs, action, next_obs)``.
+
+    Keyword Args:
+        uncertainty: optional estimator; with it the reward is penalised by ``beta·u``.
+        beta: uncertainty weight.
+        action_low, action_high: action bounds.
+
+    Examples:
+        >>> from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> env = WorldModelPlanningEnv(LSTMWorldModel(12, 4, window=3), drone_cost)
+        >>> planner = TorchRLCEMPlanner(env, planning_horizon=5, optim_steps=2, num_candidates=16, top_k=4)
+        >>> td = env.initial_state(torch.zeros(3, 12), torch.zeros(3, 4), torch.zeros(12))
+        >>> planner(td)["action"].shape
+        torch.Size([4])
+    """
+
+    def __init__(
+        self,
+        world_model: LSTMWorldModel,
+        cost_fn: CostFn,
+        *,
+        uncertainty: UncertaintyEstimator | None = None,
+        beta: float = 0.0,
+        action_low: float = -1.0,
+        action_high: float = 1.0,
+    ) -> None:
+        lstm = LSTMModule(
+            lstm=world_model.lstm,
+            in_keys=["wm_input", H_KEY, C_KEY],
+            out_keys=["wm_features", H_KEY, C_KEY],
+        )
+        module = TensorDictSequential(
+            _InputModule(world_model), lstm, _StepModule(world_model, cost_fn, uncertainty, beta)
+        )
+        super().__init__(module)
+        self.lstm_world_model, self.estimator = world_model, uncertainty
+        n, m, hid = world_model.obs_dim, world_model.action_dim, world_model.hidden_size
+        observation = {
+            "observation": Unbounded((n,)),
+            H_KEY: Unbounded((1, hid)),
+            C_KEY: Unbounded((1, hid)),
+            "is_init": Categorical(2, (1,), dtype=torch.bool),
+        }
+        if uncertainty is not None:
+            observation[U_HISTORY] = Unbounded((uncertainty.window - 1, n + m))
+        self.observation_spec = Composite(observation)
+        self.state_spec = self.observation_spec.clone()
+        self.action_spec = Bounded(action_low, action_high, (m,))
+        self.reward_spec = Unbounded((1,))
+
+    def initial_state(
+        self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
+    ) -> TensorDictBase:
+        """A start tensordict from a real context ``[*B, T, N]``, ``[*B, T, M]`` and state ``[*B, N]``."""
+        wm = self.lstm_world_model
+        with torch.no_grad():
+            h, c = wm.warmup(context_obs, context_action)
+        batch = observation.shape[:-1]
+        td = TensorDict(
+            {
+                "observation": observation,
+                H_KEY: h.unsqueeze(-2),
+                C_KEY: c.unsqueeze(-2),
+                "is_init": torch.zeros(*batch, 1, dtype=torch.bool),
+            },
+            batch,
+        )
+        if self.estimator is not None:
+            past = self.estimator.window - 1
+            td.set(
+                U_HISTORY,
+                torch.cat([context_obs, context_action], -1)[
+                    ..., context_obs.shape[-2] - past :, :
+                ],
+            )
+        return td
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """Keep a given start state; fill missing entries with zeros (``is_init`` False)."""
+        batch = tensordict.batch_size if tensordict is not None else self.batch_size
+        out = self.observation_spec.zero(batch)
+        if tensordict is not None:
+            out.update(tensordict.select(*self.observation_spec.keys(), strict=False))
+        return out

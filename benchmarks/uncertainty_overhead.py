@@ -31,8 +31,8 @@ def main() -> None:
     for horizon in args.horizons:
         actions = torch.rand(args.candidates, horizon, ACTION_DIM) * 2 - 1
         with torch.inference_mode():
-            t_rollout = median_seconds(lambda: rollout_only(*ctx, actions), args.repeats)
-            t_with_u = median_seconds(lambda: with_u(*ctx, actions), args.repeats)
+            t_rollout = median_seconds(lambda a=actions: rollout_only(*ctx, a), args.repeats)
+            t_with_u = median_seconds(lambda a=actions: with_u(*ctx, a), args.repeats)
         ratios.append(t_with_u / t_rollout)
         print(
             f"H={horizon:4d}  rollout {t_rollout * 1e3:8.1f} ms   rollout + u {t_with_u * 1e3:8.1f} ms   ratio {ratios[-1]:.2f}"

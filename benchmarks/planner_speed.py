@@ -72,7 +72,7 @@ def main() -> None:
         with torch.no_grad():
             times = {
                 "TorchRL CEMPlanner (no u)": median_seconds(
-                    lambda: baseline(start.clone()), repeats
+                    lambda b=baseline: b(start.clone()), repeats
                 )
             }
         for name, planner in ours.items():

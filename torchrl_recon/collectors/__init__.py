@@ -1,7 +1,15 @@
-"""Data collection: random exploration (and, on the planning engine, guided exploration)."""
+"""Data collection: random exploration, simple action sources and sequence datasets."""
 
 from __future__ import annotations
 
-from torchrl_recon.collectors.random import collect_random
+from torchrl_recon.collectors.datasets import concat_trajectories, validation_trajectories
+from torchrl_recon.collectors.policies import OffsetNoisePolicy
+from torchrl_recon.collectors.random_data import collect, collect_random
 
-__all__ = ["collect_random"]
+__all__ = [
+    "OffsetNoisePolicy",
+    "collect",
+    "collect_random",
+    "concat_trajectories",
+    "validation_trajectories",
+]

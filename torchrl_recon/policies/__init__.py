@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchrl_recon.policies.exploration import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import MPCPolicy
 
-__all__ = ["MPCPolicy"]
+__all__ = ["ExplorationPolicy", "MPCPolicy", "exploration_objective"]

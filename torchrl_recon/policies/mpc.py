@@ -42,8 +42,8 @@ class MPCPolicy(TensorDictModuleBase):
     Its state (the last ``C`` real (s, a) pairs and the remaining plan with its predictions)
     travels in the TensorDict under ``mpc_*`` keys: add :meth:`make_tensordict_primer` to the
     env (as with TorchRL's ``LSTMModule``) and keep an ``InitTracker``. Where ``is_init`` is
-    set the state is cleared. The first ``C`` steps of an episode take uniform random actions
-    to fill the context (the paper's "10 random actions after reset").
+    set the state is cleared. The first ``warmup_steps`` (default ``C``) steps of an episode take
+    uniform random actions to fill the context (the paper's "10 random actions after reset").
 
     Re-planning (``replan``):
 
@@ -67,6 +67,7 @@ class MPCPolicy(TensorDictModuleBase):
         threshold: u threshold for ``"uncertainty"``.
         threshold_on: ``"step"`` or ``"cumulative"``.
         warm_start: pass the unexecuted rest of the previous plan to the planner as ``init``.
+        warmup_steps: random actions after each reset (at least the context length ``C``).
         obs_key, action_key: TensorDict keys.
 
     Examples:
@@ -92,6 +93,7 @@ class MPCPolicy(TensorDictModuleBase):
         threshold: float | None = None,
         threshold_on: Literal["step", "cumulative"] = "step",
         warm_start: bool = True,
+        warmup_steps: int | None = None,
         obs_key: str = "observation",
         action_key: str = "action",
     ) -> None:
@@ -120,6 +122,11 @@ class MPCPolicy(TensorDictModuleBase):
             planner.horizon,
         )
         self.context = model.context_length
+        if warmup_steps is not None and warmup_steps < self.context:
+            raise ValueError(
+                f"warmup_steps={warmup_steps} is shorter than the context the planner needs ({self.context})."
+            )
+        self.warmup_steps = warmup_steps or self.context
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys = [obs_key, "is_init", *STATE_KEYS]
         self.out_keys = [
@@ -184,7 +191,7 @@ class MPCPolicy(TensorDictModuleBase):
         seen.masked_fill_(is_init, 0)
         feasible = torch.ones(rows, dtype=torch.bool)
 
-        ready = seen >= self.context
+        ready = seen >= self.warmup_steps
         replanned = ready & self._needs_plan(step, plan_u)
         if replanned.any():
             idx = replanned.nonzero().squeeze(-1)

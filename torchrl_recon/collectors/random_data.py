@@ -1,9 +1,10 @@
-"""Random-action data collection through TorchRL's own ``Collector`` (the paper's random exploration)."""
+"""Data collection through TorchRL's own ``Collector``: random actions (the paper's random exploration) or a policy."""
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
@@ -17,11 +18,7 @@ def collect_random(
     frames_per_batch: int | None = None,
     progress: bool = False,
 ) -> TensorDictBase:
-    """Collect ``frames`` steps of uniform random actions from ``env``.
-
-    Episode length is the env's own (see ``make_env(..., max_episode_steps=...)``).
-    Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
-    ``SliceSampler`` never crosses an episode. Same ``seed`` → same data.
+    """Collect ``frames`` steps of uniform random actions (see :func:`collect`).
 
     Examples:
         >>> from torchrl_recon.envs import make_env
@@ -29,20 +26,46 @@ def collect_random(
         >>> data["observation"].shape
         torch.Size([200, 12])
     """
+    return collect(
+        env, None, frames=frames, seed=seed, frames_per_batch=frames_per_batch, progress=progress
+    )
+
+
+def collect(
+    env: EnvBase,
+    policy: TensorDictModuleBase | None,
+    *,
+    frames: int,
+    seed: int,
+    frames_per_batch: int | None = None,
+    progress: bool = False,
+    desc: str = "collection",
+) -> TensorDictBase:
+    """Collect ``frames`` steps from ``env`` with ``policy`` (uniform random actions when None).
+
+    Episode length is the env's own (see ``make_env(..., max_episode_steps=...)``).
+    Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
+    ``SliceSampler`` never crosses an episode. Same ``seed`` → same data.
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> collect(make_env("drone", seed=0), None, frames=50, seed=0).batch_size
+        torch.Size([50])
+    """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}.")
     torch.manual_seed(seed)
     frames_per_batch = frames_per_batch or min(frames, 1000)
     collector = Collector(
         env,
-        policy=None,
+        policy=policy,
         frames_per_batch=frames_per_batch,
         total_frames=frames,
         split_trajs=False,
     )
     collector.set_seed(seed)
     batches = []
-    with tqdm(total=frames, desc="random collection", disable=not progress, leave=False) as bar:
+    with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
         for batch in collector:
             batches.append(batch.reshape(-1).clone())
             bar.update(batch.numel())

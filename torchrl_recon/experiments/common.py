@@ -1,0 +1,223 @@
+"""Builders the experiments share: envs, models, fitting, planners, metrics scale."""
+
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
+from torchrl_recon.envs import get_entry, make_env
+from torchrl_recon.experiments.stages import Stages
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import (
+    CEMPlanner,
+    GradientPlanner,
+    Objective,
+    PlannerBase,
+    PlanningModel,
+    RandomShootingPlanner,
+)
+from torchrl_recon.training import (
+    fit_uncertainty,
+    fit_world_model,
+    load_checkpoint,
+    save_checkpoint,
+)
+
+
+def build_env(cfg: DictConfig, *, seed: int, episode_steps: int) -> EnvBase:
+    """The recipe's TorchRL env with episodes of ``episode_steps``."""
+    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
+    return make_env(cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
+
+
+def cost_fn(cfg: DictConfig):
+    """The env's batched torch cost, with the recipe's env keywords where the cost takes them."""
+    fn = get_entry(cfg.env.name).cost_fn()
+    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
+    if cfg.env.name == "minitaur" and "cost" in kwargs:
+        return lambda s, a, s2: fn(s, a, s2, cost=kwargs["cost"])
+    if cfg.env.name == "drone" and "goal" in kwargs:
+        goal = kwargs["goal"]
+        return lambda s, a, s2: fn(s, a, s2, goal=goal)
+    return fn
+
+
+def build_models(
+    cfg: DictConfig, obs_dim: int, action_dim: int
+) -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
+    """World model and estimator of the recipe's sizes."""
+    m = cfg.models
+    world = LSTMWorldModel(
+        obs_dim,
+        action_dim,
+        window=m.window,
+        hidden_size=m.world_model.hidden_size,
+        dense_size=m.world_model.dense_size,
+        activation=m.world_model.activation,
+    )
+    estimator = ReconstructionUncertainty(
+        obs_dim,
+        action_dim,
+        window=m.window,
+        hidden_size=m.uncertainty.hidden_size,
+        activation=m.uncertainty.activation,
+    )
+    return world, estimator
+
+
+def _buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
+    train, val = split_by_trajectory(data, cfg.training.val_fraction, seed=seed)
+    t = cfg.training
+    rb = make_sequence_buffer(len(train), slice_len=t.slice_len, num_slices=t.num_slices)
+    val_rb = make_sequence_buffer(len(val), slice_len=t.slice_len, num_slices=t.num_slices)
+    rb.extend(train)
+    val_rb.extend(val)
+    return rb, val_rb
+
+
+def _fit_kwargs(
+    fit: DictConfig, *, seed: int, progress: bool, logger: Logger | None, prefix: str
+) -> dict:
+    return dict(
+        steps=fit.steps,
+        lr=fit.lr,
+        eval_every=fit.eval_every,
+        patience=fit.patience,
+        seed=seed,
+        progress=progress,
+        logger=logger,
+        log_prefix=prefix,
+    )
+
+
+def fit_world(
+    cfg: DictConfig,
+    world: LSTMWorldModel,
+    data: TensorDictBase,
+    *,
+    seed: int,
+    logger: Logger | None,
+    prefix: str,
+    fit_normalization: bool = True,
+) -> float:
+    """Fit ``world`` on ``data`` (validation split by trajectory); returns the best validation loss."""
+    rb, val_rb = _buffers(cfg, data, seed)
+    result = fit_world_model(
+        world,
+        rb,
+        val_buffer=val_rb,
+        mode=cfg.training.world_model_mode,
+        fit_normalization=fit_normalization,
+        checkpoint_modules={},
+        **_fit_kwargs(
+            cfg.training.world_model, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix
+        ),
+    )
+    return result.best_val_loss
+
+
+def fit_estimator(
+    cfg: DictConfig,
+    estimator: ReconstructionUncertainty,
+    data: TensorDictBase,
+    *,
+    seed: int,
+    logger: Logger | None,
+    prefix: str,
+    fit_normalization: bool = True,
+) -> float:
+    """Fit ``estimator`` on ``data``; returns the best validation loss."""
+    rb, val_rb = _buffers(cfg, data, seed)
+    result = fit_uncertainty(
+        estimator,
+        rb,
+        val_buffer=val_rb,
+        fit_normalization=fit_normalization,
+        checkpoint_modules={},
+        **_fit_kwargs(
+            cfg.training.uncertainty, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix
+        ),
+    )
+    return result.best_val_loss
+
+
+def fit_both_stage(
+    cfg: DictConfig,
+    stages: Stages,
+    name: str,
+    data: TensorDictBase,
+    world: LSTMWorldModel,
+    estimator: ReconstructionUncertainty,
+    *,
+    logger: Logger | None,
+    fit_normalization: bool = True,
+) -> dict:
+    """A resumable stage that fits both networks and checkpoints them as ``checkpoints/<name>.pt``."""
+    path = stages.path("checkpoints", f"{name}.pt")
+
+    def run() -> dict:
+        seed = torch.initial_seed() % (2**31)
+        wm_loss = fit_world(
+            cfg,
+            world,
+            data,
+            seed=seed,
+            logger=logger,
+            prefix=f"{name}/world_model/",
+            fit_normalization=fit_normalization,
+        )
+        u_loss = fit_estimator(
+            cfg,
+            estimator,
+            data,
+            seed=seed,
+            logger=logger,
+            prefix=f"{name}/uncertainty/",
+            fit_normalization=fit_normalization,
+        )
+        save_checkpoint(path, {"world_model": world, "uncertainty": estimator})
+        return {"world_model_val_loss": wm_loss, "uncertainty_val_loss": u_loss}
+
+    record = stages.run(name, run)
+    load_checkpoint(path, {"world_model": world, "uncertainty": estimator})
+    return record
+
+
+def build_planner(
+    planner_cfg: DictConfig, model: PlanningModel, objective: Objective
+) -> PlannerBase:
+    """Random shooting, CEM or gradient planner from a recipe's planner block."""
+    p = planner_cfg
+    if p.kind == "shooting":
+        return RandomShootingPlanner(
+            model, objective, horizon=p.horizon, num_candidates=p.num_candidates
+        )
+    if p.kind == "cem":
+        return CEMPlanner(
+            model,
+            objective,
+            horizon=p.horizon,
+            num_candidates=p.num_candidates,
+            iterations=p.iterations,
+            num_elites=p.num_elites,
+        )
+    if p.kind == "gradient":
+        return GradientPlanner(
+            model,
+            objective,
+            horizon=p.horizon,
+            restarts=p.restarts,
+            steps=p.gradient_steps,
+            lr=p.lr,
+        )
+    raise ValueError(f"planner kind must be 'shooting', 'cem' or 'gradient', got {p.kind!r}.")
+
+
+def state_scale(data: TensorDictBase) -> torch.Tensor:
+    """Per-dimension standard deviation of the observations (1 where constant): the unit of reported MSEs."""
+    std = data["observation"].std(0)
+    return torch.where(std < 1e-6, torch.ones_like(std), std)

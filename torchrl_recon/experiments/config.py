@@ -1,0 +1,187 @@
+"""Typed schemas of the recipes. A YAML recipe is merged onto these, so an unknown key or a
+wrong type is an error before any work starts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import MISSING
+
+
+@dataclass
+class EnvConfig:
+    """Which environment, its constructor keywords and the episode length used by the experiment."""
+
+    name: str = MISSING
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    episode_steps: int = 100
+
+
+@dataclass
+class WorldModelConfig:
+    hidden_size: int = 32
+    dense_size: int = 32
+    activation: str = "relu"
+
+
+@dataclass
+class UncertaintyConfig:
+    hidden_size: int = 100
+    activation: str = "relu"
+
+
+@dataclass
+class ModelsConfig:
+    window: int = 10
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+
+
+@dataclass
+class FitConfig:
+    steps: int = 3000
+    lr: float = 3e-3
+    eval_every: int = 100
+    patience: int = 10
+
+
+@dataclass
+class TrainingConfig:
+    """How the networks are fitted: sequence windows of ``slice_len`` steps, ``num_slices`` a batch."""
+
+    slice_len: int = 40
+    num_slices: int = 32
+    val_fraction: float = 0.1
+    world_model_mode: str = "multi_step"
+    world_model: FitConfig = field(default_factory=FitConfig)
+    uncertainty: FitConfig = field(default_factory=lambda: FitConfig(eval_every=250))
+
+
+@dataclass
+class PlannerConfig:
+    """``kind``: ``shooting``, ``cem`` or ``gradient``; unused fields are ignored by the other kinds."""
+
+    kind: str = "shooting"
+    horizon: int = 50
+    num_candidates: int = 1000
+    iterations: int = 5
+    num_elites: int = 100
+    restarts: int = 16
+    gradient_steps: int = 50
+    lr: float = 0.05
+
+
+@dataclass
+class BandConfig:
+    """Cumulative-u band; ``kind``: ``absolute``, ``quantile`` or ``mean_ratio`` (None = open side)."""
+
+    low: float | None = None
+    high: float | None = None
+    kind: str = "quantile"
+
+
+@dataclass
+class LoggerConfig:
+    """``backend``: ``wandb`` (offline unless ``mode: online``), ``csv`` or ``none``."""
+
+    backend: str = "wandb"
+    project: str = "torchrl_recon"
+    mode: str = "offline"
+
+
+@dataclass
+class ValidationConfig:
+    """The held-out set of Table 1: ``trajectories`` × (``window`` + ``steps``) real steps.
+
+    ``policy``: ``random`` (uniform actions, like the random arm) or ``offset_noise``
+    (per-trajectory random offset + noise, covering more of the action space).
+    """
+
+    trajectories: int = 100
+    steps: int = 100
+    policy: str = "random"
+
+
+@dataclass
+class GuidedConfig:
+    """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean and,
+    when ``cap`` is set, Σu ≤ ``cap`` × mean; ``beta = -1`` maximises Σu among them (eq. 4),
+    ``beta = 0`` takes any of them (the paper's "sample until")."""
+
+    steps: int = 15000
+    ratio: float = 1.2
+    cap: float | None = None
+    beta: float = 0.0
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    refit_every_episodes: int = 50
+
+
+@dataclass
+class ExploreConfig:
+    """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
+
+    experiment: str = "explore"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    seed: int = 0
+    threads: int = 1
+    output_dir: str = "outputs/explore"
+    stop_after: str | None = None
+    progress: bool = True
+    models: ModelsConfig = field(default_factory=ModelsConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    initial_random_steps: int = 10000
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+    guided: GuidedConfig = field(default_factory=GuidedConfig)
+    random_steps: int = 15000
+    retrainings: int = 10
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+@dataclass
+class ControlSetting:
+    """One arm of the control experiment: a planner, its objective and how it re-plans."""
+
+    name: str = MISSING
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    alpha: float = 1.0
+    beta: float = 0.0
+    band: BandConfig | None = None
+    cost_threshold: float | None = None
+
+
+@dataclass
+class ReplanConfig:
+    """``mode``: ``every_step``, ``every_n`` or ``uncertainty``. The uncertainty threshold is the
+    ``threshold_quantile`` of per-window u on the training data (per step), times ``threshold_scale``."""
+
+    mode: str = "uncertainty"
+    every: int = 10
+    threshold_quantile: float = 0.95
+    threshold_scale: float = 1.0
+    threshold_on: str = "step"
+
+
+@dataclass
+class ControlConfig:
+    """Uncertainty-aware control (paper §3.1, Fig. 3)."""
+
+    experiment: str = "control"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    seed: int = 0
+    threads: int = 1
+    output_dir: str = "outputs/control"
+    stop_after: str | None = None
+    progress: bool = True
+    models: ModelsConfig = field(default_factory=ModelsConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    random_episodes: int = 10
+    random_episode_steps: int = 500
+    episodes: int = 10
+    warmup_random_steps: int = 10
+    replan: ReplanConfig = field(default_factory=ReplanConfig)
+    settings: list[ControlSetting] = field(default_factory=list)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+SCHEMAS = {"explore": ExploreConfig, "control": ControlConfig}

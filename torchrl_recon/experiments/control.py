@@ -1,0 +1,179 @@
+"""Uncertainty-aware model-based control: the paper's §3.1 and Fig. 3."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.collectors import collect_random
+from torchrl_recon.data import cut_sequences
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_models,
+    build_planner,
+    cost_fn,
+    fit_both_stage,
+    state_scale,
+)
+from torchrl_recon.experiments.stages import Stages, progress, stage_seed
+from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand
+from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
+
+METRICS = (
+    "prediction_mse",
+    "cost_error",
+    "real_cost",
+    "predicted_cost",
+    "replans",
+    "mean_u",
+    "feasible_fraction",
+)
+
+
+def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]:
+    """Predicted-vs-real metrics of one MPC episode (steps taken from a plan only).
+
+    ``prediction_mse`` is in units of ``scale`` per state dim; costs are summed over planned steps.
+    """
+    planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
+    replanned = td[REPLANNED].squeeze(-1)
+    if not planned.any():
+        return {k: float("nan") for k in METRICS} | {"replans": 0, "steps": int(td.shape[0])}
+    err = (td[PRED_NEXT][planned] - td["next", "observation"][planned]) / scale
+    predicted_cost = float(td[PRED_COST].squeeze(-1)[planned].sum())
+    real_cost = float(-td["next", "reward"].squeeze(-1)[planned].sum())
+    feasible = td[FEASIBLE].squeeze(-1)[replanned]
+    return {
+        "prediction_mse": float(err.pow(2).mean()),
+        "cost_error": abs(predicted_cost - real_cost),
+        "real_cost": real_cost,
+        "predicted_cost": predicted_cost,
+        "replans": int(replanned.sum()),
+        "mean_u": float(td[PRED_U].squeeze(-1)[planned].mean()),
+        "feasible_fraction": float(feasible.float().mean()) if feasible.numel() else float("nan"),
+        "steps": int(td.shape[0]),
+    }
+
+
+def _mean_std(episodes: list[dict]) -> tuple[dict, dict]:
+    mean, std = {}, {}
+    for key in METRICS:
+        values = torch.tensor([e[key] for e in episodes], dtype=torch.float64)
+        values = values[~torch.isnan(values)]
+        mean[key] = float(values.mean()) if len(values) else float("nan")
+        std[key] = float(values.std()) if len(values) > 1 else 0.0
+    return mean, std
+
+
+def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
+    """Run (or resume) the control experiment in ``run_dir``; return its results."""
+    stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
+
+    def random_stage():
+        env = build_env(
+            cfg, seed=stage_seed(cfg.seed, "random_data"), episode_steps=cfg.random_episode_steps
+        )
+        frames = cfg.random_episodes * cfg.random_episode_steps
+        data = collect_random(
+            env, frames=frames, seed=stage_seed(cfg.seed, "random_data"), progress=cfg.progress
+        )
+        env.close()
+        stages.save_data("random_data", data)
+        return {"steps": data.numel()}
+
+    stages.run("random_data", random_stage)
+    data = stages.load_data("random_data")
+    scale = state_scale(data)
+    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+    world, estimator = build_models(cfg, obs_dim, action_dim)
+    fit_both_stage(cfg, stages, "models", data, world, estimator, logger=logger)
+
+    with torch.no_grad():
+        seqs = cut_sequences(data, max(cfg.models.window, cfg.training.slice_len))
+        per_window_u = estimator.score(seqs["observation"], seqs["action"]).flatten()
+    threshold = (
+        float(per_window_u.quantile(cfg.replan.threshold_quantile)) * cfg.replan.threshold_scale
+    )
+    if cfg.replan.threshold_on == "cumulative":
+        threshold *= cfg.replan.every  # Σu over `every` steps at the same per-step level
+    model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
+
+    results, example = {}, None
+    for setting in cfg.settings:
+        name = f"setting_{setting.name}"
+
+        def run_setting(setting=setting, name=name):
+            band = (
+                None
+                if setting.band is None
+                else UncertaintyBand(setting.band.low, setting.band.high, setting.band.kind)
+            )
+            objective = Objective(
+                alpha=setting.alpha,
+                beta=setting.beta,
+                band=band,
+                cost_threshold=setting.cost_threshold,
+            )
+            planner = build_planner(setting.planner, model, objective)
+            episodes, first = [], None
+            for e in progress(range(cfg.episodes), desc=setting.name, enabled=cfg.progress):
+                policy = MPCPolicy(
+                    planner,
+                    replan=cfg.replan.mode,
+                    replan_every=cfg.replan.every,
+                    threshold=threshold if cfg.replan.mode == "uncertainty" else None,
+                    threshold_on=cfg.replan.threshold_on,
+                    warmup_steps=max(cfg.warmup_random_steps, model.context_length),
+                )
+                episode_seed = stage_seed(cfg.seed, f"{name}_{e}")
+                env = build_env(cfg, seed=episode_seed, episode_steps=cfg.env.episode_steps)
+                env.append_transform(policy.make_tensordict_primer())
+                torch.manual_seed(episode_seed)
+                td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True)
+                env.close()
+                episodes.append(episode_metrics(td, scale))
+                if logger is not None:
+                    for key, value in episodes[-1].items():
+                        if not (isinstance(value, float) and math.isnan(value)):
+                            logger.log_scalar(f"{setting.name}/{key}", value, step=e)
+                if first is None:
+                    first = _trajectory(td, setting.name)
+            mean, std = _mean_std(episodes)
+            return {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+
+        record = stages.run(name, run_setting)
+        example = example or record.pop("trajectory_example")
+        record.pop("trajectory_example", None)
+        record.pop("wall_time_s", None)
+        results[setting.name] = record
+
+    return {
+        "experiment": "control",
+        "env": cfg.env.name,
+        "seed": cfg.seed,
+        "replan_threshold": threshold,
+        "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
+        "settings": results,
+        "trajectory_example": example,
+        "wall_time_s": dict(stages.wall_time_s),
+    }
+
+
+def _trajectory(td: TensorDictBase, setting: str) -> dict:
+    """Real and predicted next states, u and re-plans of one episode (planned steps), for a Fig. 2 plot."""
+    planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
+    real = td["next", "observation"][planned]
+    return {
+        "setting": setting,
+        "real": real.tolist(),
+        "predicted": td[PRED_NEXT][planned].tolist(),
+        "uncertainty": td[PRED_U].squeeze(-1)[planned].tolist(),
+        "replanned": td[REPLANNED].squeeze(-1)[planned].tolist(),
+        "state_names": [f"s{i}" for i in range(real.shape[-1])],
+    }

@@ -1,0 +1,81 @@
+"""The two experiments at toy scale: outputs exist and are finite; a stopped run resumes to the same numbers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from omegaconf import OmegaConf
+
+from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
+from torchrl_recon.experiments.control import run_control
+from torchrl_recon.experiments.exploration import run_explore
+from torchrl_recon.experiments.stages import StopRequested
+
+TRAINING = {"slice_len": 15, "num_slices": 8, "world_model": {"steps": 40, "eval_every": 20}, "uncertainty": {"steps": 40, "eval_every": 20}}
+
+
+def _explore_cfg(**extra):
+    return OmegaConf.merge(
+        OmegaConf.structured(ExploreConfig),
+        {
+            "env": {"name": "industrial_benchmark", "episode_steps": 50}, "progress": False, "models": {"window": 5},
+            "training": TRAINING, "initial_random_steps": 300, "validation": {"trajectories": 4, "steps": 20},
+            "guided": {"steps": 200, "refit_every_episodes": 2, "planner": {"horizon": 10, "num_candidates": 64}},
+            "random_steps": 200, "retrainings": 2, "logger": {"backend": "none"},
+        },
+        extra,
+    )
+
+
+def _control_cfg(**extra):
+    planner = {"horizon": 10, "num_candidates": 64}
+    return OmegaConf.merge(
+        OmegaConf.structured(ControlConfig),
+        {
+            "env": {"name": "drone", "episode_steps": 30}, "progress": False, "models": {"window": 5},
+            "training": TRAINING, "random_episodes": 3, "random_episode_steps": 100, "episodes": 2,
+            "warmup_random_steps": 5, "logger": {"backend": "none"},
+            "settings": [
+                {"name": "baseline", "planner": planner},
+                {"name": "u_low", "planner": planner, "band": {"low": 0.0, "high": 0.33}},
+                {"name": "gradient", "planner": {"kind": "gradient", "horizon": 10, "restarts": 2, "gradient_steps": 3}, "beta": 0.1},
+            ],
+        },
+        extra,
+    )
+
+
+@pytest.mark.filterwarnings("ignore:No candidate met the constraints")
+def test_explore_outputs_and_resume(tmp_path):
+    full = run_explore(_explore_cfg(), tmp_path / "full", None)
+    assert set(full["arms"]) == {"random", "active"}
+    for arm in full["arms"].values():
+        assert len(arm["mse"]) == 2 and all(math.isfinite(v) and v > 0 for v in arm["mse"])
+    assert math.isfinite(full["ratio"])
+    assert full["data"] == {**full["data"], "initial_steps": 300, "random_arm_steps": 200, "active_arm_steps": 200}
+    assert (tmp_path / "full" / "buffers" / "initial_random" / "storage").is_dir()
+    assert (tmp_path / "full" / "checkpoints" / "initial_models.pt").is_file()
+
+    with pytest.raises(StopRequested):
+        run_explore(_explore_cfg(stop_after="guided_data_1"), tmp_path / "resumed", None)
+    resumed = run_explore(_explore_cfg(), tmp_path / "resumed", None)
+    assert resumed["arms"] == full["arms"]
+
+
+@pytest.mark.filterwarnings("ignore:No candidate met the constraints")
+def test_control_outputs_and_resume(tmp_path):
+    full = run_control(_control_cfg(), tmp_path / "full", None)
+    assert set(full["settings"]) == {"baseline", "u_low", "gradient"}
+    for setting in full["settings"].values():
+        assert len(setting["episodes"]) == 2
+        for key in ("prediction_mse", "cost_error", "real_cost", "predicted_cost"):
+            assert math.isfinite(setting["mean"][key])
+        assert setting["mean"]["replans"] >= 1
+    example = full["trajectory_example"]
+    assert len(example["real"]) == len(example["predicted"]) == len(example["uncertainty"]) > 0
+
+    with pytest.raises(StopRequested):
+        run_control(_control_cfg(stop_after="setting_baseline"), tmp_path / "resumed", None)
+    resumed = run_control(_control_cfg(), tmp_path / "resumed", None)
+    assert resumed["settings"] == full["settings"]

@@ -1,11 +1,34 @@
-"""Command line entry point: ``torchrl-recon <command> ...``."""
+"""Command line entry point: ``torchrl-recon <command> ...``.
+
+Experiments (paper §3) run from a YAML recipe through Hydra, so that any key can be overridden
+on the command line and seeds swept with Hydra's multirun (``-m``), e.g.::
+
+    torchrl-recon explore recipes/drone/explore_smoke.yaml seed=1
+    torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 \\
+        hydra/launcher=joblib hydra.launcher.n_jobs=2
+    torchrl-recon summarize outputs/explore/drone
+
+See docs/experiments.md.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import sys
+from collections.abc import Sequence
+from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
+
+EXPERIMENTS = {
+    "explore": "active vs random exploration: validation MSE of models fitted on each (§3.2, Table 1)",
+    "control": "uncertainty-aware MPC vs the cost-only baseline: prediction and cost errors (§3.1, Fig. 3)",
+}
+RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
+_ARGV_ENV = "TORCHRL_RECON_ARGV"
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -26,15 +49,300 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------
+# Hydra
+
+
+def _register_resolvers() -> None:
+    """``${trr_parent:path}`` and ``${trr_abspath:path}``, used to place Hydra's sweep dirs."""
+    OmegaConf.register_new_resolver(
+        "trr_parent", lambda p: str(Path(str(p)).parent), replace=True
+    )
+    OmegaConf.register_new_resolver(
+        "trr_abspath", lambda p: str(Path(str(p)).expanduser().resolve()), replace=True
+    )
+
+
+_register_resolvers()  # at import: joblib workers import this module to unpickle _task
+
+
+def hydra_settings(kind: str) -> dict[str, str]:
+    """Hydra overrides that keep every output inside the run's ``output_dir``.
+
+    The job does not change directory and Hydra writes no ``.hydra/`` subdir (the run dir holds
+    ``config.yaml`` and ``meta.json`` instead); a single run's Hydra dir is ``output_dir`` (where
+    its ``<kind>.log`` goes); a multirun's sweep dir (``multirun.yaml``) is the parent of the
+    base ``output_dir`` and each job's dir is its own ``output_dir``.
+    """
+    return {
+        "hydra.job.chdir": "False",
+        "hydra.output_subdir": "null",
+        "hydra.job.name": kind,
+        "hydra.run.dir": "${output_dir}",
+        "hydra.sweep.dir": "${trr_parent:${output_dir}}",
+        "hydra.sweep.subdir": "${trr_abspath:${output_dir}}",
+    }
+
+
+def _task(cfg) -> None:
+    """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from torchrl_recon.experiments.runner import run
+
+    _register_resolvers()
+    argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
+    extra = {}
+    try:
+        hydra_cfg = HydraConfig.get()
+        extra["job_overrides"] = list(hydra_cfg.overrides.task)
+        extra["hydra_mode"] = str(hydra_cfg.mode)
+    except ValueError:
+        pass
+    run(cfg, argv=argv, extra_meta=extra)
+
+
+_HYDRA_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
+_HYDRA_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+
+
+def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split Hydra command line items into flags (``--cfg job`` ...) and overrides."""
+    flags, rest = [], []
+    items = list(overrides)
+    i = 0
+    while i < len(items):
+        item = items[i]
+        if item.startswith("-"):
+            flags.append(item)
+            takes_value = item in _HYDRA_FLAGS_WITH_VALUE or (
+                item in ("--info", "-i") and i + 1 < len(items) and items[i + 1] in _HYDRA_INFO_TOPICS
+            )
+            if takes_value and i + 1 < len(items):
+                flags.append(items[i + 1])
+                i += 1
+        else:
+            rest.append(item)
+        i += 1
+    return flags, rest
+
+
+def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
+    """Validate the recipe with the overrides before Hydra starts anything.
+
+    Plain overrides are applied; each value of a sweep (``seed=0,1,2``) is checked on its own;
+    Hydra's own keys and config-group choices are left to Hydra. Every job validates its
+    composed config again before doing any work.
+
+    Raises:
+        FileNotFoundError / RecipeError (ValueError): with a message naming the file or key.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from torchrl_recon.experiments.run_dir import RecipeError, _compose, validate
+
+    if not recipe.is_file():
+        raise FileNotFoundError(f"Recipe file not found: {recipe}")
+    base = _compose(recipe)
+    found = base.get("experiment")
+    if found != kind:
+        raise RecipeError(
+            f"{recipe}: this is a {found!r} recipe; run it with `torchrl-recon {found} {recipe}`."
+            if found in EXPERIMENTS
+            else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
+        )
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except Exception as e:  # hydra's OverrideParseException
+        raise RecipeError(f"cannot parse the overrides: {e}") from e
+    sweeps = []
+    cfg = base
+    for o in parsed:
+        if o.is_hydra_override() or "/" in o.key_or_group or o.package is not None:
+            continue
+        if o.is_delete():
+            continue
+        if o.is_sweep_override():
+            sweeps.append(o)
+            continue
+        OmegaConf.update(cfg, o.key_or_group, o.value(), merge=True, force_add=True)
+    source = str(recipe)
+    validate(cfg, source=source)
+    for o in sweeps:
+        try:
+            values = list(o.sweep_iterator())
+        except Exception:  # glob() and other sweeps that need the config: left to the jobs
+            continue
+        for value in values:
+            one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+            OmegaConf.update(one, o.key_or_group, value, merge=True, force_add=True)
+            validate(one, source=f"{source} with {o.key_or_group}={value}")
+
+
+def run_recipe(
+    kind: str, recipe: str | os.PathLike[str], overrides: Sequence[str] = (), multirun: bool = False
+) -> int:
+    """Run a recipe through a Hydra app built here; returns the exit code.
+
+    ``sys.argv`` is rewritten to ``[prog, --config-dir, <recipe dir>, --config-name, <recipe
+    stem>, <hydra settings>, *overrides]`` (plus ``--multirun``) for the duration of the call.
+    """
+    import hydra
+
+    recipe = Path(recipe)
+    flags, plain = _split_overrides(list(overrides))
+    try:
+        precheck(kind, recipe, plain)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
+    settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
+    argv = [
+        "torchrl-recon",
+        "--config-dir",
+        str(recipe.resolve().parent),
+        "--config-name",
+        recipe.stem,
+        *flags,
+        *settings,
+        *plain,
+    ]
+    if multirun:
+        argv.append("--multirun")
+    app = hydra.main(version_base="1.3", config_path=None)(_task)
+    saved_argv, saved_env = sys.argv, os.environ.get(_ARGV_ENV)
+    os.environ[_ARGV_ENV] = json.dumps(["torchrl-recon", kind, str(recipe), *overrides] + (["--multirun"] if multirun else []))
+    sys.argv = argv
+    try:
+        app()
+    except SystemExit as e:
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = saved_argv
+        if saved_env is None:
+            os.environ.pop(_ARGV_ENV, None)
+        else:
+            os.environ[_ARGV_ENV] = saved_env
+    return 0
+
+
+def _experiment(args: argparse.Namespace) -> int:
+    overrides = list(args.overrides)
+    multirun = args.multirun
+    for flag in ("-m", "--multirun"):
+        while flag in overrides:
+            overrides.remove(flag)
+            multirun = True
+    return run_recipe(args.command, args.recipe, overrides, multirun=multirun)
+
+
+def _summarize(args: argparse.Namespace) -> int:
+    from torchrl_recon.experiments.plots import plot_control_errors, plot_table1
+    from torchrl_recon.experiments.summary import find_results, format_table, summarize
+
+    try:
+        files = find_results(args.dirs)
+    except FileNotFoundError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not files:
+        print(f"error: no results.json found below {', '.join(args.dirs)}", file=sys.stderr)
+        return 2
+    by_kind: dict[str, list[Path]] = {}
+    results = {}
+    for f in files:
+        r = json.loads(f.read_text())
+        results[f] = r
+        by_kind.setdefault(str(r.get("experiment")), []).append(f)
+    out = Path(args.out) if args.out else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    for kind, kind_files in sorted(by_kind.items()):
+        summary = summarize(kind_files)
+        print(f"{len(kind_files)} {kind} result file(s)")
+        print(format_table(summary))
+        print()
+        if out is None:
+            continue
+        path = out / f"summary_{kind}.json"
+        path.write_text(json.dumps(summary, indent=1))
+        print(f"summary: {path}")
+        if kind == "explore":
+            fig = plot_table1([results[f] for f in kind_files])
+            fig.savefig(out / "table1.png", dpi=120)
+            print(f"figure: {out / 'table1.png'}")
+        elif kind == "control":
+            for env, s in summary["envs"].items():
+                fig = plot_control_errors({"env": env, **s})
+                fig.savefig(out / f"control_errors_{env}.png", dpi=120)
+                print(f"figure: {out / f'control_errors_{env}.png'}")
+    return 0
+
+
+def _recipes_epilog() -> str:
+    if not RECIPES_DIR.is_dir():
+        return ""
+    files = sorted(p.relative_to(RECIPES_DIR.parent) for p in RECIPES_DIR.glob("*/*.yaml"))
+    return "recipes:\n" + "\n".join(f"  {p}" for p in files) if files else ""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchrl-recon", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    experiments = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    parser = argparse.ArgumentParser(
+        prog="torchrl-recon",
+        description="TorchRL reproduction of Di Palo & Valpola: environments demo, the paper's "
+        "experiments, and their summaries.",
+        epilog=f"experiments (paper §3):\n{experiments}\n\n"
+        "examples:\n"
+        "  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml\n"
+        "  torchrl-recon control recipes/drone/control.yaml seed=3 logger.backend=csv\n"
+        "  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 "
+        "hydra/launcher=joblib hydra.launcher.n_jobs=2\n"
+        "  torchrl-recon summarize outputs/explore/drone\n\n"
+        "Details: docs/experiments.md",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser(
         "demo", help="collect random data in each environment and print a summary"
     )
     demo.add_argument("--steps", type=int, default=200)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(func=_demo)
+    for kind, text in EXPERIMENTS.items():
+        p = sub.add_parser(
+            kind,
+            help=text,
+            description=f"{text}. Runs RECIPE through Hydra: overrides are key=value "
+            "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
+            "comma-separated values with Hydra's multirun; Hydra flags such as "
+            "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
+            epilog=_recipes_epilog(),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        p.add_argument("recipe", metavar="RECIPE", help="the recipe YAML file")
+        p.add_argument(
+            "overrides",
+            nargs=argparse.REMAINDER,
+            metavar="OVERRIDE",
+            help="key=value overrides of the recipe (Hydra syntax)",
+        )
+        p.add_argument(
+            "-m", "--multirun", action="store_true", help="run a Hydra multirun sweep"
+        )
+        p.set_defaults(func=_experiment)
+    summ = sub.add_parser(
+        "summarize",
+        help="aggregate results.json files across seeds (Table 1 statistics, control means)",
+        description="Find results.json below each DIR, aggregate them per experiment kind and "
+        "environment, and print the tables.",
+    )
+    summ.add_argument("dirs", nargs="+", metavar="DIR")
+    summ.add_argument(
+        "--out", default=None, help="also write summary_<kind>.json and figures to this directory"
+    )
+    summ.set_defaults(func=_summarize)
     return parser
 
 

@@ -457,7 +457,11 @@ def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
         handle.close()
 
 
-def prepare_run_dir(cfg: DictConfig, argv: Sequence[str] | None = None) -> Path:
+def prepare_run_dir(
+    cfg: DictConfig,
+    argv: Sequence[str] | None = None,
+    extra_meta: Mapping[str, Any] | None = None,
+) -> Path:
     """Create ``cfg.output_dir`` and write ``config.yaml`` (resolved) and ``meta.json``.
 
     A directory that already holds a ``config.yaml`` is a run to resume: its config must equal
@@ -465,8 +469,8 @@ def prepare_run_dir(cfg: DictConfig, argv: Sequence[str] | None = None) -> Path:
     ``output_dir``), otherwise the stages already done would mix with new ones.
 
     ``meta.json`` holds the seed, package versions, the git commit and dirty flag of the source
-    checkout, the host name, the UTC start time and the command line; on a resume the earlier
-    starts are kept under ``previous``.
+    checkout, the host name, the UTC start time and the command line (plus ``extra_meta``, e.g.
+    the Hydra job overrides); on a resume the earlier starts are kept under ``previous``.
 
     Returns:
         The absolute run directory.
@@ -520,6 +524,7 @@ def prepare_run_dir(cfg: DictConfig, argv: Sequence[str] | None = None) -> Path:
         "argv": list(sys.argv if argv is None else argv),
         "resumed": resumed,
         "previous": previous,
+        **dict(extra_meta or {}),
     }
     if previous and previous[-1].get("git", {}).get("commit") != meta["git"]["commit"]:
         print(

@@ -21,8 +21,8 @@ class Normalizer(nn.Module):
 
     Examples:
         >>> norm = Normalizer(2)
-        >>> norm.fit(torch.tensor([[0.0, 5.0], [2.0, 5.0]]))
-        >>> norm.normalize(torch.tensor([[2.0, 5.0]]))
+        >>> norm.fit(torch.tensor([[0.0, 5.0], [2.0, 5.0], [4.0, 5.0]]))
+        >>> norm.normalize(torch.tensor([[4.0, 5.0]]))
         tensor([[1., 0.]])
     """
 

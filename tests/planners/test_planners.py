@@ -125,6 +125,27 @@ def test_band_is_respected(kind, low, high):
     assert lo.item() - 1e-5 <= float(result.uncertainty.sum()) <= hi.item() + 1e-5
 
 
+@pytest.mark.parametrize("planner_cls", [CEMPlanner, GradientPlanner])
+def test_relative_band_with_warm_start_is_resolved_on_uniform_candidates(planner_cls):
+    model = _ae_model()
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    band = UncertaintyBand(low=0.4, high=0.6, kind="quantile")
+    kwargs = (
+        {"num_candidates": 200, "num_elites": 20}
+        if planner_cls is CEMPlanner
+        else {"restarts": 32, "steps": 2}
+    )
+    torch.manual_seed(4)
+    result = planner_cls(model, Objective(band=band), horizon=H, **kwargs).plan(
+        *ctx, init=torch.zeros(H, 2)
+    )
+    torch.manual_seed(5)
+    reference = model(*ctx, torch.rand(2000, H, 2) * 2 - 1).cumulative_uncertainty
+    assert result.feasible
+    # The chosen sequence sits in the middle of what uniform sequences reach, not of what the warm start reaches.
+    assert reference.quantile(0.3) <= result.uncertainty.sum() <= reference.quantile(0.7)
+
+
 def test_no_feasible_candidate_is_reported_or_raised():
     model = _ae_model()
     ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)

@@ -12,8 +12,9 @@ from torchrl_recon.planners.planning_model import PlanningModel, gather_candidat
 class CEMPlanner(PlannerBase):
     """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen.
 
-    The first iteration samples uniformly within the bounds (or around ``init`` when a warm
-    start is given); later ones sample N(mean, std) clipped to the bounds, with
+    The first iteration samples uniformly within the bounds (with a warm start ``init``, half
+    of it uniformly and half around ``init``; relative uncertainty bands are resolved from the
+    uniform part); later ones sample N(mean, std) clipped to the bounds, with
     ``mean ← smoothing·mean + (1 − smoothing)·elite_mean`` (likewise std, floored at
     ``min_std``). Elites are ranked feasible-first (see :func:`rank_key`). The whole
     candidate batch is one call to the planning model per iteration.
@@ -73,20 +74,30 @@ class CEMPlanner(PlannerBase):
         low, high = self.model.action_low, self.model.action_high
         span = high - low
         mean = std = None
-        if init is not None:
-            mean, std = init.unsqueeze(-3), (0.25 * span).expand_as(init).unsqueeze(-3)
         best_candidates = best_prediction = bounds = None
-        for _ in range(self.iterations):
-            if mean is None:
+        for it in range(self.iterations):
+            if mean is None and init is None:
                 candidates = self._uniform(batch, self.num_candidates)
+            elif mean is None:
+                # Warm start: half uniform (the reference for relative bands), half around `init`.
+                uniform = self._uniform(batch, self.num_candidates - self.num_candidates // 2)
+                noise = torch.randn(
+                    *batch, self.num_candidates // 2, self.horizon, self.model.action_dim
+                )
+                candidates = torch.cat(
+                    [uniform, self._clamp(init.unsqueeze(-3) + 0.25 * span * noise)], -3
+                )
             else:
                 noise = torch.randn(
                     *batch, self.num_candidates, self.horizon, self.model.action_dim
                 )
                 candidates = self._clamp(mean + std * noise)
             prediction = self.model(context_obs, context_action, observation, candidates)
-            if bounds is None:
-                bounds = self._bounds(prediction)
+            if it == 0 and self.objective.band is not None:
+                reference = torch.arange(
+                    self.num_candidates - (self.num_candidates // 2 if init is not None else 0)
+                )
+                bounds = self._bounds(prediction.take(reference.expand(*batch, -1)))
             key = rank_key(
                 self.objective.score(prediction), self.objective.violation(prediction, bounds)
             )

@@ -76,7 +76,7 @@ class GradientPlanner(PlannerBase):
                 optimizer.step()
                 with torch.no_grad():
                     actions.copy_(self._clamp(actions))
-        # Bands are resolved on the uniform initial restarts (the first `restarts` samples).
-        first = seen.take(torch.arange(self.restarts).expand(*batch, self.restarts))
-        bounds = self._bounds(first)
+        # Relative bands are resolved on the uniform initial restarts (restart 0 is `init` when given).
+        uniform = torch.arange(1 if init is not None and self.restarts > 1 else 0, self.restarts)
+        bounds = self._bounds(seen.take(uniform.expand(*batch, -1)))
         return torch.cat(seen_actions, -3), seen, bounds

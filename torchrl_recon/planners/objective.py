@@ -23,8 +23,9 @@ class UncertaintyBand:
     * ``"mean_ratio"``: multiples of the mean Σu over that batch (the paper's exploration
       keeps candidates at 1.2–1.5 × the mean).
 
-    Relative bands are resolved once per planning call, from the planner's first batch of
-    uniform candidates, and then held fixed.
+    Relative bands are resolved once per planning call, from uniformly sampled candidates (the
+    planner's first batch, or its uniform part when the planner was given a warm start), and
+    then held fixed.
 
     Examples:
         >>> band = UncertaintyBand(low=0.25, high=0.75, kind="quantile")

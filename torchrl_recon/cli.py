@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from collections.abc import Sequence
@@ -55,9 +56,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _register_resolvers() -> None:
     """``${trr_parent:path}`` and ``${trr_abspath:path}``, used to place Hydra's sweep dirs."""
-    OmegaConf.register_new_resolver(
-        "trr_parent", lambda p: str(Path(str(p)).parent), replace=True
-    )
+    OmegaConf.register_new_resolver("trr_parent", lambda p: str(Path(str(p)).parent), replace=True)
     OmegaConf.register_new_resolver(
         "trr_abspath", lambda p: str(Path(str(p)).expanduser().resolve()), replace=True
     )
@@ -79,8 +78,8 @@ def hydra_settings(kind: str) -> dict[str, str]:
         "hydra.output_subdir": "null",
         "hydra.job.name": kind,
         "hydra.run.dir": "${output_dir}",
-        "hydra.sweep.dir": "${trr_parent:${output_dir}}",
-        "hydra.sweep.subdir": "${trr_abspath:${output_dir}}",
+        "hydra.sweep.dir": "'${trr_parent:${output_dir}}'",
+        "hydra.sweep.subdir": "'${trr_abspath:${output_dir}}'",
     }
 
 
@@ -91,12 +90,16 @@ def _task(cfg) -> None:
     from torchrl_recon.experiments.runner import run
 
     _register_resolvers()
+    if (
+        "TORCHRL_LOGGING_LEVEL" not in os.environ
+    ):  # TorchRL's per-buffer INFO lines drown the run's output
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
     extra = {}
     try:
         hydra_cfg = HydraConfig.get()
         extra["job_overrides"] = list(hydra_cfg.overrides.task)
-        extra["hydra_mode"] = str(hydra_cfg.mode)
+        extra["hydra_mode"] = getattr(hydra_cfg.mode, "name", str(hydra_cfg.mode)).lower()
     except ValueError:
         pass
     run(cfg, argv=argv, extra_meta=extra)
@@ -116,7 +119,9 @@ def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
         if item.startswith("-"):
             flags.append(item)
             takes_value = item in _HYDRA_FLAGS_WITH_VALUE or (
-                item in ("--info", "-i") and i + 1 < len(items) and items[i + 1] in _HYDRA_INFO_TOPICS
+                item in ("--info", "-i")
+                and i + 1 < len(items)
+                and items[i + 1] in _HYDRA_INFO_TOPICS
             )
             if takes_value and i + 1 < len(items):
                 flags.append(items[i + 1])
@@ -137,35 +142,32 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
     Raises:
         FileNotFoundError / RecipeError (ValueError): with a message naming the file or key.
     """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    from torchrl_recon.experiments.run_dir import RecipeError, _compose, validate
+    from torchrl_recon.experiments.run_dir import (
+        RecipeError,
+        apply_override,
+        compose_recipe,
+        parse_overrides,
+        validate,
+    )
 
     if not recipe.is_file():
         raise FileNotFoundError(f"Recipe file not found: {recipe}")
-    base = _compose(recipe)
-    found = base.get("experiment")
+    cfg = compose_recipe(recipe)
+    found = cfg.get("experiment")
     if found != kind:
         raise RecipeError(
             f"{recipe}: this is a {found!r} recipe; run it with `torchrl-recon {found} {recipe}`."
             if found in EXPERIMENTS
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
-    try:
-        parsed = OverridesParser.create().parse_overrides(list(overrides))
-    except Exception as e:  # hydra's OverrideParseException
-        raise RecipeError(f"cannot parse the overrides: {e}") from e
     sweeps = []
-    cfg = base
-    for o in parsed:
+    for o in parse_overrides(overrides):
         if o.is_hydra_override() or "/" in o.key_or_group or o.package is not None:
-            continue
-        if o.is_delete():
-            continue
+            continue  # Hydra's own settings and config-group choices: Hydra checks them
         if o.is_sweep_override():
             sweeps.append(o)
-            continue
-        OmegaConf.update(cfg, o.key_or_group, o.value(), merge=True, force_add=True)
+        else:
+            apply_override(cfg, o)
     source = str(recipe)
     validate(cfg, source=source)
     for o in sweeps:
@@ -175,7 +177,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
             continue
         for value in values:
             one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-            OmegaConf.update(one, o.key_or_group, value, merge=True, force_add=True)
+            apply_override(one, o, value)
             validate(one, source=f"{source} with {o.key_or_group}={value}")
 
 
@@ -212,7 +214,9 @@ def run_recipe(
         argv.append("--multirun")
     app = hydra.main(version_base="1.3", config_path=None)(_task)
     saved_argv, saved_env = sys.argv, os.environ.get(_ARGV_ENV)
-    os.environ[_ARGV_ENV] = json.dumps(["torchrl-recon", kind, str(recipe), *overrides] + (["--multirun"] if multirun else []))
+    os.environ[_ARGV_ENV] = json.dumps(
+        ["torchrl-recon", kind, str(recipe), *overrides] + (["--multirun"] if multirun else [])
+    )
     sys.argv = argv
     try:
         app()
@@ -280,10 +284,10 @@ def _summarize(args: argparse.Namespace) -> int:
     return 0
 
 
-def _recipes_epilog() -> str:
+def _recipes_epilog(kind: str) -> str:
     if not RECIPES_DIR.is_dir():
         return ""
-    files = sorted(p.relative_to(RECIPES_DIR.parent) for p in RECIPES_DIR.glob("*/*.yaml"))
+    files = sorted(p.relative_to(RECIPES_DIR.parent) for p in RECIPES_DIR.glob(f"*/{kind}*.yaml"))
     return "recipes:\n" + "\n".join(f"  {p}" for p in files) if files else ""
 
 
@@ -318,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
             "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
             "comma-separated values with Hydra's multirun; Hydra flags such as "
             "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
-            epilog=_recipes_epilog(),
+            epilog=_recipes_epilog(kind),
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
         p.add_argument("recipe", metavar="RECIPE", help="the recipe YAML file")
@@ -328,9 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
             metavar="OVERRIDE",
             help="key=value overrides of the recipe (Hydra syntax)",
         )
-        p.add_argument(
-            "-m", "--multirun", action="store_true", help="run a Hydra multirun sweep"
-        )
+        p.add_argument("-m", "--multirun", action="store_true", help="run a Hydra multirun sweep")
         p.set_defaults(func=_experiment)
     summ = sub.add_parser(
         "summarize",

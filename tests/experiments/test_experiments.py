@@ -12,17 +12,32 @@ from torchrl_recon.experiments.control import run_control
 from torchrl_recon.experiments.exploration import run_explore
 from torchrl_recon.experiments.stages import StopRequested
 
-TRAINING = {"slice_len": 15, "num_slices": 8, "world_model": {"steps": 40, "eval_every": 20}, "uncertainty": {"steps": 40, "eval_every": 20}}
+TRAINING = {
+    "slice_len": 15,
+    "num_slices": 8,
+    "world_model": {"steps": 40, "eval_every": 20},
+    "uncertainty": {"steps": 40, "eval_every": 20},
+}
 
 
 def _explore_cfg(**extra):
     return OmegaConf.merge(
         OmegaConf.structured(ExploreConfig),
         {
-            "env": {"name": "industrial_benchmark", "episode_steps": 50}, "progress": False, "models": {"window": 5},
-            "training": TRAINING, "initial_random_steps": 300, "validation": {"trajectories": 4, "steps": 20},
-            "guided": {"steps": 200, "refit_every_episodes": 2, "planner": {"horizon": 10, "num_candidates": 64}},
-            "random_steps": 200, "retrainings": 2, "logger": {"backend": "none"},
+            "env": {"name": "industrial_benchmark", "episode_steps": 50},
+            "progress": False,
+            "models": {"window": 5},
+            "training": TRAINING,
+            "initial_random_steps": 300,
+            "validation": {"trajectories": 4, "steps": 20},
+            "guided": {
+                "steps": 200,
+                "refit_every_episodes": 2,
+                "planner": {"horizon": 10, "num_candidates": 64},
+            },
+            "random_steps": 200,
+            "retrainings": 2,
+            "logger": {"backend": "none"},
         },
         extra,
     )
@@ -33,13 +48,28 @@ def _control_cfg(**extra):
     return OmegaConf.merge(
         OmegaConf.structured(ControlConfig),
         {
-            "env": {"name": "drone", "episode_steps": 30}, "progress": False, "models": {"window": 5},
-            "training": TRAINING, "random_episodes": 3, "random_episode_steps": 100, "episodes": 2,
-            "warmup_random_steps": 5, "logger": {"backend": "none"},
+            "env": {"name": "drone", "episode_steps": 30},
+            "progress": False,
+            "models": {"window": 5},
+            "training": TRAINING,
+            "random_episodes": 3,
+            "random_episode_steps": 100,
+            "episodes": 2,
+            "warmup_random_steps": 5,
+            "logger": {"backend": "none"},
             "settings": [
                 {"name": "baseline", "planner": planner},
                 {"name": "u_low", "planner": planner, "band": {"low": 0.0, "high": 0.33}},
-                {"name": "gradient", "planner": {"kind": "gradient", "horizon": 10, "restarts": 2, "gradient_steps": 3}, "beta": 0.1},
+                {
+                    "name": "gradient",
+                    "planner": {
+                        "kind": "gradient",
+                        "horizon": 10,
+                        "restarts": 2,
+                        "gradient_steps": 3,
+                    },
+                    "beta": 0.1,
+                },
             ],
         },
         extra,
@@ -53,7 +83,12 @@ def test_explore_outputs_and_resume(tmp_path):
     for arm in full["arms"].values():
         assert len(arm["mse"]) == 2 and all(math.isfinite(v) and v > 0 for v in arm["mse"])
     assert math.isfinite(full["ratio"])
-    assert full["data"] == {**full["data"], "initial_steps": 300, "random_arm_steps": 200, "active_arm_steps": 200}
+    assert full["data"] == {
+        **full["data"],
+        "initial_steps": 300,
+        "random_arm_steps": 200,
+        "active_arm_steps": 200,
+    }
     assert (tmp_path / "full" / "buffers" / "initial_random" / "storage").is_dir()
     assert (tmp_path / "full" / "checkpoints" / "initial_models.pt").is_file()
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -55,7 +56,7 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
             raise ValueError(f"plot_table1 takes explore results, got {res.get('experiment')!r}.")
         by_env.setdefault(res["env"], []).append(res)
     envs = list(by_env)
-    fig = _figure(max(4.0, 2.2 * len(envs) + 1.5), 3.8)
+    fig = _figure(max(5.5, 2.2 * len(envs) + 1.5), 4.2)
     ax = fig.add_subplot()
     width = 0.38
     ratios = []
@@ -87,19 +88,19 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
             jitter = np.linspace(-0.08, 0.08, len(points)) if len(points) > 1 else [0.0]
             ax.scatter(x + np.asarray(jitter), points, s=10, color="black", zorder=3, linewidths=0)
         ratio = means["active"] / means["random"] if means["random"] else float("nan")
-        ratios.append(f"{env}: {ratio:.2f}")
+        ratios.append(f"{env} {ratio:.3g} ({len(runs)} seed{'s' if len(runs) > 1 else ''})")
     ax.set_xticks(range(len(envs)), envs)
     ax.set_ylabel("validation MSE")
-    n_seeds = ", ".join(f"{len(by_env[e])}" for e in envs)
     ax.set_title(
-        "Table 1 — active / random MSE ratio: "
-        + ", ".join(ratios)
-        + f"\n(seeds per env: {n_seeds})",
+        "Table 1: validation MSE, random vs active exploration\nactive / random: "
+        + "; ".join(ratios),
         fontsize=9,
     )
     if units:
-        fig.supxlabel(str(units), fontsize=7)
-    ax.legend(frameon=False)
+        fig.supxlabel(textwrap.fill(f"MSE: {units}", 110), fontsize=6)
+    top = max(b.get_height() for b in ax.patches)
+    ax.set_ylim(0, 1.3 * top if top > 0 else 1.0)
+    ax.legend(frameon=False, ncol=2, loc="upper center")
     return fig
 
 

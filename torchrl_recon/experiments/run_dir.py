@@ -78,7 +78,7 @@ def _load_yaml(path: Path) -> DictConfig:
     return cfg
 
 
-def _compose(path: Path, stack: tuple[Path, ...] = ()) -> DictConfig:
+def compose_recipe(path: Path, stack: tuple[Path, ...] = ()) -> DictConfig:
     """Load ``path`` and resolve a Hydra-style ``defaults`` list of sibling recipes.
 
     Supports the subset the recipes use: entries naming another recipe of the same directory
@@ -109,7 +109,7 @@ def _compose(path: Path, stack: tuple[Path, ...] = ()) -> DictConfig:
             child = path.parent / f"{name}.yaml"
             if not child.is_file():
                 raise FileNotFoundError(f"{path}: defaults entry {entry!r}: no recipe file {child}")
-            out = OmegaConf.merge(out, _compose(child, (*stack, path)))
+            out = OmegaConf.merge(out, compose_recipe(child, (*stack, path)))
         elif isinstance(entry, DictConfig) and all(
             str(k).removeprefix("override ").startswith("hydra") for k in entry
         ):
@@ -122,17 +122,49 @@ def _compose(path: Path, stack: tuple[Path, ...] = ()) -> DictConfig:
     return out
 
 
+def parse_overrides(overrides: Sequence[str]) -> list[Any]:
+    """Parse Hydra-syntax overrides (``key=value``, ``+key=value``, ``~key``) with Hydra's parser."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        return OverridesParser.create().parse_overrides(list(overrides))
+    except Exception as e:  # hydra.errors.OverrideParseException
+        raise RecipeError(f"cannot parse the overrides {list(overrides)}: {e}") from e
+
+
+_OWN_VALUE = object()
+
+
+def apply_override(cfg: DictConfig, override: Any, value: Any = _OWN_VALUE) -> None:
+    """Apply one parsed (non-sweep) override to a plain config, in place.
+
+    ``value`` replaces the override's own value (used to check one value of a sweep).
+    List elements are addressed by index (``settings.0.beta=0.3``).
+    """
+    key = override.key_or_group
+    if override.is_delete():
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        if node is None or leaf not in node:
+            raise RecipeError(f"override ~{key}: there is no key {key!r} to delete.")
+        del node[leaf]
+        return
+    new = override.value() if value is _OWN_VALUE else value
+    try:
+        OmegaConf.update(cfg, key, new, merge=True, force_add=True)
+    except OmegaConfBaseException as e:
+        raise RecipeError(f"override {key}={new!r}: {_first_line(e)}") from e
+
+
 def _apply_overrides(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
-    """Apply ``key=value`` overrides (Hydra's ``+key=`` / ``++key=`` prefixes are accepted)."""
-    for item in overrides:
-        if "=" not in item:
-            raise RecipeError(f"override {item!r} is not of the form key=value.")
-        key, value = item.split("=", 1)
-        key = key.lstrip("+")
-        if not key or key.startswith("~"):
-            raise RecipeError(f"override {item!r}: unsupported key {key!r}.")
-        parsed = OmegaConf.from_dotlist([f"{key}={value}"])
-        cfg = OmegaConf.merge(cfg, parsed)
+    for o in parse_overrides(overrides):
+        if o.is_sweep_override():
+            raise RecipeError(
+                f"override {o.input_line!r} is a sweep; sweeps need the command line's -m (Hydra multirun)."
+            )
+        if o.is_hydra_override() or "/" in o.key_or_group:
+            continue  # Hydra's own settings: only meaningful through the command line
+        apply_override(cfg, o)
     return cfg
 
 
@@ -142,7 +174,8 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
     Args:
         path: the recipe YAML file. A ``defaults: [other, _self_]`` list naming sibling recipes
             is honoured (the smoke recipes use it).
-        overrides: dotlist overrides, e.g. ``["seed=3", "guided.ratio=1.5"]``.
+        overrides: Hydra-syntax overrides, e.g. ``["seed=3", "guided.ratio=1.5",
+            "settings.0.beta=0.1"]`` (``+key=value`` adds, ``~key`` deletes; no sweeps).
 
     Returns:
         The typed, resolved configuration (see :func:`validate`).
@@ -159,7 +192,7 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Recipe file not found: {path}")
-    cfg = _compose(path)
+    cfg = compose_recipe(path)
     cfg = _apply_overrides(cfg, list(overrides))
     return validate(cfg, source=str(path))
 

@@ -128,5 +128,18 @@ def test_linear_baseline_recovers_linear_dynamics():
     torch.testing.assert_close(pred[0, 0, 0], next_s[0], atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+def test_inplace_and_autograd_rollouts_agree(activation):
+    torch.manual_seed(0)
+    model = LSTMWorldModel(6, 3, window=5, activation=activation)
+    model.fit_normalization(torch.randn(100, 6) * 3, torch.rand(100, 3), torch.randn(100, 6))
+    args = torch.randn(2, 5, 6), torch.rand(2, 5, 3), torch.randn(2, 6), torch.rand(2, 20, 15, 3)
+    with torch.no_grad():
+        fast = model.imagine(*args)  # in-place path
+    slow = model.imagine(*args)  # autograd path (parameters require grad)
+    assert slow.requires_grad and not fast.requires_grad
+    torch.testing.assert_close(fast, slow.detach(), atol=1e-4, rtol=1e-4)
+
+
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])

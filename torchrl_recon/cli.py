@@ -90,9 +90,8 @@ def _task(cfg) -> None:
     from torchrl_recon.experiments.runner import run
 
     _register_resolvers()
-    if (
-        "TORCHRL_LOGGING_LEVEL" not in os.environ
-    ):  # TorchRL's per-buffer INFO lines drown the run's output
+    # TorchRL logs one INFO line per replay buffer it fills, which drowns the run's output.
+    if "TORCHRL_LOGGING_LEVEL" not in os.environ:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
     extra = {}
@@ -136,15 +135,18 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
     """Validate the recipe with the overrides before Hydra starts anything.
 
     Plain overrides are applied; each value of a sweep (``seed=0,1,2``) is checked on its own;
-    Hydra's own keys and config-group choices are left to Hydra. Every job validates its
-    composed config again before doing any work.
+    Hydra's own keys and config-group choices are left to Hydra. The run directory is checked
+    too (an existing run there must have the same config). Every job validates its composed
+    config again before doing any work.
 
     Raises:
-        FileNotFoundError / RecipeError (ValueError): with a message naming the file or key.
+        FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
+            the file, key or directory.
     """
     from torchrl_recon.experiments.run_dir import (
         RecipeError,
         apply_override,
+        check_run_dir,
         compose_recipe,
         parse_overrides,
         validate,
@@ -156,7 +158,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
     found = cfg.get("experiment")
     if found != kind:
         raise RecipeError(
-            f"{recipe}: this is a {found!r} recipe; run it with `torchrl-recon {found} {recipe}`."
+            f"{recipe}: its experiment is {found!r}: run it with `torchrl-recon {found} {recipe}`."
             if found in EXPERIMENTS
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
@@ -169,7 +171,9 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
         else:
             apply_override(cfg, o)
     source = str(recipe)
-    validate(cfg, source=source)
+    checked = validate(cfg, source=source)
+    if not sweeps:
+        check_run_dir(checked)
     for o in sweeps:
         try:
             values = list(o.sweep_iterator())
@@ -178,7 +182,9 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
         for value in values:
             one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
             apply_override(one, o, value)
-            validate(one, source=f"{source} with {o.key_or_group}={value}")
+            checked = validate(one, source=f"{source} with {o.key_or_group}={value}")
+            if len(sweeps) == 1:
+                check_run_dir(checked)
 
 
 def run_recipe(
@@ -191,11 +197,13 @@ def run_recipe(
     """
     import hydra
 
+    from torchrl_recon.experiments.run_dir import RunDirConflict
+
     recipe = Path(recipe)
     flags, plain = _split_overrides(list(overrides))
     try:
         precheck(kind, recipe, plain)
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError, RunDirConflict) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}

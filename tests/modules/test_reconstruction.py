@@ -52,6 +52,19 @@ def test_score_windows_and_forward():
     torch.testing.assert_close(td["uncertainty"][:, 4:], u)
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+def test_blocked_and_autograd_paths_agree(activation):
+    torch.manual_seed(0)
+    ae = ReconstructionUncertainty(3, 2, window=5, hidden_size=16, activation=activation)
+    ae.fit_normalization(torch.randn(100, 3), torch.rand(100, 2))
+    obs, action = torch.randn(150, 40, 3), torch.randn(150, 40, 2)  # several blocks
+    with torch.no_grad():
+        fast = ae.score(obs, action)
+    slow = ae.score(obs, action)
+    assert slow.requires_grad and not fast.requires_grad
+    torch.testing.assert_close(fast, slow.detach(), atol=1e-5, rtol=1e-5)
+
+
 def test_gradient_reaches_actions():
     ae = _ae()
     action = torch.randn(4, 10, 2, requires_grad=True)

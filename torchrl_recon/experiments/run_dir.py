@@ -12,9 +12,9 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import json
-import math
 import os
 import platform
+import re
 import socket
 import subprocess
 import sys
@@ -36,6 +36,20 @@ REPLAN_MODES = ("every_step", "every_n", "uncertainty")
 THRESHOLD_ON = ("step", "cumulative")
 VALIDATION_POLICIES = ("random", "offset_noise")
 WORLD_MODEL_MODES = ("multi_step", "one_step")
+
+STAGE_PATTERNS = {
+    "explore": (
+        r"initial_random",
+        r"initial_models",
+        r"validation",
+        r"guided_data_\d+",
+        r"guided_refit_\d+",
+        r"random_arm",
+        r"retrain_(random|active)_\d+",
+    ),
+    "control": (r"random_data", r"models", r"setting_.+"),
+}
+"""Stage names of ``run_explore`` / ``run_control`` (a ``stop_after`` must match one)."""
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
@@ -185,9 +199,11 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
         RecipeError: unknown key, wrong type, unknown environment or kind (a ``ValueError``).
 
     Examples:
-        >>> cfg = load_recipe("recipes/drone/explore_smoke.yaml", ["seed=3"])  # doctest: +SKIP
-        >>> cfg.output_dir  # doctest: +SKIP
-        'outputs/smoke/explore/drone/seed3'
+        >>> import torchrl_recon
+        >>> recipes = Path(torchrl_recon.__file__).parents[1] / "recipes"
+        >>> cfg = load_recipe(recipes / "drone" / "explore_smoke.yaml", ["seed=3"])
+        >>> cfg.output_dir, cfg.guided.ratio
+        ('outputs/smoke/explore/drone/seed3', 1.2)
     """
     path = Path(path)
     if not path.is_file():
@@ -310,6 +326,11 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
         errors.append(f"'threads' must be >= 1, got {cfg.threads}")
     if cfg.env.episode_steps < 1:
         errors.append(f"'env.episode_steps' must be >= 1, got {cfg.env.episode_steps}")
+    if cfg.stop_after is not None and not _is_stage(cfg):
+        errors.append(
+            f"'stop_after': {cfg.stop_after!r} is not a stage of {cfg.experiment}; stages: "
+            + ", ".join(_stage_list(cfg))
+        )
     if cfg.experiment == "explore":
         _check_planner(cfg.guided.planner, "guided.planner", errors)
         if cfg.validation.policy not in VALIDATION_POLICIES:
@@ -351,6 +372,21 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
                     except ValueError as e:
                         errors.append(f"'{key}.band': {e}")
     return errors
+
+
+def _stage_list(cfg: DictConfig) -> list[str]:
+    if cfg.experiment == "control":
+        return ["random_data", "models", *(f"setting_{s.name}" for s in cfg.settings)]
+    return [
+        p.replace("\\d+", "<n>").replace("(random|active)", "<arm>")
+        for p in STAGE_PATTERNS["explore"]
+    ]
+
+
+def _is_stage(cfg: DictConfig) -> bool:
+    if cfg.experiment == "control":
+        return cfg.stop_after in _stage_list(cfg)
+    return any(re.fullmatch(p, cfg.stop_after) for p in STAGE_PATTERNS["explore"])
 
 
 def experiment_name(cfg: DictConfig) -> str:
@@ -490,6 +526,36 @@ def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
         handle.close()
 
 
+def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
+    """Refuse to resume a run directory that holds a run made with a different config.
+
+    Returns the resolved config as a dict. Compares with ``<output_dir>/config.yaml`` when it
+    exists; only ``progress``, ``stop_after``, ``logger`` (and the spelling of ``output_dir``)
+    may differ.
+
+    Raises:
+        RunDirConflict: naming the keys that differ.
+    """
+    new = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(new, dict)
+    run_dir = Path(cfg.output_dir).expanduser().resolve()
+    config_path = run_dir / "config.yaml"
+    if not config_path.exists():
+        return new
+    old = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
+    assert isinstance(old, dict)
+    diffs = config_differences(old, new)
+    if diffs:
+        shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
+        raise RunDirConflict(
+            f"{run_dir} already holds a run with a different configuration:\n  {shown}\n"
+            "Resuming it with this config would mix results. Use another output_dir, or "
+            "delete the directory to start over. (Only progress, stop_after and logger may "
+            "change between a run and its resumption.)"
+        )
+    return new
+
+
 def prepare_run_dir(
     cfg: DictConfig,
     argv: Sequence[str] | None = None,
@@ -515,23 +581,13 @@ def prepare_run_dir(
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     _lock(run_dir)
-    new = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(new, dict)
+    try:
+        new = check_run_dir(cfg)
+    except RunDirConflict:
+        release_run_dir(run_dir)
+        raise
     config_path = run_dir / "config.yaml"
     resumed = config_path.exists()
-    if resumed:
-        old = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
-        assert isinstance(old, dict)
-        diffs = config_differences(old, new)
-        if diffs:
-            release_run_dir(run_dir)
-            shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
-            raise RunDirConflict(
-                f"{run_dir} already holds a run with a different configuration:\n  {shown}\n"
-                "Resuming it with this config would mix results. Use another output_dir, or "
-                "delete the directory to start over. (Only progress, stop_after and logger may "
-                "change between a run and its resumption.)"
-            )
     _atomic_write(config_path, OmegaConf.to_yaml(OmegaConf.create(new)))
 
     meta_path = run_dir / "meta.json"
@@ -605,11 +661,3 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
     if path.is_dir():
         path = path / "results.json"
     return json.loads(path.read_text())
-
-
-def is_finite(x: Any) -> bool:
-    """Whether ``x`` is a finite number."""
-    try:
-        return math.isfinite(float(x))
-    except (TypeError, ValueError):
-        return False

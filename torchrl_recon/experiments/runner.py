@@ -1,0 +1,109 @@
+"""Run one experiment from a config: the plumbing around ``run_explore`` / ``run_control``."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+
+from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
+from torchrl_recon.experiments.plots import save_figures
+from torchrl_recon.experiments.run_dir import (
+    prepare_run_dir,
+    release_run_dir,
+    validate,
+    write_results,
+)
+from torchrl_recon.experiments.summary import format_table
+
+
+def _experiment_fn(kind: str):
+    if kind == "explore":
+        from torchrl_recon.experiments.exploration import run_explore
+
+        return run_explore
+    if kind == "control":
+        from torchrl_recon.experiments.control import run_control
+
+        return run_control
+    raise ValueError(f"Unknown experiment {kind!r}.")
+
+
+def _log_results(logger, results: Mapping[str, Any]) -> None:
+    """Log the headline numbers of a results dict as scalars under ``results/``."""
+    if logger is None:
+        return
+    scalars: dict[str, float] = {}
+    if results.get("experiment") == "explore":
+        for arm, stats in results.get("arms", {}).items():
+            scalars[f"results/{arm}_mse_mean"] = stats["mean"]
+            scalars[f"results/{arm}_mse_std"] = stats["std"]
+        scalars["results/ratio"] = results.get("ratio", float("nan"))
+        if results.get("test"):
+            scalars["results/p_value"] = results["test"].get("p_value", float("nan"))
+    elif results.get("experiment") == "control":
+        for name, s in results.get("settings", {}).items():
+            for key, value in s.get("mean", {}).items():
+                scalars[f"results/{name}/{key}"] = value
+    for name, value in scalars.items():
+        try:
+            logger.log_scalar(name, float(value), step=0)
+        except (TypeError, ValueError):
+            continue
+
+
+def run(
+    cfg: DictConfig,
+    argv: Sequence[str] | None = None,
+    extra_meta: Mapping[str, Any] | None = None,
+) -> dict[str, Any] | None:
+    """Validate ``cfg``, prepare its run directory and logger, run the experiment, store results.
+
+    Steps: :func:`validate` (before any work) → ``torch.set_num_threads(cfg.threads)`` →
+    :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
+    :func:`make_logger` → ``run_explore`` / ``run_control`` → ``results.json`` → figures →
+    the results table on stdout → logger shutdown.
+
+    Returns:
+        The results dict, or None when the experiment stopped after ``cfg.stop_after``
+        (re-running the same command resumes from the stages already done).
+    """
+    from torchrl_recon.experiments.stages import StopRequested
+
+    cfg = validate(cfg)
+    torch.set_num_threads(int(cfg.threads))
+    run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
+    print(f"[{cfg.experiment}] {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
+    logger = None
+    try:
+        fn = _experiment_fn(cfg.experiment)
+        logger = make_logger(cfg, run_dir)
+        try:
+            results = fn(cfg, run_dir, logger)
+        except StopRequested as stop:
+            stage = stop.args[0] if stop.args else cfg.stop_after
+            print(
+                f"[{cfg.experiment}] stopped after stage '{stage}' (stop_after={cfg.stop_after}). "
+                f"Its outputs are in {run_dir}. Re-running the same command resumes from there: "
+                "stages already done are skipped (drop stop_after, or name a later stage, to go "
+                "further).",
+                flush=True,
+            )
+            return None
+        results_path = write_results(run_dir, results)
+        figures = save_figures(results, run_dir)
+        _log_results(logger, results)
+        print(format_table(results))
+        print(f"results: {results_path}")
+        for path in figures:
+            print(f"figure: {path}")
+        sys.stdout.flush()
+        return results
+    finally:
+        try:
+            shutdown_logger(logger)
+        finally:
+            release_run_dir(run_dir)

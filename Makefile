@@ -16,7 +16,7 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: setup
-	WANDB_MODE=offline $(PY) -m torchrl_recon.cli demo
+	$(PY) -m torchrl_recon.cli explore recipes/industrial_benchmark/explore_smoke.yaml
 
 test: setup
 	$(PY) -m ruff check .
@@ -24,3 +24,5 @@ test: setup
 
 bench: setup
 	$(PY) benchmarks/env_throughput.py
+	$(PY) benchmarks/uncertainty_overhead.py
+	$(PY) benchmarks/planner_speed.py

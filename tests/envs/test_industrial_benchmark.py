@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import gymnasium
@@ -32,29 +31,14 @@ ENV_ID = "torchrl_recon/IndustrialBenchmark-v0"
 TOL = 1e-9
 
 
-def _reference_path() -> Path | None:
-    candidates = [
-        os.environ.get("IB_REFERENCE_TRAJECTORIES", ""),
-        str(
-            Path(__file__).resolve().parents[2]
-            / "shared"
-            / "specs"
-            / "ib_reference_trajectories.json"
-        ),
-        "/work/shared/specs/ib_reference_trajectories.json",
-    ]
-    for candidate in candidates:
-        if candidate and Path(candidate).is_file():
-            return Path(candidate)
-    return None
+# A copy of ../shared/specs/ib_reference_trajectories.json (the spec's §13.1 reference data),
+# kept in the repo so the conformance test never depends on files outside it.
+REFERENCE = Path(__file__).resolve().parents[1] / "data" / "ib_reference_trajectories.json"
 
 
 @pytest.fixture(scope="module")
 def reference() -> dict:
-    path = _reference_path()
-    if path is None:
-        pytest.skip("ib_reference_trajectories.json not found (set IB_REFERENCE_TRAJECTORIES)")
-    with open(path) as fh:
+    with open(REFERENCE) as fh:
         return json.load(fh)
 
 

@@ -94,9 +94,9 @@ def _fit_kwargs(
     )
 
 
-def fit_world(
+def fit_module(
     cfg: DictConfig,
-    world: LSTMWorldModel,
+    module: LSTMWorldModel | ReconstructionUncertainty,
     data: TensorDictBase,
     *,
     seed: int,
@@ -104,45 +104,19 @@ def fit_world(
     prefix: str,
     fit_normalization: bool = True,
 ) -> float:
-    """Fit ``world`` on ``data`` (validation split by trajectory); returns the best validation loss."""
-    rb, val_rb = _buffers(cfg, data, seed)
-    result = fit_world_model(
-        world,
-        rb,
-        val_buffer=val_rb,
-        mode=cfg.training.world_model_mode,
-        fit_normalization=fit_normalization,
-        checkpoint_modules={},
-        **_fit_kwargs(
-            cfg.training.world_model, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix
-        ),
-    )
-    return result.best_val_loss
+    """Fit the world model or the estimator on ``data`` (validation split by trajectory).
 
-
-def fit_estimator(
-    cfg: DictConfig,
-    estimator: ReconstructionUncertainty,
-    data: TensorDictBase,
-    *,
-    seed: int,
-    logger: Logger | None,
-    prefix: str,
-    fit_normalization: bool = True,
-) -> float:
-    """Fit ``estimator`` on ``data``; returns the best validation loss."""
+    Returns the best validation loss.
+    """
     rb, val_rb = _buffers(cfg, data, seed)
-    result = fit_uncertainty(
-        estimator,
-        rb,
-        val_buffer=val_rb,
-        fit_normalization=fit_normalization,
-        checkpoint_modules={},
-        **_fit_kwargs(
-            cfg.training.uncertainty, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix
-        ),
-    )
-    return result.best_val_loss
+    common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
+    if isinstance(module, LSTMWorldModel):
+        fit_cfg, extra = cfg.training.world_model, {"mode": cfg.training.world_model_mode}
+        fit = fit_world_model
+    else:
+        fit_cfg, extra, fit = cfg.training.uncertainty, {}, fit_uncertainty
+    kwargs = _fit_kwargs(fit_cfg, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix)
+    return fit(module, rb, **common, **extra, **kwargs).best_val_loss
 
 
 def fit_both_stage(
@@ -161,7 +135,7 @@ def fit_both_stage(
 
     def run() -> dict:
         seed = torch.initial_seed() % (2**31)
-        wm_loss = fit_world(
+        wm_loss = fit_module(
             cfg,
             world,
             data,
@@ -170,7 +144,7 @@ def fit_both_stage(
             prefix=f"{name}/world_model/",
             fit_normalization=fit_normalization,
         )
-        u_loss = fit_estimator(
+        u_loss = fit_module(
             cfg,
             estimator,
             data,

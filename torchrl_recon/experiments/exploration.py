@@ -23,7 +23,7 @@ from torchrl_recon.experiments.common import (
     build_planner,
     cost_fn,
     fit_both_stage,
-    fit_world,
+    fit_module,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
@@ -158,7 +158,7 @@ def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                 seed = stage_seed(cfg.seed, f"retrain_{i}")  # both arms start from the same weights
                 torch.manual_seed(seed)
                 model, _ = build_models(cfg, obs_dim, action_dim)
-                fit_world(cfg, model, data, seed=seed, logger=logger, prefix=f"{name}/")
+                fit_module(cfg, model, data, seed=seed, logger=logger, prefix=f"{name}/")
                 errors = multi_step_errors(model, validation, window=window, scale=scale)
                 return {"mse": float(errors.mean())}
 

@@ -21,15 +21,8 @@ from typing import Any
 
 import numpy as np
 
-CONTROL_METRICS = (
-    "prediction_mse",
-    "cost_error",
-    "real_cost",
-    "predicted_cost",
-    "replans",
-    "mean_u",
-    "feasible_fraction",
-)
+from torchrl_recon.experiments.control import METRICS as CONTROL_METRICS
+
 MIN_SEEDS_TTEST = 2
 MIN_SEEDS_WILCOXON = 5
 

@@ -15,6 +15,12 @@ from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gat
 OnInfeasible = Literal["fallback", "raise"]
 
 
+def check_positive_int(name: str, value: object) -> None:
+    """Raise a ``ValueError`` naming ``name`` unless ``value`` is an int >= 1."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}.")
+
+
 class InfeasiblePlanError(RuntimeError):
     """No candidate satisfied the uncertainty band / cost threshold (with ``on_infeasible="raise"``)."""
 
@@ -60,8 +66,7 @@ class PlannerBase(nn.Module):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__()
-        if not isinstance(horizon, int) or horizon < 1:
-            raise ValueError(f"horizon must be a positive int, got {horizon!r}.")
+        check_positive_int("horizon", horizon)
         if objective.needs_uncertainty and model.uncertainty is None:
             raise ValueError(
                 "The objective uses uncertainty (beta != 0 or a band) but the planning model has no estimator."

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase, check_positive_int
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
 
@@ -51,10 +51,8 @@ class CEMPlanner(PlannerBase):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        if not isinstance(num_candidates, int) or num_candidates < 1:
-            raise ValueError(f"num_candidates must be a positive int, got {num_candidates!r}.")
-        if not isinstance(iterations, int) or iterations < 1:
-            raise ValueError(f"iterations must be a positive int, got {iterations!r}.")
+        check_positive_int("num_candidates", num_candidates)
+        check_positive_int("iterations", iterations)
         if not 1 <= num_elites <= num_candidates:
             raise ValueError(
                 f"num_elites must be in [1, num_candidates={num_candidates}], got {num_elites}."

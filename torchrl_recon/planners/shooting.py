@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase, check_positive_int
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
 
@@ -40,8 +40,7 @@ class RandomShootingPlanner(PlannerBase):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        if not isinstance(num_candidates, int) or num_candidates < 1:
-            raise ValueError(f"num_candidates must be a positive int, got {num_candidates!r}.")
+        check_positive_int("num_candidates", num_candidates)
         self.num_candidates = num_candidates
 
     @torch.inference_mode()

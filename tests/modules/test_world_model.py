@@ -59,6 +59,20 @@ def test_context_longer_than_window_uses_last_window_steps():
     )
 
 
+def test_precomputed_warmup_state_gives_the_same_rollout():
+    model = _model()
+    ctx_s, ctx_a, s0, acts = (
+        torch.randn(2, 4, 3),
+        torch.randn(2, 4, 2),
+        torch.randn(2, 3),
+        torch.rand(2, 5, 6, 2),
+    )
+    state = model.warmup(ctx_s, ctx_a)
+    torch.testing.assert_close(
+        model.imagine(ctx_s, ctx_a, s0, acts, state=state), model.imagine(ctx_s, ctx_a, s0, acts)
+    )
+
+
 def test_gradients_reach_actions_and_parameters():
     model = _model()
     acts = torch.rand(1, 3, 6, 2, requires_grad=True)

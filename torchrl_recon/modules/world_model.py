@@ -172,6 +172,8 @@ class LSTMWorldModel(TensorDictModuleBase):
         context_action: torch.Tensor,
         observation: torch.Tensor,
         actions: torch.Tensor,
+        *,
+        state: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Predict states for candidate action sequences, all candidates in one batch.
 
@@ -180,6 +182,8 @@ class LSTMWorldModel(TensorDictModuleBase):
             context_action: real past actions a_{t-T..t-1}, ``[*B, T', M]``.
             observation: the current real state s_t, ``[*B, N]``.
             actions: candidates a_{t..t+H-1}, ``[*B, K, H, M]``.
+            state: ``(h, c)`` from :meth:`warmup` on this context, to skip recomputing it
+                (planners call ``imagine`` many times on one context).
 
         Returns:
             Predicted states s_{t+1..t+H}, ``[*B, K, H, N]`` (differentiable w.r.t. ``actions``).
@@ -192,7 +196,7 @@ class LSTMWorldModel(TensorDictModuleBase):
                 f"actions has shape {tuple(actions.shape)}; expected [*B, K, H, {self.action_dim}] with *B = {tuple(batch)}."
             )
         check_finite("observation", observation)
-        h, c = self.warmup(context_obs, context_action)
+        h, c = self.warmup(context_obs, context_action) if state is None else state
         k, horizon = actions.shape[-3], actions.shape[-2]
         rows = int(torch.Size(batch).numel()) * k
         s0 = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)

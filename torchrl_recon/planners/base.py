@@ -116,12 +116,15 @@ class PlannerBase(nn.Module):
             raise ValueError(
                 f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
             )
+        state = self.model.warmup(
+            context_obs, context_action
+        )  # once per plan, shared by every iteration
         candidates, prediction, bounds = self._optimise(
-            context_obs, context_action, observation, init
+            context_obs, context_action, observation, init, state
         )
         return self._choose(candidates, prediction, bounds)
 
-    def _optimise(self, context_obs, context_action, observation, init):
+    def _optimise(self, context_obs, context_action, observation, init, state):
         raise NotImplementedError
 
     def _choose(self, candidates: torch.Tensor, prediction: Prediction, bounds) -> PlanResult:

@@ -67,7 +67,7 @@ class CEMPlanner(PlannerBase):
         self.smoothing, self.min_std = smoothing, min_std
 
     @torch.inference_mode()
-    def _optimise(self, context_obs, context_action, observation, init):
+    def _optimise(self, context_obs, context_action, observation, init, state):
         batch = observation.shape[:-1]
         low, high = self.model.action_low, self.model.action_high
         span = high - low
@@ -90,7 +90,9 @@ class CEMPlanner(PlannerBase):
                     *batch, self.num_candidates, self.horizon, self.model.action_dim
                 )
                 candidates = self._clamp(mean + std * noise)
-            prediction = self.model(context_obs, context_action, observation, candidates)
+            prediction = self.model(
+                context_obs, context_action, observation, candidates, state=state
+            )
             if it == 0 and self.objective.band is not None:
                 reference = torch.arange(
                     self.num_candidates - (self.num_candidates // 2 if init is not None else 0)

@@ -52,7 +52,7 @@ class GradientPlanner(PlannerBase):
             raise ValueError(f"lr must be positive, got {lr!r}.")
         self.restarts, self.steps, self.lr = restarts, steps, lr
 
-    def _optimise(self, context_obs, context_action, observation, init):
+    def _optimise(self, context_obs, context_action, observation, init, state):
         batch = observation.shape[:-1]
         with torch.no_grad():
             start = self._uniform(batch, self.restarts)
@@ -63,7 +63,9 @@ class GradientPlanner(PlannerBase):
         seen_actions, seen = [], None
         with torch.enable_grad():
             for step in range(self.steps + 1):
-                prediction = self.model(context_obs, context_action, observation, actions)
+                prediction = self.model(
+                    context_obs, context_action, observation, actions, state=state
+                )
                 seen_actions.append(actions.detach().clone())
                 detached = prediction.detach()
                 seen = detached if seen is None else seen.cat(detached)

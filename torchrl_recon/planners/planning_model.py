@@ -137,6 +137,17 @@ class PlanningModel(nn.Module):
         u_window = 0 if self.uncertainty is None else self.uncertainty.window - 1
         return max(self.world_model.window, u_window)
 
+    @torch.no_grad()
+    def warmup(
+        self, context_obs: torch.Tensor, context_action: torch.Tensor
+    ) -> tuple[torch.Tensor, ...] | None:
+        """The world model's recurrent state after the real context (None for a stateless model).
+
+        Pass it as ``state=`` to every call on the same context instead of recomputing it.
+        """
+        warmup = getattr(self.world_model, "warmup", None)
+        return None if warmup is None else warmup(context_obs, context_action)
+
     def check_context(
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
     ) -> None:
@@ -166,9 +177,14 @@ class PlanningModel(nn.Module):
         context_action: torch.Tensor,
         observation: torch.Tensor,
         actions: torch.Tensor,
+        *,
+        state: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> Prediction:
         """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]`` in one batched pass."""
-        states = self.world_model.imagine(context_obs, context_action, observation, actions)
+        kwargs = {} if state is None else {"state": state}
+        states = self.world_model.imagine(
+            context_obs, context_action, observation, actions, **kwargs
+        )
         k = actions.shape[-3]
         start = (
             observation.unsqueeze(-2)

@@ -44,7 +44,7 @@ class RandomShootingPlanner(PlannerBase):
         self.num_candidates = num_candidates
 
     @torch.inference_mode()
-    def _optimise(self, context_obs, context_action, observation, init):
+    def _optimise(self, context_obs, context_action, observation, init, state):
         candidates = self._uniform(observation.shape[:-1], self.num_candidates)
-        prediction = self.model(context_obs, context_action, observation, candidates)
+        prediction = self.model(context_obs, context_action, observation, candidates, state=state)
         return candidates, prediction, self._bounds(prediction)

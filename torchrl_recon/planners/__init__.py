@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from torchrl_recon.planners.base import InfeasiblePlanError, PlannerBase, PlanResult
+from torchrl_recon.planners.base import (
+    InfeasiblePlanError,
+    InfeasiblePlanWarning,
+    PlannerBase,
+    PlanResult,
+)
 from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
@@ -14,6 +19,7 @@ __all__ = [
     "CEMPlanner",
     "GradientPlanner",
     "InfeasiblePlanError",
+    "InfeasiblePlanWarning",
     "Objective",
     "PlanResult",
     "PlannerBase",

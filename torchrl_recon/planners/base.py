@@ -21,6 +21,10 @@ def check_positive_int(name: str, value: object) -> None:
         raise ValueError(f"{name} must be a positive int, got {value!r}.")
 
 
+class InfeasiblePlanWarning(RuntimeWarning):
+    """No candidate met the constraints; the least-violating one was returned (``feasible=False``)."""
+
+
 class InfeasiblePlanError(RuntimeError):
     """No candidate satisfied the uncertainty band / cost threshold (with ``on_infeasible="raise"``)."""
 
@@ -53,7 +57,7 @@ class PlannerBase(nn.Module):
     Subclasses implement :meth:`_optimise`, returning candidates ``[*B, K, H, M]`` with their
     prediction; the base class picks the best feasible one. When no candidate is feasible
     the planner falls back to the least-violating candidate and reports ``feasible=False``
-    (``on_infeasible="fallback"``, with a warning), or raises :class:`InfeasiblePlanError`
+    (``on_infeasible="fallback"``, with an :class:`InfeasiblePlanWarning`), or raises :class:`InfeasiblePlanError`
     (``on_infeasible="raise"``).
     """
 
@@ -140,7 +144,7 @@ class PlannerBase(nn.Module):
             )
             if self.on_infeasible == "raise":
                 raise InfeasiblePlanError(message)
-            warnings.warn(message, RuntimeWarning, stacklevel=3)
+            warnings.warn(message, InfeasiblePlanWarning, stacklevel=3)
 
         chosen = prediction.take(best)
         dim = best.ndim - 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import torch
@@ -11,7 +12,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
 from torchrl_recon.modules._checks import check_finite
-from torchrl_recon.planners.base import PlannerBase
+from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 
 ReplanMode = Literal["every_step", "every_n", "uncertainty"]
 
@@ -54,7 +55,8 @@ class MPCPolicy(TensorDictModuleBase):
       made (``threshold_on="cumulative"``) is at most ``threshold``; re-plan when it crosses
       it or the plan runs out. A fresh plan always executes at least one action.
 
-    Per step it writes ``action``, ``mpc_replanned``, ``mpc_feasible`` and the predicted next
+    Per step it writes ``action``, ``mpc_replanned``, ``mpc_feasible`` (False when no
+    candidate met the planner's constraints; the planner's warning is not repeated) and the predicted next
     observation, u and cost of the action taken, so predicted and real trajectories can be
     compared.
 
@@ -195,12 +197,14 @@ class MPCPolicy(TensorDictModuleBase):
         replanned = ready & self._needs_plan(step, plan_u)
         if replanned.any():
             idx = replanned.nonzero().squeeze(-1)
-            result = self.planner.plan(
-                state[OBS_HISTORY][idx],
-                state[ACTION_HISTORY][idx],
-                obs[idx],
-                init=self._warm_start(plan[idx], step[idx]),
-            )
+            with warnings.catch_warnings():  # recorded per step in mpc_feasible instead
+                warnings.simplefilter("ignore", InfeasiblePlanWarning)
+                result = self.planner.plan(
+                    state[OBS_HISTORY][idx],
+                    state[ACTION_HISTORY][idx],
+                    obs[idx],
+                    init=self._warm_start(plan[idx], step[idx]),
+                )
             state[PLAN][idx], state[PLAN_STATES][idx], state[PLAN_COST][idx] = (
                 result.actions,
                 result.states,

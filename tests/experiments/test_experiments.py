@@ -76,7 +76,6 @@ def _control_cfg(**extra):
     )
 
 
-@pytest.mark.filterwarnings("ignore:No candidate met the constraints")
 def test_explore_outputs_and_resume(tmp_path):
     full = run_explore(_explore_cfg(), tmp_path / "full", None)
     assert set(full["arms"]) == {"random", "active"}
@@ -98,7 +97,6 @@ def test_explore_outputs_and_resume(tmp_path):
     assert resumed["arms"] == full["arms"]
 
 
-@pytest.mark.filterwarnings("ignore:No candidate met the constraints")
 def test_control_outputs_and_resume(tmp_path):
     full = run_control(_control_cfg(), tmp_path / "full", None)
     assert set(full["settings"]) == {"baseline", "u_low", "gradient"}

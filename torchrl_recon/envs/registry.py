@@ -14,13 +14,14 @@ CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 @dataclass(frozen=True)
 class EnvEntry:
-    """One environment: its short name, gymnasium id, class path and cost function path."""
+    """One environment: short name, gymnasium id, class path, cost function path, episode limit, state names."""
 
     name: str
     gym_id: str
     entry_point: str
     cost_fn_path: str
     max_episode_steps: int
+    state_names: tuple[str, ...] = ()
 
     def cost_fn(self) -> CostFn:
         """Import and return the batched torch cost ``cost(obs, action, next_obs) -> [...]``."""
@@ -37,6 +38,7 @@ ENVS: dict[str, EnvEntry] = {
             "torchrl_recon.envs.industrial_benchmark:IndustrialBenchmarkEnv",
             "torchrl_recon.envs.industrial_benchmark:industrial_benchmark_cost",
             1000,
+            ("p", "v", "g", "h", "f", "c"),
         ),
         EnvEntry(
             "drone",
@@ -44,6 +46,7 @@ ENVS: dict[str, EnvEntry] = {
             "torchrl_recon.envs.drone:DroneEnv",
             "torchrl_recon.envs.drone:drone_cost",
             500,
+            ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw", "p", "q", "r"),
         ),
         EnvEntry(
             "minitaur",
@@ -51,6 +54,12 @@ ENVS: dict[str, EnvEntry] = {
             "torchrl_recon.envs.minitaur:MinitaurEnv",
             "torchrl_recon.envs.minitaur:minitaur_cost",
             500,
+            tuple(
+                [f"motor_angle_{i}" for i in range(8)]
+                + [f"motor_velocity_{i}" for i in range(8)]
+                + [f"motor_torque_{i}" for i in range(8)]
+                + ["qx", "qy", "qz", "qw", "x - x0", "y - y0", "z", "vx", "vy", "vz"]
+            ),
         ),
     )
 }

@@ -12,6 +12,7 @@ from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import cut_sequences
+from torchrl_recon.envs import get_entry
 from torchrl_recon.experiments.common import (
     build_env,
     build_models,
@@ -143,7 +144,7 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                         if not (isinstance(value, float) and math.isnan(value)):
                             logger.log_scalar(f"{setting.name}/{key}", value, step=e)
                 if first is None:
-                    first = _trajectory(td, setting.name)
+                    first = _trajectory(td, setting.name, get_entry(cfg.env.name).state_names)
             mean, std = _mean_std(episodes)
             return {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
 
@@ -165,7 +166,7 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     }
 
 
-def _trajectory(td: TensorDictBase, setting: str) -> dict:
+def _trajectory(td: TensorDictBase, setting: str, state_names: tuple[str, ...] = ()) -> dict:
     """Real and predicted next states, u and re-plans of one episode (planned steps), for a Fig. 2 plot."""
     planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
     real = td["next", "observation"][planned]
@@ -175,5 +176,5 @@ def _trajectory(td: TensorDictBase, setting: str) -> dict:
         "predicted": td[PRED_NEXT][planned].tolist(),
         "uncertainty": td[PRED_U].squeeze(-1)[planned].tolist(),
         "replanned": td[REPLANNED].squeeze(-1)[planned].tolist(),
-        "state_names": [f"s{i}" for i in range(real.shape[-1])],
+        "state_names": list(state_names) or [f"s{i}" for i in range(real.shape[-1])],
     }

@@ -125,12 +125,16 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         act_ = _INPLACE[self.activation]
         out = torch.empty(rows, num_windows, dtype=x.dtype)
         step = max(1, _BLOCK // num_windows)
+        # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).
+        shifted_buf = torch.empty(step * num_windows, size, dtype=x.dtype)
+        hidden_buf = torch.empty(step * num_windows, self.hidden_size, dtype=x.dtype)
         for i in range(0, rows, step):
             block = x[i : i + step]
-            r = block.shape[0]
-            windows = block.as_strided((r, num_windows, size), (length * dim, dim, 1))
-            shifted = torch.sub(windows, b2).view(r * num_windows, size)
-            hidden = act_(torch.mm(shifted, w1t).add_(c1))
+            n = block.shape[0] * num_windows
+            windows = block.as_strided((block.shape[0], num_windows, size), (length * dim, dim, 1))
+            shifted = shifted_buf[:n]
+            torch.sub(windows, b2, out=shifted.view(block.shape[0], num_windows, size))
+            hidden = act_(torch.mm(shifted, w1t, out=hidden_buf[:n]).add_(c1))
             error = shifted.addmm_(hidden, w2t, beta=-1)
-            torch.linalg.vector_norm(error, dim=-1, out=out[i : i + r].view(-1))
+            torch.linalg.vector_norm(error, dim=-1, out=out[i : i + block.shape[0]].view(-1))
         return out.div_(self.window)

@@ -11,7 +11,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.experiments.stages import Stages
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.modules import LSTMWorldModel, Normalizer, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -193,5 +193,6 @@ def build_planner(
 
 def state_scale(data: TensorDictBase) -> torch.Tensor:
     """Per-dimension standard deviation of the observations (1 where constant): the unit of reported MSEs."""
-    std = data["observation"].std(0)
-    return torch.where(std < 1e-6, torch.ones_like(std), std)
+    norm = Normalizer(data["observation"].shape[-1])
+    norm.fit(data["observation"])
+    return norm.scale.clone()

@@ -118,24 +118,33 @@ class GuidedConfig:
 
 
 @dataclass
-class ExploreConfig:
-    """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
+class RunConfig:
+    """What every experiment run has: which env, seed and threads, where it writes, the models,
+    how they are trained, and the logger."""
 
-    experiment: str = "explore"
+    experiment: str = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
     seed: int = 0
     threads: int = 1
-    output_dir: str = "outputs/explore"
+    output_dir: str = MISSING
     stop_after: str | None = None
     progress: bool = True
     models: ModelsConfig = field(default_factory=ModelsConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+
+
+@dataclass
+class ExploreConfig(RunConfig):
+    """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
+
+    experiment: str = "explore"
+    output_dir: str = "outputs/explore"
     initial_random_steps: int = 10000
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     random_steps: int = 15000
     retrainings: int = 10
-    logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
 @dataclass
@@ -163,25 +172,17 @@ class ReplanConfig:
 
 
 @dataclass
-class ControlConfig:
+class ControlConfig(RunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3)."""
 
     experiment: str = "control"
-    env: EnvConfig = field(default_factory=EnvConfig)
-    seed: int = 0
-    threads: int = 1
     output_dir: str = "outputs/control"
-    stop_after: str | None = None
-    progress: bool = True
-    models: ModelsConfig = field(default_factory=ModelsConfig)
-    training: TrainingConfig = field(default_factory=TrainingConfig)
     random_episodes: int = 10
     random_episode_steps: int = 500
     episodes: int = 10
     warmup_random_steps: int = 10
     replan: ReplanConfig = field(default_factory=ReplanConfig)
     settings: list[ControlSetting] = field(default_factory=list)
-    logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
 SCHEMAS = {"explore": ExploreConfig, "control": ControlConfig}

@@ -149,8 +149,8 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
             return {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
 
         record = stages.run(name, run_setting)
-        example = example or record.pop("trajectory_example")
-        record.pop("trajectory_example", None)
+        first = record.pop("trajectory_example", None)  # kept once, for the first setting
+        example = example or first
         record.pop("wall_time_s", None)
         results[setting.name] = record
 

@@ -134,5 +134,6 @@ def main() -> None:
         f"{base / first['ours CEM (with u, beta=0.1)']:.1f}x"
     )
 
+
 if __name__ == "__main__":
     main()

@@ -27,6 +27,7 @@ from omegaconf import OmegaConf
 EXPERIMENTS = {
     "explore": "active vs random exploration: validation MSE of models fitted on each (§3.2, Table 1)",
     "control": "uncertainty-aware MPC vs the cost-only baseline: prediction and cost errors (§3.1, Fig. 3)",
+    "calibrate": "uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
 }
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
@@ -250,7 +251,7 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments.plots import plot_control_errors, plot_table1
+    from torchrl_recon.experiments.plots import plot_calibration, plot_control_errors, plot_table1
     from torchrl_recon.experiments.summary import find_results, format_table, summarize
 
     try:
@@ -289,6 +290,12 @@ def _summarize(args: argparse.Namespace) -> int:
                 fig = plot_control_errors({"env": env, **s})
                 fig.savefig(out / f"control_errors_{env}.png", dpi=120)
                 print(f"figure: {out / f'control_errors_{env}.png'}")
+        elif kind == "calibrate":
+            for env, s in summary["envs"].items():
+                rows = {name: e["mean"] for name, e in s["estimators"].items()}
+                fig = plot_calibration({"env": env, "estimators": rows, **s})
+                fig.savefig(out / f"calibration_{env}.png", dpi=120)
+                print(f"figure: {out / f'calibration_{env}.png'}")
     return 0
 
 

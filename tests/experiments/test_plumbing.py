@@ -15,7 +15,12 @@ from scipy import stats
 
 from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.experiments import runner
-from torchrl_recon.experiments.config import SCHEMAS, ControlSetting, PlannerConfig
+from torchrl_recon.experiments.config import (
+    SCHEMAS,
+    ControlSetting,
+    EstimatorSpec,
+    PlannerConfig,
+)
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import (
     plot_control_errors,
@@ -137,8 +142,9 @@ def test_every_recipe_loads_and_validates(path):
 def test_recipe_set_is_complete():
     names = {f"{p.parent.name}/{p.name}" for p in ALL_RECIPES}
     for env in ENVS:
-        for stem in ("explore", "control", "explore_smoke", "control_smoke"):
-            assert f"{env}/{stem}.yaml" in names
+        for kind in ("explore", "control", "calibrate"):
+            for suffix in ("", "_smoke") + (("_reduced",) if kind != "calibrate" else ()):
+                assert f"{env}/{kind}{suffix}.yaml" in names
 
 
 def _schema_keys(schema) -> set[str]:
@@ -157,21 +163,32 @@ def _schema_keys(schema) -> set[str]:
 
 
 @pytest.mark.parametrize("env", ENVS)
-@pytest.mark.parametrize("kind", ("explore", "control"))
+@pytest.mark.parametrize("kind", ("explore", "control", "calibrate"))
 def test_full_recipes_hold_every_key(env, kind):
     raw = OmegaConf.to_container(compose_recipe(RECIPES / env / f"{kind}.yaml"))
-    keys = _schema_keys(SCHEMAS[kind]) - {"settings"}
+    lists = {"settings", "estimators"}
+    keys = _schema_keys(SCHEMAS[kind]) - lists
     flat = set()
 
     def walk(node, prefix):
-        if isinstance(node, dict) and node and prefix != "env.kwargs":
+        if isinstance(node, dict) and node and not prefix.endswith("kwargs"):
             for k, v in node.items():
                 walk(v, f"{prefix}.{k}" if prefix else k)
         else:
             flat.add(prefix)
 
-    walk({k: v for k, v in raw.items() if k != "settings"}, "")
+    walk({k: v for k, v in raw.items() if k not in lists}, "")
     assert keys <= flat, f"missing in {env}/{kind}.yaml: {sorted(keys - flat)}"
+    if kind == "calibrate":
+        spec_fields = {f.name for f in dataclasses.fields(EstimatorSpec)}
+        assert [e["kind"] for e in raw["estimators"]] == [
+            "reconstruction",
+            "ensemble",
+            "mc_dropout",
+            "rnd",
+        ]
+        for e in raw["estimators"]:
+            assert set(e) == spec_fields
     if kind == "control":
         setting_fields = {f.name for f in dataclasses.fields(ControlSetting)}
         planner_fields = {f.name for f in dataclasses.fields(PlannerConfig)}
@@ -259,6 +276,17 @@ def test_overrides_and_seed_interpolation():
         ("explore_smoke", ["seed=0,1"], ["sweep", "-m"]),
         ("explore_smoke", ["stop_after=guided"], ["stop_after", "guided_data_<n>"]),
         ("control_smoke", ["stop_after=setting_x"], ["stop_after", "setting_u_low"]),
+        ("explore_smoke", ["models.uncertainty.kind=gp"], ["models.uncertainty", "gp", "rnd"]),
+        (
+            "explore_smoke",
+            ["+models.uncertainty.kwargs.members=3"],
+            ["models.uncertainty", "members", "accepts"],
+        ),
+        ("calibrate_smoke", ["estimators.1.name=reconstruction"], ["duplicate", "reconstruction"]),
+        ("calibrate_smoke", ["estimators.2.kwargs.dropout=1.5"], ["estimators[2]", "dropout"]),
+        ("calibrate_smoke", ["outcomes.control_recipe=nope.yaml"], ["outcomes.control_recipe"]),
+        ("calibrate_smoke", ["timing.horizons=[]"], ["timing.horizons"]),
+        ("calibrate_smoke", ["stop_after=fit_gp"], ["stop_after", "fit_rnd"]),
     ],
 )
 def test_recipe_errors_name_the_key(recipe, overrides, words):
@@ -357,6 +385,17 @@ def test_changed_config_is_refused_but_logger_progress_stop_after_may_change(tmp
     meta = json.loads((resumed / "meta.json").read_text())
     assert meta["resumed"] is True and len(meta["previous"]) == 1
     assert OmegaConf.load(resumed / "config.yaml").stop_after == "validation"
+
+
+def test_resume_accepts_a_run_made_before_a_schema_key_existed(tmp_path):
+    run_dir = prepare_run_dir(_smoke(tmp_path))
+    release_run_dir(run_dir)
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    del saved.models.uncertainty["kind"]  # as written before the key was added
+    OmegaConf.save(saved, run_dir / "config.yaml")
+    release_run_dir(prepare_run_dir(_smoke(tmp_path)))  # the default compares equal
+    with pytest.raises(RunDirConflict, match=r"models.uncertainty.kind: 'reconstruction' -> 'rnd'"):
+        prepare_run_dir(_smoke(tmp_path, "models.uncertainty.kind=rnd"))
 
 
 def test_second_process_on_same_dir_is_refused(tmp_path):

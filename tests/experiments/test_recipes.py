@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 SMOKE = [
@@ -71,3 +72,37 @@ def test_stopped_recipe_resumes_to_the_same_results(tmp_path):
     resumed = json.loads((tmp_path / "resumed" / "results.json").read_text())
     assert resumed["arms"] == full["arms"]
     assert resumed["data"] == full["data"]
+
+
+CALIBRATION_METRICS = (
+    "spearman",
+    "auroc_error_above_median",
+    "ood_auroc_state_shift",
+    "ood_auroc_action_bound",
+)
+
+
+@pytest.mark.parametrize("env", ("industrial_benchmark", "drone", "minitaur"))
+def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
+    """All four estimators fitted, judged and timed; the outcome runs on IB only (time)."""
+    out = tmp_path / "run"
+    skip = [] if env == "industrial_benchmark" else ["outcomes.explore_recipe=null"]
+    recipe = RECIPES / env / "calibrate_smoke.yaml"
+    proc = _run("calibrate", recipe, f"output_dir={out}", "outcomes.control_recipe=null", *skip)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["experiment"] == "calibrate" and results["env"] == env
+    assert list(results["estimators"]) == ["reconstruction", "ensemble", "mc_dropout", "rnd"]
+    for name, row in results["estimators"].items():
+        for key in CALIBRATION_METRICS:
+            assert -1.0 <= row[key] <= 1.0, (name, key, row[key])
+        assert row["score_ms_H10"] > 0 and row["cem_ms_H10"] > 0
+        assert ("explore_ratio" in row) == (env == "industrial_benchmark")
+    assert results["estimators"]["reconstruction"]["score_ratio_H10"] == 1.0
+    assert (out / "calibration.png").is_file()
+    assert "OOD AUROC" in proc.stdout
+    if env == "industrial_benchmark":
+        sub = json.loads((out / "outcomes" / "rnd" / "explore" / "results.json").read_text())
+        assert sub["experiment"] == "explore"
+        sub_cfg = yaml.safe_load((out / "outcomes" / "rnd" / "explore" / "config.yaml").read_text())
+        assert sub_cfg["models"]["uncertainty"]["kind"] == "rnd"

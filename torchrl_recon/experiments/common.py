@@ -11,7 +11,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.experiments.stages import Stages
-from torchrl_recon.modules import LSTMWorldModel, Normalizer, ReconstructionUncertainty
+from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -46,9 +46,27 @@ def cost_fn(cfg: DictConfig):
     return fn
 
 
+def build_estimator(
+    spec: DictConfig, obs_dim: int, action_dim: int, window: int
+) -> UncertaintyEstimator:
+    """The estimator a recipe's ``models.uncertainty`` block (or a calibration entry) names."""
+    from torchrl_recon.modules.estimators import make_estimator
+
+    kwargs = OmegaConf.to_container(spec.kwargs, resolve=True) if spec.get("kwargs") else {}
+    return make_estimator(
+        spec.kind,
+        obs_dim,
+        action_dim,
+        window=window,
+        hidden_size=spec.hidden_size,
+        activation=spec.activation,
+        **kwargs,
+    )
+
+
 def build_models(
     cfg: DictConfig, obs_dim: int, action_dim: int
-) -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
+) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
     """World model and estimator of the recipe's sizes."""
     m = cfg.models
     world = LSTMWorldModel(
@@ -59,14 +77,7 @@ def build_models(
         dense_size=m.world_model.dense_size,
         activation=m.world_model.activation,
     )
-    estimator = ReconstructionUncertainty(
-        obs_dim,
-        action_dim,
-        window=m.window,
-        hidden_size=m.uncertainty.hidden_size,
-        activation=m.uncertainty.activation,
-    )
-    return world, estimator
+    return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window)
 
 
 def _buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
@@ -96,7 +107,7 @@ def _fit_kwargs(
 
 def fit_module(
     cfg: DictConfig,
-    module: LSTMWorldModel | ReconstructionUncertainty,
+    module: LSTMWorldModel | UncertaintyEstimator,
     data: TensorDictBase,
     *,
     seed: int,
@@ -125,7 +136,7 @@ def fit_both_stage(
     name: str,
     data: TensorDictBase,
     world: LSTMWorldModel,
-    estimator: ReconstructionUncertainty,
+    estimator: UncertaintyEstimator,
     *,
     logger: Logger | None,
     fit_normalization: bool = True,

@@ -27,8 +27,13 @@ class WorldModelConfig:
 
 @dataclass
 class UncertaintyConfig:
+    """Which estimator (``kind``: a key of ``torchrl_recon.modules.ESTIMATORS``), its hidden
+    width and activation, and the keywords only that kind takes (e.g. ``num_members``)."""
+
+    kind: str = "reconstruction"
     hidden_size: int = 100
     activation: str = "relu"
+    kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -185,4 +190,63 @@ class ControlConfig(RunConfig):
     settings: list[ControlSetting] = field(default_factory=list)
 
 
-SCHEMAS = {"explore": ExploreConfig, "control": ControlConfig}
+@dataclass
+class EstimatorSpec(UncertaintyConfig):
+    """One estimator of the calibration benchmark: a ``models.uncertainty`` block plus a name."""
+
+    name: str = MISSING
+
+
+@dataclass
+class CalibrationEvalConfig:
+    """How u is judged. The world model imagines the last ``horizon`` steps of ``trajectories``
+    held-out real trajectories (actions drawn by ``policy``) after a real context; u is ranked
+    against the real error. Out of distribution: held-out windows with the states moved by
+    ``ood_state_shift`` standard deviations, and with the actions held at the upper bound."""
+
+    trajectories: int = 200
+    horizon: int = 30
+    policy: str = "offset_noise"
+    ood_windows: int = 500
+    ood_state_shift: float = 3.0
+
+
+@dataclass
+class TimingConfig:
+    """Scoring ``candidates`` × H windows and one CEM call per estimator, for each H in ``horizons``."""
+
+    candidates: int = 1000
+    horizons: list[int] = field(default_factory=lambda: [30, 200])
+    repeats: int = 5
+    iterations: int = 5
+    num_elites: int = 100
+
+
+@dataclass
+class OutcomesConfig:
+    """Reduced-scale exploration and control runs with each estimator (a null recipe skips one).
+    Recipe paths are relative to the working directory; the overrides are applied on top."""
+
+    explore_recipe: str | None = None
+    explore_overrides: list[str] = field(default_factory=list)
+    control_recipe: str | None = None
+    control_overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CalibrateConfig(RunConfig):
+    """Uncertainty estimators side by side (issue 7): fitted on the same random data, judged on
+    the same imagined trajectories, timed in the same run. ``models.uncertainty`` is unused:
+    the estimators are listed in ``estimators``."""
+
+    experiment: str = "calibrate"
+    output_dir: str = "outputs/calibrate"
+    random_steps: int = 10000
+    random_episode_steps: int = 500
+    estimators: list[EstimatorSpec] = field(default_factory=list)
+    evaluation: CalibrationEvalConfig = field(default_factory=CalibrationEvalConfig)
+    timing: TimingConfig = field(default_factory=TimingConfig)
+    outcomes: OutcomesConfig = field(default_factory=OutcomesConfig)
+
+
+SCHEMAS = {"explore": ExploreConfig, "control": ControlConfig, "calibrate": CalibrateConfig}

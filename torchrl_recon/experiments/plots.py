@@ -5,6 +5,8 @@
   cumulative-cost prediction error, real cumulative cost and re-plans per episode.
 * :func:`plot_trajectory`: Fig. 2 style, predicted vs real states over an episode with the
   predicted uncertainty u on a twin axis and the re-planning instants marked.
+* :func:`plot_calibration`: uncertainty estimators side by side (error ranking, OOD
+  detection, cost relative to the autoencoder).
 """
 
 from __future__ import annotations
@@ -196,6 +198,44 @@ def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
     return fig
 
 
+CALIBRATION_PANELS = (
+    (("spearman", "auroc_error_above_median"), "ranks the real error", False),
+    (("ood_auroc_state_shift", "ood_auroc_action_bound"), "out-of-distribution AUROC", False),
+    (("score_ratio_H{h}", "cem_ratio_H{h}"), "time relative to the autoencoder", True),
+)
+
+
+def plot_calibration(results: Mapping[str, Any]) -> Figure:
+    """Estimators side by side: Spearman and AUROC of u against the real error, OOD AUROC
+    (states moved, actions at the bound), and scoring / CEM time as ratios to the reference
+    estimator at the first timed horizon (log scale)."""
+    rows = results.get("estimators") or {}
+    if not rows:
+        raise ValueError("plot_calibration needs calibrate results with at least one estimator.")
+    names, horizon = list(rows), (results.get("horizons") or [0])[0]
+    fig = _figure(max(9.0, 1.2 * len(names) * 3), 3.6)
+    axes = fig.subplots(1, len(CALIBRATION_PANELS))
+    width = 0.38
+    for ax, (keys, title, log) in zip(axes, CALIBRATION_PANELS, strict=True):
+        for j, key in enumerate(keys):
+            key = key.format(h=horizon)
+            values = _nan_to_zero([rows[n].get(key, float("nan")) for n in names])
+            x = np.arange(len(names)) + (j - 0.5) * width
+            ax.bar(x, values, width, label=key, color=f"C{j}", alpha=0.85)
+        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=7)
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.legend(fontsize=6, frameon=False)
+        if log:
+            ax.set_yscale("log")
+            ax.axhline(1.0, color="k", lw=0.6)
+    fig.suptitle(
+        f"Uncertainty estimators — {results.get('env', '')}, seed {results.get('seed')}",
+        fontsize=10,
+    )
+    return fig
+
+
 def _save(fig: Figure, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     return path
@@ -205,7 +245,7 @@ def save_figures(results: Mapping[str, Any], run_dir: str | os.PathLike[str]) ->
     """Write the figures of one results dict into ``run_dir``; return their paths.
 
     explore: ``table1.png``; control: ``control_errors.png`` and, when the results hold a
-    trajectory example, ``trajectory.png``.
+    trajectory example, ``trajectory.png``; calibrate: ``calibration.png``.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -213,6 +253,8 @@ def save_figures(results: Mapping[str, Any], run_dir: str | os.PathLike[str]) ->
     paths: list[Path] = []
     if kind == "explore":
         paths.append(_save(plot_table1([results]), run_dir / "table1.png"))
+    elif kind == "calibrate":
+        paths.append(_save(plot_calibration(results), run_dir / "calibration.png"))
     elif kind == "control":
         paths.append(_save(plot_control_errors(results), run_dir / "control_errors.png"))
         example = results.get("trajectory_example")

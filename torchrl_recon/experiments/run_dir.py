@@ -26,7 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
-from torchrl_recon.experiments.config import SCHEMAS, ControlSetting
+from torchrl_recon.experiments.config import SCHEMAS, ControlSetting, EstimatorSpec
 
 PLANNER_KINDS = ("shooting", "cem", "gradient")
 BAND_KINDS = ("absolute", "quantile", "mean_ratio")
@@ -36,6 +36,9 @@ REPLAN_MODES = ("every_step", "every_n", "uncertainty")
 THRESHOLD_ON = ("step", "cumulative")
 VALIDATION_POLICIES = ("random", "offset_noise")
 WORLD_MODEL_MODES = ("multi_step", "one_step")
+
+LIST_FIELDS = {"control": ("settings", ControlSetting), "calibrate": ("estimators", EstimatorSpec)}
+"""List fields whose items are checked against their own schema (OmegaConf merges lists whole)."""
 
 STAGE_PATTERNS = {
     "explore": (
@@ -48,8 +51,16 @@ STAGE_PATTERNS = {
         r"retrain_(random|active)_\d+",
     ),
     "control": (r"random_data", r"models", r"setting_.+"),
+    "calibrate": (
+        r"random_data",
+        r"world_model",
+        r"fit_.+",
+        r"evaluation",
+        r"timing",
+        r"outcome_.+",
+    ),
 }
-"""Stage names of ``run_explore`` / ``run_control`` (a ``stop_after`` must match one)."""
+"""Stage names of ``run_explore`` / ``run_control`` / ``run_calibration`` (a ``stop_after`` must match one)."""
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
@@ -264,21 +275,20 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
         raise RecipeError(
             f"{source}: 'experiment' must be one of {sorted(SCHEMAS)}, got {experiment!r}."
         )
-    settings = container.pop("settings", None) if experiment == "control" else None
+    list_key, item_schema = LIST_FIELDS.get(experiment, (None, None))
+    items = container.pop(list_key, None) if list_key else None
     merged = _merge_checked(SCHEMAS[experiment], container, prefix="", source=source)
-    if experiment == "control" and settings is not None:
-        if not isinstance(settings, list):
-            raise RecipeError(
-                f"{source}: 'settings' must be a list, got {type(settings).__name__}."
-            )
+    if list_key and items is not None:
+        if not isinstance(items, list):
+            raise RecipeError(f"{source}: '{list_key}' must be a list, got {type(items).__name__}.")
         checked = []
-        for i, setting in enumerate(settings):
-            if not isinstance(setting, dict):
-                raise RecipeError(f"{source}: 'settings[{i}]' must be a mapping, got {setting!r}.")
+        for i, item in enumerate(items):
+            if not isinstance(item, dict):
+                raise RecipeError(f"{source}: '{list_key}[{i}]' must be a mapping, got {item!r}.")
             checked.append(
-                _merge_checked(ControlSetting, setting, prefix=f"settings[{i}].", source=source)
+                _merge_checked(item_schema, item, prefix=f"{list_key}[{i}].", source=source)
             )
-        merged.settings = checked
+        merged[list_key] = checked
     try:
         OmegaConf.resolve(merged)
     except OmegaConfBaseException as e:
@@ -302,6 +312,17 @@ def _check_planner(planner: DictConfig, key: str, errors: list[str]) -> None:
             errors.append(f"'{key}.{name}' must be >= 1, got {planner[name]}")
 
 
+def _estimator_errors(spec: DictConfig, key: str, window: int) -> list[str]:
+    """Build the estimator a block names (tiny dims) so a bad kind or keyword fails before any work."""
+    from torchrl_recon.experiments.common import build_estimator
+
+    try:
+        build_estimator(spec, 1, 1, window)
+    except (ValueError, TypeError) as e:
+        return [f"'{key}': {e}"]
+    return []
+
+
 def _semantic_errors(cfg: DictConfig) -> list[str]:
     from torchrl_recon.envs import get_entry
     from torchrl_recon.planners.objective import UncertaintyBand
@@ -322,6 +343,9 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
             f"'training.world_model_mode' must be one of {list(WORLD_MODEL_MODES)}, "
             f"got {cfg.training.world_model_mode!r}"
         )
+    errors.extend(
+        _estimator_errors(cfg.models.uncertainty, "models.uncertainty", cfg.models.window)
+    )
     if cfg.threads < 1:
         errors.append(f"'threads' must be >= 1, got {cfg.threads}")
     if cfg.env.episode_steps < 1:
@@ -331,7 +355,9 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
             f"'stop_after': {cfg.stop_after!r} is not a stage of {cfg.experiment}; stages: "
             + ", ".join(_stage_list(cfg))
         )
-    if cfg.experiment == "explore":
+    if cfg.experiment == "calibrate":
+        errors.extend(_calibrate_errors(cfg))
+    elif cfg.experiment == "explore":
         _check_planner(cfg.guided.planner, "guided.planner", errors)
         if cfg.validation.policy not in VALIDATION_POLICIES:
             errors.append(
@@ -374,9 +400,77 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
     return errors
 
 
+def _calibrate_errors(cfg: DictConfig) -> list[str]:
+    errors: list[str] = []
+    if not cfg.estimators:
+        errors.append("'estimators' is empty: a calibrate recipe needs at least one estimator")
+    names = [spec.name for spec in cfg.estimators]
+    for name in sorted({n for n in names if names.count(n) > 1}):
+        errors.append(f"'estimators': duplicate estimator name {name!r}")
+    for i, spec in enumerate(cfg.estimators):
+        errors.extend(_estimator_errors(spec, f"estimators[{i}]", cfg.models.window))
+    if cfg.evaluation.policy not in VALIDATION_POLICIES:
+        errors.append(
+            f"'evaluation.policy' must be one of {list(VALIDATION_POLICIES)}, "
+            f"got {cfg.evaluation.policy!r}"
+        )
+    for key in (
+        "evaluation.trajectories",
+        "evaluation.horizon",
+        "evaluation.ood_windows",
+        "timing.candidates",
+        "timing.repeats",
+        "timing.iterations",
+        "timing.num_elites",
+        "random_steps",
+        "random_episode_steps",
+    ):
+        value = OmegaConf.select(cfg, key)
+        if value < 1:
+            errors.append(f"'{key}' must be >= 1, got {value}")
+    if not cfg.timing.horizons or min(cfg.timing.horizons) < 1:
+        errors.append(
+            f"'timing.horizons' must be a non-empty list of ints >= 1, got {list(cfg.timing.horizons)}"
+        )
+    for kind in ("explore", "control"):
+        recipe = cfg.outcomes[f"{kind}_recipe"]
+        if recipe is not None:
+            try:
+                resolve_recipe_path(recipe)
+            except FileNotFoundError as e:
+                errors.append(f"'outcomes.{kind}_recipe': {e}")
+    return errors
+
+
+def resolve_recipe_path(path: str | os.PathLike[str]) -> Path:
+    """A recipe path as given (absolute or relative to the working directory), else relative
+    to the checkout this package runs from (where ``recipes/`` lives).
+
+    Raises:
+        FileNotFoundError: naming both places looked in.
+    """
+    candidates = [Path(path).expanduser(), Path(__file__).resolve().parents[2] / path]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"no recipe file {str(path)!r} (looked in {Path.cwd()} and {candidates[1].parent})"
+    )
+
+
 def _stage_list(cfg: DictConfig) -> list[str]:
     if cfg.experiment == "control":
         return ["random_data", "models", *(f"setting_{s.name}" for s in cfg.settings)]
+    if cfg.experiment == "calibrate":
+        names = [s.name for s in cfg.estimators]
+        return [
+            "random_data",
+            "world_model",
+            *(f"fit_{n}" for n in names),
+            "evaluation",
+            "timing",
+            *(f"outcome_{n}_{k}" for n in names for k in ("explore", "control")),
+        ]
     return [
         p.replace("\\d+", "<n>").replace("(random|active)", "<arm>")
         for p in STAGE_PATTERNS["explore"]
@@ -384,7 +478,7 @@ def _stage_list(cfg: DictConfig) -> list[str]:
 
 
 def _is_stage(cfg: DictConfig) -> bool:
-    if cfg.experiment == "control":
+    if cfg.experiment in ("control", "calibrate"):
         return cfg.stop_after in _stage_list(cfg)
     return any(re.fullmatch(p, cfg.stop_after) for p in STAGE_PATTERNS["explore"])
 
@@ -542,7 +636,12 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     config_path = run_dir / "config.yaml"
     if not config_path.exists():
         return new
-    old = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
+    saved = OmegaConf.load(config_path)
+    schema = SCHEMAS.get(saved.get("experiment"))
+    if schema is not None:
+        # Keys added to the schema after the run was made compare at their defaults.
+        saved = OmegaConf.merge(OmegaConf.structured(schema), saved)
+    old = OmegaConf.to_container(saved, resolve=False)
     assert isinstance(old, dict)
     diffs = config_differences(old, new)
     if diffs:

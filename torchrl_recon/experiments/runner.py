@@ -1,4 +1,5 @@
-"""Run one experiment from a config: the plumbing around ``run_explore`` / ``run_control``."""
+"""Run one experiment from a config: the plumbing around ``run_explore`` / ``run_control`` /
+``run_calibration``."""
 
 from __future__ import annotations
 
@@ -29,6 +30,10 @@ def _experiment_fn(kind: str):
         from torchrl_recon.experiments.control import run_control
 
         return run_control
+    if kind == "calibrate":
+        from torchrl_recon.experiments.calibration import run_calibration
+
+        return run_calibration
     raise ValueError(f"Unknown experiment {kind!r}.")
 
 
@@ -48,6 +53,11 @@ def _log_results(logger, results: Mapping[str, Any]) -> None:
         for name, s in results.get("settings", {}).items():
             for key, value in s.get("mean", {}).items():
                 scalars[f"results/{name}/{key}"] = value
+    elif results.get("experiment") == "calibrate":
+        for name, row in results.get("estimators", {}).items():
+            for key, value in row.items():
+                if isinstance(value, (int, float)):
+                    scalars[f"results/{name}/{key}"] = value
     for name, value in scalars.items():
         try:
             logger.log_scalar(name, float(value), step=0)

@@ -155,6 +155,37 @@ def _control_env_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {"seeds": seeds, "settings": settings}
 
 
+CALIBRATION_COLUMNS = (
+    ("spearman", "Spearman(Σu, err)"),
+    ("auroc_error_above_median", "AUROC err>median"),
+    ("ood_auroc_state_shift", "OOD AUROC states"),
+    ("ood_auroc_action_bound", "OOD AUROC actions"),
+    ("score_ratio_H{h}", "score time ×AE H={h}"),
+    ("cem_ratio_H{h}", "CEM time ×AE H={h}"),
+    ("explore_ratio", "explore active/random"),
+)
+
+
+def _calibrate_env_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per estimator, mean ± std across seeds of every numeric entry of its row."""
+    runs = sorted(runs, key=lambda r: r.get("seed", 0))
+    estimators: dict[str, Any] = {}
+    for name in runs[0]["estimators"]:
+        rows = [r["estimators"][name] for r in runs if name in r["estimators"]]
+        keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
+        stats = {k: _mean_std([row[k] for row in rows]) for k in keys}
+        estimators[name] = {
+            "mean": {k: m for k, (m, _) in stats.items()},
+            "std": {k: sd for k, (_, sd) in stats.items()},
+            "n_seeds": len(rows),
+        }
+    return {
+        "seeds": [r.get("seed") for r in runs],
+        "horizons": runs[0].get("horizons", []),
+        "estimators": estimators,
+    }
+
+
 def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
     """Aggregate ``results.json`` files (or directories holding them) of one experiment kind.
 
@@ -188,6 +219,8 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
         envs = {env: _explore_env_summary(runs) for env, runs in by_env.items()}
     elif kind == "control":
         envs = {env: _control_env_summary(runs) for env, runs in by_env.items()}
+    elif kind == "calibrate":
+        envs = {env: _calibrate_env_summary(runs) for env, runs in by_env.items()}
     else:
         raise ValueError(f"Unknown experiment kind {kind!r} in results.")
     return {"experiment": kind, "files": [str(f) for f in files], "envs": envs}
@@ -257,6 +290,14 @@ def _control_table(title: str, settings: Mapping[str, Any], count_key: str) -> s
     return title + "\n" + _render(["setting", "episodes", *metrics], rows)
 
 
+def _calibrate_table(title: str, rows_by_name: Mapping[str, Any], horizon: int) -> str:
+    """One row per estimator; ``rows_by_name[name]`` maps column keys to numbers."""
+    keys = [k.format(h=horizon) for k, _ in CALIBRATION_COLUMNS]
+    header = ["estimator", *(label.format(h=horizon) for _, label in CALIBRATION_COLUMNS)]
+    rows = [[name, *(_fmt(row.get(k), 3) for k in keys)] for name, row in rows_by_name.items()]
+    return title + "\n" + _render(header, rows)
+
+
 def format_table(results_or_summary: Mapping[str, Any]) -> str:
     """A plain-text table of one results dict or of a :func:`summarize` output."""
     r = results_or_summary
@@ -301,6 +342,13 @@ def format_table(results_or_summary: Mapping[str, Any]) -> str:
                 title = f"control — {env}, seeds {s['seeds']}: mean ± std over all episodes"
                 parts.append(_control_table(title, s["settings"], "n_episodes"))
             return "\n\n".join(parts)
+        if kind == "calibrate":
+            parts = []
+            for env, s in r["envs"].items():
+                title = f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds"
+                means = {name: e["mean"] for name, e in s["estimators"].items()}
+                parts.append(_calibrate_table(title, means, (s["horizons"] or [0])[0]))
+            return "\n\n".join(parts)
         raise ValueError(f"format_table: unknown experiment {kind!r}.")
     if kind == "explore":
         return _explore_result_table(r)
@@ -310,4 +358,10 @@ def format_table(results_or_summary: Mapping[str, Any]) -> str:
             f" (re-plan threshold {_fmt(r.get('replan_threshold'))})"
         )
         return _control_table(title, r["settings"], "n_episodes")
+    if kind == "calibrate":
+        title = (
+            f"uncertainty estimators — {r.get('env')} seed {r.get('seed')} "
+            f"(times as ratios to {r.get('reference_estimator')!r}, measured in the same run)"
+        )
+        return _calibrate_table(title, r["estimators"], (r.get("horizons") or [0])[0])
     raise ValueError(f"format_table: unknown experiment {kind!r}.")

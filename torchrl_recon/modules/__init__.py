@@ -3,15 +3,24 @@
 from __future__ import annotations
 
 from torchrl_recon.modules.baselines import LinearDeltaModel
+from torchrl_recon.modules.ensemble import EnsembleUncertainty
+from torchrl_recon.modules.estimators import ESTIMATORS, make_estimator
+from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
 __all__ = [
+    "EnsembleUncertainty",
+    "ESTIMATORS",
     "LinearDeltaModel",
     "LSTMWorldModel",
+    "make_estimator",
+    "MCDropoutUncertainty",
     "Normalizer",
     "ReconstructionUncertainty",
+    "RNDUncertainty",
     "UncertaintyEstimator",
 ]

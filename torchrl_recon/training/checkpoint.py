@@ -13,9 +13,24 @@ FORMAT_VERSION = 1
 
 
 def _module_classes() -> dict[str, type[nn.Module]]:
-    from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+    from torchrl_recon.modules import (
+        EnsembleUncertainty,
+        LSTMWorldModel,
+        MCDropoutUncertainty,
+        ReconstructionUncertainty,
+        RNDUncertainty,
+    )
 
-    return {cls.__name__: cls for cls in (LSTMWorldModel, ReconstructionUncertainty)}
+    return {
+        cls.__name__: cls
+        for cls in (
+            LSTMWorldModel,
+            ReconstructionUncertainty,
+            EnsembleUncertainty,
+            MCDropoutUncertainty,
+            RNDUncertainty,
+        )
+    }
 
 
 def save_checkpoint(

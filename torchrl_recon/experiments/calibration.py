@@ -38,20 +38,26 @@ from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.training import load_checkpoint, save_checkpoint
 
 
-def median_ms(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``fn`` in milliseconds over ``repeats`` calls, after one warm-up call.
+def interleaved_median_ms(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median wall time in ms of each function, timed in round-robin rounds after one warm-up.
+
+    Interleaving spreads a change of machine load over all functions alike, so their ratios
+    stay comparable on a busy machine.
 
     Examples:
-        >>> median_ms(lambda: sum(range(10)), 3) >= 0
-        True
+        >>> times = interleaved_median_ms({"a": lambda: sum(range(10)), "b": lambda: None}, 3)
+        >>> sorted(times), all(t >= 0 for t in times.values())
+        (['a', 'b'], True)
     """
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+    for fn in fns.values():
         fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
+    samples: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            samples[name].append(time.perf_counter() - start)
+    return {name: statistics.median(times) * 1e3 for name, times in samples.items()}
 
 
 def calibration_metrics(
@@ -91,13 +97,18 @@ def calibration_metrics(
     }
 
 
+def _score_no_grad(estimator: UncertaintyEstimator, x: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        return estimator.score_sequence(x)
+
+
 def _timing(
     cfg: DictConfig,
     world: LSTMWorldModel,
     estimators: dict[str, UncertaintyEstimator],
     data,
 ) -> dict[str, Any]:
-    """Scoring and CEM planning time per estimator (and CEM without u), per horizon."""
+    """Scoring and CEM planning time per estimator (and CEM without u), per horizon, interleaved."""
     t, window = cfg.timing, cfg.models.window
     seqs = cut_sequences(data, window + 1)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
@@ -111,22 +122,21 @@ def _timing(
             t.candidates, window - 1 + horizon, features.shape[-1], generator=generator
         )
         cem = dict(num_candidates=t.candidates, iterations=t.iterations, num_elites=t.num_elites)
-        row: dict[str, Any] = {}
         plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
-        row["cem_without_u_ms"] = median_ms(lambda p=plain: p.plan(*ctx), t.repeats)
+        fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
         for name, est in estimators.items():
-            with torch.no_grad():
-                score_ms = median_ms(lambda e=est, x=x: e.score_sequence(x), t.repeats)
             planner = CEMPlanner(
                 PlanningModel(world, cost, uncertainty=est),
                 Objective(beta=0.1),
                 horizon=horizon,
                 **cem,
             )
-            row[name] = {
-                "score_ms": score_ms,
-                "cem_ms": median_ms(lambda p=planner: p.plan(*ctx), t.repeats),
-            }
+            fns[f"{name}/score"] = lambda e=est, x=x: _score_no_grad(e, x)
+            fns[f"{name}/cem"] = lambda p=planner: p.plan(*ctx)
+        times = interleaved_median_ms(fns, t.repeats)
+        row: dict[str, Any] = {"cem_without_u_ms": times["cem_without_u"]}
+        for name in estimators:
+            row[name] = {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}
         out[f"H{horizon}"] = row
     return out
 

@@ -225,7 +225,9 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=7)
         ax.set_title(title, fontsize=9)
         ax.tick_params(axis="y", labelsize=7)
-        ax.legend(fontsize=6, frameon=False)
+        ax.legend(
+            fontsize=6, frameon=False, loc="upper center", bbox_to_anchor=(0.5, -0.28), ncol=2
+        )
         if log:
             ax.set_yscale("log")
             ax.axhline(1.0, color="k", lw=0.6)

@@ -162,11 +162,6 @@ class EnsembleUncertainty(UncertaintyEstimator):
             "activation": self.activation,
         }
 
-    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        check_features("obs", obs, self.obs_dim)
-        check_features("action", action, self.action_dim)
-        self.input_norm.fit(torch.cat([obs, action], -1))
-
     def predict_deltas(self, x: torch.Tensor) -> torch.Tensor:
         """Every member's predicted s̃_{t+1} − s̃_t for standardised steps.
 

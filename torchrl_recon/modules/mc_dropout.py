@@ -7,7 +7,6 @@ from tensordict import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
-from torchrl_recon.modules._checks import check_features
 from torchrl_recon.modules.ensemble import (
     _blocked_scores,
     _check_activation,
@@ -105,11 +104,6 @@ class MCDropoutUncertainty(UncertaintyEstimator):
             "samples": self.samples,
             "activation": self.activation,
         }
-
-    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        check_features("obs", obs, self.obs_dim)
-        check_features("action", action, self.action_dim)
-        self.input_norm.fit(torch.cat([obs, action], -1))
 
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         keep = 1.0 - self.dropout

@@ -7,9 +7,8 @@ from tensordict import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
-from torchrl_recon.modules._checks import check_features
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
 _ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
 _INPLACE = {"relu": torch.relu_, "tanh": torch.tanh_, "elu": F.elu_}
@@ -80,11 +79,6 @@ class ReconstructionUncertainty(UncertaintyEstimator):
             "activation": self.activation,
         }
 
-    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        check_features("obs", obs, self.obs_dim)
-        check_features("action", action, self.action_dim)
-        self.input_norm.fit(torch.cat([obs, action], -1))
-
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         rows, length, dim = x.shape
         x = self.input_norm.normalize(x).contiguous()
@@ -99,9 +93,7 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         """u for every window of standardised sequences ``[R, L, D]`` → ``[R, L - T + 1]`` (differentiable)."""
         rows, length, dim = x.shape
         num_windows = length - self.window + 1
-        # Each window of T rows is one contiguous run of T*D values: a strided view, copied once.
-        windows = x.as_strided((rows, num_windows, self.window * dim), (length * dim, dim, 1))
-        windows = windows.reshape(rows * num_windows, self.window * dim)
+        windows = window_view(x, self.window).reshape(rows * num_windows, self.window * dim)
         hidden = _ACTIVATIONS[self.activation](
             torch.addmm(self.encoder.bias, windows, self.encoder.weight.t())
         )
@@ -131,7 +123,7 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         for i in range(0, rows, step):
             block = x[i : i + step]
             n = block.shape[0] * num_windows
-            windows = block.as_strided((block.shape[0], num_windows, size), (length * dim, dim, 1))
+            windows = window_view(block, self.window)
             shifted = shifted_buf[:n]
             torch.sub(windows, b2, out=shifted.view(block.shape[0], num_windows, size))
             hidden = act_(torch.mm(shifted, w1t, out=hidden_buf[:n]).add_(c1))

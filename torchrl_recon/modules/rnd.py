@@ -8,10 +8,9 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._checks import check_features
 from torchrl_recon.modules.ensemble import _check_activation, _check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
 _ACTIVATION_MODULES = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
 
@@ -98,18 +97,11 @@ class RNDUncertainty(UncertaintyEstimator):
             "activation": self.activation,
         }
 
-    def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        check_features("obs", obs, self.obs_dim)
-        check_features("action", action, self.action_dim)
-        self.input_norm.fit(torch.cat([obs, action], -1))
-
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         rows, length, dim = x.shape
         x = self.input_norm.normalize(x).contiguous()
         num_windows, size = length - self.window + 1, self.window * dim
-        # Each window of T rows is one contiguous run of T*D values: a strided view.
-        windows = x.as_strided((rows, num_windows, size), (length * dim, dim, 1))
-        windows = windows.reshape(rows * num_windows, size)
+        windows = window_view(x, self.window).reshape(rows * num_windows, size)
         error = self.predictor(windows) - self.target(windows)
         u = torch.linalg.vector_norm(error, dim=-1) / math.sqrt(self.embedding_size)
         return u.view(rows, num_windows)

@@ -11,12 +11,26 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl_recon.modules._checks import check_features, check_finite, check_window
 
 
+def window_view(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Every ``window``-step window of contiguous sequences ``[R, L, D]`` as a view ``[R, L - T + 1, T·D]``.
+
+    Each window of T rows is one contiguous run of T·D values, so no data is copied.
+
+    Examples:
+        >>> window_view(torch.arange(8.0).view(1, 4, 2), 3).tolist()
+        [[[0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [2.0, 3.0, 4.0, 5.0, 6.0, 7.0]]]
+    """
+    rows, length, dim = x.shape
+    return x.as_strided((rows, length - window + 1, window * dim), (length * dim, dim, 1))
+
+
 class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
     """Scores how unfamiliar windows of ``window`` consecutive (s, a) pairs are.
 
     Model-agnostic: an estimator reads only states and actions, never a world model.
-    Subclasses implement :meth:`fit_normalization` and :meth:`score_windows`; everything
-    else (trajectory scoring, TensorDict ``forward``) is shared.
+    Subclasses implement :meth:`config` and :meth:`score_sequence` (and :meth:`fit_normalization`
+    unless they keep their statistics in an ``input_norm`` Normalizer); everything else
+    (trajectory scoring, TensorDict ``forward``) is shared.
 
     ``forward`` reads ``obs_key`` ``[*B, L, N]`` and ``action_key`` ``[*B, L, M]`` and writes
     ``out_key`` ``[*B, L]``: the u of the window *ending* at each step; the first
@@ -50,9 +64,21 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
     def config(self) -> dict:
         """Constructor arguments, stored in checkpoints and checked on load."""
 
-    @abc.abstractmethod
     def fit_normalization(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        """Fit input statistics from real data ``[..., N]``, ``[..., M]``."""
+        """Fit input statistics from real data ``[..., N]``, ``[..., M]``.
+
+        The default fits ``self.input_norm``, a :class:`~torchrl_recon.modules.Normalizer`
+        over the N + M features, which every built-in estimator has; an estimator without one
+        overrides this.
+        """
+        norm = getattr(self, "input_norm", None)
+        if norm is None:
+            raise NotImplementedError(
+                f"{type(self).__name__} has no input_norm; override fit_normalization."
+            )
+        check_features("obs", obs, self.obs_dim)
+        check_features("action", action, self.action_dim)
+        norm.fit(torch.cat([obs, action], -1))
 
     @abc.abstractmethod
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:

@@ -27,9 +27,10 @@ from torchrl_recon.evaluation import auroc, imagined_uncertainty_and_error, spea
 from torchrl_recon.experiments.common import (
     build_env,
     build_estimator,
-    build_models,
+    build_world_model,
     cost_fn,
     fit_module,
+    random_data_stage,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
@@ -190,19 +191,16 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
     stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
     window, ev = cfg.models.window, cfg.evaluation
 
-    def random_stage() -> dict:
-        seed = stage_seed(cfg.seed, "random_data")
-        env = build_env(cfg, seed=seed, episode_steps=cfg.random_episode_steps)
-        data = collect_random(env, frames=cfg.random_steps, seed=seed, progress=cfg.progress)
-        env.close()
-        stages.save_data("random_data", data)
-        return {"steps": data.numel()}
-
-    stages.run("random_data", random_stage)
-    data = stages.load_data("random_data")
+    data = random_data_stage(
+        cfg,
+        stages,
+        "random_data",
+        frames=cfg.random_steps,
+        episode_steps=cfg.random_episode_steps,
+    )
     scale = state_scale(data)
     obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
-    world, _ = build_models(cfg, obs_dim, action_dim)
+    world = build_world_model(cfg, obs_dim, action_dim)
 
     def fit_stage(name: str, module) -> dict:
         path = stages.path("checkpoints", f"{name}.pt")

@@ -8,9 +8,10 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
+from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.envs import get_entry, make_env
-from torchrl_recon.experiments.stages import Stages
+from torchrl_recon.experiments.stages import Stages, stage_seed
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -46,6 +47,44 @@ def cost_fn(cfg: DictConfig):
     return fn
 
 
+def random_data_stage(
+    cfg: DictConfig,
+    stages: Stages,
+    name: str,
+    *,
+    frames: int,
+    episode_steps: int,
+    keys: tuple | None = None,
+) -> TensorDictBase:
+    """A resumable stage: ``frames`` uniform random steps in episodes of ``episode_steps``,
+    seeded by (seed, ``name``), stored as ``buffers/<name>`` (only ``keys``, if given); returns
+    the stored data."""
+
+    def run() -> dict:
+        seed = stage_seed(cfg.seed, name)
+        env = build_env(cfg, seed=seed, episode_steps=episode_steps)
+        data = collect_random(env, frames=frames, seed=seed, progress=cfg.progress)
+        env.close()
+        stages.save_data(name, data if keys is None else data.select(*keys))
+        return {"steps": data.numel()}
+
+    stages.run(name, run)
+    return stages.load_data(name)
+
+
+def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWorldModel:
+    """The world model of the recipe's sizes."""
+    m = cfg.models
+    return LSTMWorldModel(
+        obs_dim,
+        action_dim,
+        window=m.window,
+        hidden_size=m.world_model.hidden_size,
+        dense_size=m.world_model.dense_size,
+        activation=m.world_model.activation,
+    )
+
+
 def build_estimator(
     spec: DictConfig, obs_dim: int, action_dim: int, window: int
 ) -> UncertaintyEstimator:
@@ -69,14 +108,7 @@ def build_models(
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
     """World model and estimator of the recipe's sizes."""
     m = cfg.models
-    world = LSTMWorldModel(
-        obs_dim,
-        action_dim,
-        window=m.window,
-        hidden_size=m.world_model.hidden_size,
-        dense_size=m.world_model.dense_size,
-        activation=m.world_model.activation,
-    )
+    world = build_world_model(cfg, obs_dim, action_dim)
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window)
 
 

@@ -10,7 +10,6 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 
-from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import cut_sequences
 from torchrl_recon.envs import get_entry
 from torchrl_recon.experiments.common import (
@@ -19,6 +18,7 @@ from torchrl_recon.experiments.common import (
     build_planner,
     cost_fn,
     fit_both_stage,
+    random_data_stage,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, progress, stage_seed
@@ -76,20 +76,13 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     """Run (or resume) the control experiment in ``run_dir``; return its results."""
     stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
 
-    def random_stage():
-        env = build_env(
-            cfg, seed=stage_seed(cfg.seed, "random_data"), episode_steps=cfg.random_episode_steps
-        )
-        frames = cfg.random_episodes * cfg.random_episode_steps
-        data = collect_random(
-            env, frames=frames, seed=stage_seed(cfg.seed, "random_data"), progress=cfg.progress
-        )
-        env.close()
-        stages.save_data("random_data", data)
-        return {"steps": data.numel()}
-
-    stages.run("random_data", random_stage)
-    data = stages.load_data("random_data")
+    data = random_data_stage(
+        cfg,
+        stages,
+        "random_data",
+        frames=cfg.random_episodes * cfg.random_episode_steps,
+        episode_steps=cfg.random_episode_steps,
+    )
     scale = state_scale(data)
     obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
     world, estimator = build_models(cfg, obs_dim, action_dim)

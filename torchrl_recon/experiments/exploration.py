@@ -12,7 +12,6 @@ from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import (
     collect,
-    collect_random,
     concat_trajectories,
     validation_trajectories,
 )
@@ -24,6 +23,7 @@ from torchrl_recon.experiments.common import (
     cost_fn,
     fit_both_stage,
     fit_module,
+    random_data_stage,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
@@ -57,20 +57,10 @@ def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     episode = cfg.env.episode_steps
     window = cfg.models.window
 
-    def collect_random_stage(name: str, frames: int):
-        def run():
-            env = build_env(cfg, seed=stage_seed(cfg.seed, name), episode_steps=episode)
-            data = collect_random(
-                env, frames=frames, seed=stage_seed(cfg.seed, name), progress=cfg.progress
-            )
-            env.close()
-            stages.save_data(name, data.select(*DATA_KEYS))
-            return {"steps": data.numel()}
-
-        stages.run(name, run)
-        return stages.load_data(name)
-
-    initial = collect_random_stage("initial_random", cfg.initial_random_steps)
+    random_steps = dict(episode_steps=episode, keys=DATA_KEYS)
+    initial = random_data_stage(
+        cfg, stages, "initial_random", frames=cfg.initial_random_steps, **random_steps
+    )
     scale = state_scale(initial)
     obs_dim, action_dim = initial["observation"].shape[-1], initial["action"].shape[-1]
     world, estimator = build_models(cfg, obs_dim, action_dim)
@@ -143,7 +133,9 @@ def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                 fit_normalization=False,
             )
 
-    random_arm = collect_random_stage("random_arm", cfg.random_steps)
+    random_arm = random_data_stage(
+        cfg, stages, "random_arm", frames=cfg.random_steps, **random_steps
+    )
     arms = {
         "random": concat_trajectories(initial, random_arm),
         "active": concat_trajectories(initial, *guided_parts),

@@ -60,10 +60,11 @@ def write_partial(run: Path, settings: dict[str, dict]) -> None:
     example = next(
         (r["trajectory_example"] for r in settings.values() if r.get("trajectory_example")), None
     )
+    meta = json.loads((run / "meta.json").read_text())
     results = {
         "experiment": "control",
-        "env": json.loads((run / "meta.json").read_text())["env"],
-        "seed": json.loads((run / "meta.json").read_text())["seed"],
+        "env": meta["env"],
+        "seed": meta["seed"],
         "partial": "settings finished so far, from stages/setting_*.json; the run has not ended",
         "settings": {
             n: {k: v for k, v in r.items() if k != "trajectory_example"}

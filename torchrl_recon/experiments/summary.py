@@ -51,6 +51,13 @@ def _mean_std(values: Sequence[float]) -> tuple[float, float]:
     return mean, std
 
 
+def _not_computed(n: int, minimum: int) -> dict[str, Any]:
+    """A test entry for too few seeds: NaN statistic and p-value, and why."""
+    nan = float("nan")
+    note = f"not computed: needs at least {minimum} seeds, got {n}"
+    return {"statistic": nan, "p_value": nan, "n": n, "note": note}
+
+
 def _explore_env_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
     seeds = [r.get("seed") for r in runs]
@@ -87,12 +94,7 @@ def _explore_env_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "note": "paired t-test across seeds of the per-seed arm means (active vs random)",
         }
     else:
-        tests["paired_t"] = {
-            "statistic": float("nan"),
-            "p_value": float("nan"),
-            "n": n,
-            "note": f"not computed: needs at least {MIN_SEEDS_TTEST} seeds, got {n}",
-        }
+        tests["paired_t"] = _not_computed(n, MIN_SEEDS_TTEST)
     if n >= MIN_SEEDS_WILCOXON:
         from scipy import stats
 
@@ -105,12 +107,7 @@ def _explore_env_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             note = "Wilcoxon signed-rank test across seeds (two-sided)"
         tests["wilcoxon"] = {"statistic": w_stat, "p_value": w_p, "n": n, "note": note}
     else:
-        tests["wilcoxon"] = {
-            "statistic": float("nan"),
-            "p_value": float("nan"),
-            "n": n,
-            "note": f"not computed: needs at least {MIN_SEEDS_WILCOXON} seeds, got {n}",
-        }
+        tests["wilcoxon"] = _not_computed(n, MIN_SEEDS_WILCOXON)
     return {
         "seeds": seeds,
         "per_seed": {

@@ -2,10 +2,12 @@
 
 Run: python docs/results/control_tables.py docs/results/control/<env>/seed0 [...] [--write-partial]
 
-For each run directory it prints one row per finished setting (prediction MSE, cost-prediction
-error, real cost, re-plans, feasible plans; mean ± std over episodes; Welch p against the
-baseline). With ``--write-partial`` it also assembles the finished settings of a run that has
-no ``results.json`` yet into ``results_partial.json`` and draws its plots next to it.
+For each run directory it prints one row per setting (prediction MSE, cost-prediction error,
+real cost, re-plans, feasible plans; mean ± std over episodes; Welch p against the baseline).
+A setting still running is shown with the episodes it has finished
+(``stages/setting_<name>/part_<i>.json``) and marked "k of n episodes". With
+``--write-partial`` it also assembles the settings of a run that has no ``results.json`` yet
+into ``results_partial.json`` and draws its plots next to it.
 """
 
 from __future__ import annotations
@@ -17,18 +19,39 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
+from torchrl_recon.experiments.control import episode_mean_std
 from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
 
 
-def finished_settings(run: Path) -> dict[str, dict]:
-    """``{setting: stage record}`` of the finished settings, in the recipe's order."""
-    order = [s["name"] for s in yaml.safe_load((run / "config.yaml").read_text())["settings"]]
-    stages = run / "stages"
-    return {
-        name: json.loads((stages / f"setting_{name}.json").read_text())
-        for name in order
-        if (stages / f"setting_{name}.json").exists()
-    }
+def settings_so_far(run: Path) -> dict[str, dict]:
+    """``{setting: record}`` in the recipe's order: finished settings, then partly run ones.
+
+    A partly run setting (≥ 2 finished episodes, no stage record yet) gets the record of its
+    finished episodes plus ``"unfinished": "k of n episodes"``.
+    """
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    stages, out = run / "stages", {}
+    for name in (s["name"] for s in config["settings"]):
+        if (stages / f"setting_{name}.json").exists():
+            out[name] = json.loads((stages / f"setting_{name}.json").read_text())
+            continue
+        parts = sorted(
+            (stages / f"setting_{name}").glob("part_*.json"),
+            key=lambda p: int(p.stem.split("_")[1]),
+        )
+        if len(parts) < 2:
+            continue
+        records = [json.loads(p.read_text()) for p in parts]
+        episodes = [r["metrics"] for r in records]
+        mean, std = episode_mean_std(episodes)
+        out[name] = {
+            "episodes": episodes,
+            "mean": mean,
+            "std": std,
+            "trajectory_example": records[0]["trajectory_example"],
+            "unfinished": f"{len(parts)} of {config['episodes']} episodes",
+        }
+    return out
 
 
 def table(settings: dict[str, dict]) -> str:
@@ -47,8 +70,9 @@ def table(settings: dict[str, dict]) -> str:
             ours = [e[key] for e in record["episodes"]]
             return f"{stats.ttest_ind(ours, [e[key] for e in base], equal_var=False).pvalue:.2g}"
 
+        label = f"{name} ({record['unfinished']})" if "unfinished" in record else name
         rows.append(
-            f"| {name} | {m['prediction_mse']:.3g} ± {s['prediction_mse']:.3g} | "
+            f"| {label} | {m['prediction_mse']:.3g} ± {s['prediction_mse']:.3g} | "
             f"{p('prediction_mse')} | {m['cost_error']:.1f} ± {s['cost_error']:.1f} | "
             f"{m['real_cost']:.1f} ± {s['real_cost']:.1f} | {p('real_cost')} | "
             f"{m['replans']:.1f} ± {s['replans']:.1f} | {m['feasible_fraction']:.2f} |"
@@ -65,7 +89,8 @@ def write_partial(run: Path, settings: dict[str, dict]) -> None:
         "experiment": "control",
         "env": meta["env"],
         "seed": meta["seed"],
-        "partial": "settings finished so far, from stages/setting_*.json; the run has not ended",
+        "partial": "the run has not ended: finished settings (stages/setting_*.json) and the "
+        "finished episodes of a running one (marked unfinished)",
         "settings": {
             n: {k: v for k, v in r.items() if k != "trajectory_example"}
             for n, r in settings.items()
@@ -84,7 +109,7 @@ def main() -> None:
     parser.add_argument("--write-partial", action="store_true")
     args = parser.parse_args()
     for run in args.runs:
-        settings = finished_settings(run)
+        settings = settings_so_far(run)
         print(f"{run}\n\n{table(settings)}\n")
         if args.write_partial and not (run / "results.json").exists():
             write_partial(run, settings)

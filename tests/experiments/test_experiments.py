@@ -112,3 +112,20 @@ def test_control_outputs_and_resume(tmp_path):
         run_control(_control_cfg(stop_after="setting_baseline"), tmp_path / "resumed", None)
     resumed = run_control(_control_cfg(), tmp_path / "resumed", None)
     assert resumed["settings"] == full["settings"]
+
+
+def test_control_setting_stopped_between_episodes_resumes_at_the_next_episode(tmp_path):
+    """A setting killed after its first episode keeps that episode and reruns only the rest."""
+    full = run_control(_control_cfg(), tmp_path / "full", None)
+    stages = tmp_path / "full" / "stages"
+    # what a kill during episode 1 of the last setting leaves behind: part_0 only, no marker
+    (stages / "setting_gradient.json").unlink()
+    (stages / "setting_gradient" / "part_1.json").unlink()
+    kept = stages / "setting_gradient" / "part_0.json"
+    before = kept.read_text()
+    kept.write_text(before.replace('"wall_time_s"', '"kept_from_before": true, "wall_time_s"'))
+
+    resumed = run_control(_control_cfg(), tmp_path / "full", None)
+    assert resumed["settings"] == full["settings"]
+    assert '"kept_from_before": true' in kept.read_text()  # episode 0 was not run again
+    assert (stages / "setting_gradient" / "part_1.json").is_file()

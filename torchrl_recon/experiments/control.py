@@ -21,7 +21,7 @@ from torchrl_recon.experiments.common import (
     random_data_stage,
     state_scale,
 )
-from torchrl_recon.experiments.stages import Stages, progress, stage_seed
+from torchrl_recon.experiments.stages import Stages, stage_seed
 from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
@@ -62,7 +62,14 @@ def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]
     }
 
 
-def _mean_std(episodes: list[dict]) -> tuple[dict, dict]:
+def episode_mean_std(episodes: list[dict]) -> tuple[dict, dict]:
+    """Mean and std over episodes of each metric in :data:`METRICS` (NaN episodes skipped).
+
+    Examples:
+        >>> mean, std = episode_mean_std([{k: 1.0 for k in METRICS}, {k: 3.0 for k in METRICS}])
+        >>> mean["prediction_mse"], round(std["prediction_mse"], 3)
+        (2.0, 1.414)
+    """
     mean, std = {}, {}
     for key in METRICS:
         values = torch.tensor([e[key] for e in episodes], dtype=torch.float64)
@@ -115,8 +122,8 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                 cost_threshold=setting.cost_threshold,
             )
             planner = build_planner(setting.planner, model, objective)
-            episodes, first = [], None
-            for e in progress(range(cfg.episodes), desc=setting.name, enabled=cfg.progress):
+
+            def run_episode(e: int) -> dict:
                 policy = MPCPolicy(
                     planner,
                     replan=cfg.replan.mode,
@@ -131,14 +138,20 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                 torch.manual_seed(episode_seed)
                 td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True)
                 env.close()
-                episodes.append(episode_metrics(td, scale))
+                metrics = episode_metrics(td, scale)
                 if logger is not None:
-                    for key, value in episodes[-1].items():
+                    for key, value in metrics.items():
                         if not (isinstance(value, float) and math.isnan(value)):
                             logger.log_scalar(f"{setting.name}/{key}", value, step=e)
-                if first is None:
-                    first = _trajectory(td, setting.name, get_entry(cfg.env.name).state_names)
-            mean, std = _mean_std(episodes)
+                state_names = get_entry(cfg.env.name).state_names
+                example = _trajectory(td, setting.name, state_names) if e == 0 else None
+                return {"metrics": metrics, "trajectory_example": example}
+
+            # one record per episode: a setting stopped half way resumes at its next episode
+            parts = stages.run_parts(name, cfg.episodes, run_episode, show_progress=cfg.progress)
+            episodes = [part["metrics"] for part in parts]
+            first = parts[0]["trajectory_example"] if parts else None
+            mean, std = episode_mean_std(episodes)
             return {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
 
         record = stages.run(name, run_setting)

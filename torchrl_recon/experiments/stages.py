@@ -59,6 +59,7 @@ class Stages:
         )
         (self.run_dir / "stages").mkdir(parents=True, exist_ok=True)
         self.wall_time_s: dict[str, float] = {}
+        self._earlier_s: dict[str, float] = {}  # parts of a stage finished by earlier runs
 
     def _marker(self, name: str) -> Path:
         return self.run_dir / "stages" / f"{name}.json"
@@ -75,7 +76,7 @@ class Stages:
             torch.manual_seed(stage_seed(self.seed, name))
             start = time.perf_counter()
             record = fn() or {}
-            record["wall_time_s"] = time.perf_counter() - start
+            record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
             tmp = self._marker(name).with_suffix(".tmp")
             tmp.write_text(json.dumps(record, indent=1))
             tmp.replace(self._marker(name))
@@ -85,6 +86,48 @@ class Stages:
         if self.stop_after == name:
             raise StopRequested(name)
         return record
+
+    def run_parts(
+        self,
+        name: str,
+        count: int,
+        fn: Callable[[int], dict[str, Any]],
+        *,
+        show_progress: bool = False,
+    ) -> list[dict[str, Any]]:
+        """Run ``fn(i)`` for ``i < count`` inside stage ``name``, keeping each part's record.
+
+        Each record is written to ``stages/<name>/part_<i>.json`` as soon as it ends, so a stage
+        stopped half way (e.g. after 7 of 10 control episodes) resumes at the first missing part.
+        ``fn`` seeds itself: parts must not depend on the random state left by earlier ones.
+        Call it inside :meth:`run` of the same ``name``: that stage's ``wall_time_s`` then
+        includes the parts' time from earlier runs.
+
+        Examples:
+            >>> import tempfile
+            >>> stages = Stages(Path(tempfile.mkdtemp()), seed=0)
+            >>> [r["i"] for r in stages.run_parts("episodes", 3, lambda i: {"i": i})]
+            [0, 1, 2]
+            >>> sorted(p.name for p in (stages.run_dir / "stages" / "episodes").iterdir())
+            ['part_0.json', 'part_1.json', 'part_2.json']
+        """
+        folder = self.run_dir / "stages" / name
+        folder.mkdir(parents=True, exist_ok=True)
+        records = []
+        for i in progress(range(count), desc=name, enabled=show_progress):
+            marker = folder / f"part_{i}.json"
+            if marker.exists():
+                records.append(json.loads(marker.read_text()))
+                self._earlier_s[name] = self._earlier_s.get(name, 0.0) + records[-1]["wall_time_s"]
+                continue
+            start = time.perf_counter()
+            record = fn(i)
+            record["wall_time_s"] = time.perf_counter() - start
+            tmp = marker.with_suffix(".tmp")
+            tmp.write_text(json.dumps(record))
+            tmp.replace(marker)
+            records.append(record)
+        return records
 
     def save_data(self, name: str, data: TensorDictBase) -> None:
         """Store transitions as a TorchRL replay buffer (``dumps``) under ``buffers/name``."""

@@ -1,0 +1,45 @@
+"""docs/results/control_tables.py: tables and partial results from a run's stage records."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import yaml
+
+from torchrl_recon.experiments.control import METRICS
+
+SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "control_tables.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("control_tables", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _episode(value: float) -> dict:
+    return {key: value for key in METRICS}
+
+
+def test_unfinished_setting_is_reported_with_its_finished_episodes(tmp_path):
+    tables = _load()
+    settings = [{"name": "baseline"}, {"name": "gradient"}, {"name": "not_started"}]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({"settings": settings, "episodes": 10}))
+    stages = tmp_path / "stages"
+    (stages / "setting_gradient").mkdir(parents=True)
+    baseline = [_episode(v) for v in (1.0, 2.0, 3.0)]
+    (stages / "setting_baseline.json").write_text(
+        json.dumps({"episodes": baseline, "mean": _episode(2.0), "std": _episode(1.0)})
+    )
+    for i, value in enumerate((4.0, 6.0, 5.0)):
+        record = {"metrics": _episode(value), "trajectory_example": None, "wall_time_s": 1.0}
+        (stages / "setting_gradient" / f"part_{i}.json").write_text(json.dumps(record))
+
+    found = tables.settings_so_far(tmp_path)
+    assert list(found) == ["baseline", "gradient"]
+    assert found["gradient"]["unfinished"] == "3 of 10 episodes"
+    assert found["gradient"]["mean"]["prediction_mse"] == 5.0
+    assert "| gradient (3 of 10 episodes) | 5 ± 1 |" in tables.table(found)

@@ -16,12 +16,25 @@ def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -
 
 
 def check_finite(name: str, x: torch.Tensor) -> None:
-    """Raise if ``x`` holds NaN or inf (skipped for tensors that require grad inside autograd)."""
+    """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad)."""
     if not torch.isfinite(x).all():
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()
         raise ValueError(
             f"{name} contains NaN or inf (first at index {bad}); expected finite values."
         )
+
+
+def check_int(name: str, value: object, minimum: int = 1) -> None:
+    """Raise unless ``value`` is an int (not a bool) of at least ``minimum``.
+
+    Examples:
+        >>> check_int("horizon", 0)
+        Traceback (most recent call last):
+        ...
+        ValueError: horizon must be an int >= 1, got 0.
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}.")
 
 
 def check_window(name: str, x: torch.Tensor, window: int) -> None:

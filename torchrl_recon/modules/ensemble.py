@@ -3,81 +3,16 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._checks import check_features, check_finite
+from torchrl_recon.modules._activations import ACTIVATIONS, check_activation
+from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.reconstruction import _ACTIVATIONS
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
-
-_BLOCK = 2048  # steps per block in the no-grad path
-
-
-def _check_int(name: str, value: int, minimum: int) -> None:
-    """Raise unless ``value`` is an int (not a bool) of at least ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}.")
-
-
-def _check_activation(activation: str) -> None:
-    if activation not in _ACTIVATIONS:
-        raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
-
-
-def _population_variance(pred: torch.Tensor) -> torch.Tensor:
-    """Variance over dim 0 with divisor n (``correction=0``), as ``((p - mean) ** 2).mean(0)``.
-
-    Written out because ``Tensor.var`` over a leading dim is ~30x slower on CPU.
-    """
-    return (pred - pred.mean(0)).square().mean(0)
-
-
-def _blocked_scores(
-    score: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, needs_grad: bool
-) -> torch.Tensor:
-    """``score`` on all rows of ``x`` ``[R, L, D]`` at once, or without autograd in row blocks.
-
-    Blocks of about ``_BLOCK`` steps keep the ``[E or S, steps, hidden]`` intermediates in
-    cache instead of page-faulting hundreds of MB; per-row results are the same.
-    """
-    if needs_grad:
-        return score(x)
-    with torch.no_grad():
-        rows_per_block = max(1, _BLOCK // x.shape[1])
-        return torch.cat([score(block) for block in x.split(rows_per_block)])
-
-
-def _one_step_pairs(
-    estimator: UncertaintyEstimator, obs: torch.Tensor, action: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Standardised one-step transitions inside sequences ``[*B, L, N]``, ``[*B, L, M]``.
-
-    Returns the inputs x̃_t ``[P, N + M]`` and the targets s̃_{t+1} − s̃_t ``[P, N]`` for every
-    consecutive pair of steps, P = B·(L − 1). Sequences need at least 2 steps.
-    """
-    check_features("obs", obs, estimator.obs_dim, min_ndim=2)
-    check_features("action", action, estimator.action_dim, min_ndim=2)
-    if obs.shape[:-1] != action.shape[:-1]:
-        raise ValueError(
-            f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
-        )
-    if obs.shape[-2] < 2:
-        raise ValueError(
-            f"obs has shape {tuple(obs.shape)}; expected a time dimension (-2) of at least 2 steps "
-            "(one transition)."
-        )
-    check_finite("obs", obs.detach())
-    check_finite("action", action.detach())
-    n, dim = estimator.obs_dim, estimator.feature_dim
-    x = estimator.input_norm.normalize(torch.cat([obs, action], -1))
-    x = x.reshape(-1, obs.shape[-2], dim)
-    inputs = x[:, :-1].reshape(-1, dim)
-    targets = (x[:, 1:, :n] - x[:, :-1, :n]).reshape(-1, n)
-    return inputs, targets
 
 
 class EnsembleUncertainty(UncertaintyEstimator):
@@ -136,9 +71,9 @@ class EnsembleUncertainty(UncertaintyEstimator):
         super().__init__(
             obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key
         )
-        _check_int("num_members", num_members, 2)
-        _check_int("hidden_size", hidden_size, 1)
-        _check_activation(activation)
+        check_int("num_members", num_members, 2)
+        check_int("hidden_size", hidden_size, 1)
+        check_activation(activation)
         self.num_members, self.hidden_size, self.activation = num_members, hidden_size, activation
         sizes = [self.feature_dim, hidden_size, hidden_size, obs_dim]
         self.weights = nn.ParameterList()
@@ -170,7 +105,7 @@ class EnsembleUncertainty(UncertaintyEstimator):
         """
         if x.ndim == 2:
             x = x.expand(self.num_members, *x.shape)
-        act = _ACTIVATIONS[self.activation]
+        act = ACTIVATIONS[self.activation]
         last = len(self.weights) - 1
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
             x = torch.baddbmm(bias, x, weight)
@@ -180,13 +115,13 @@ class EnsembleUncertainty(UncertaintyEstimator):
 
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         needs_grad = torch.is_grad_enabled() and (x.requires_grad or self.weights[0].requires_grad)
-        return _blocked_scores(self._score_rows, x, needs_grad)
+        return blocked_scores(self._score_rows, x, needs_grad)
 
     def _score_rows(self, x: torch.Tensor) -> torch.Tensor:
         rows, length, dim = x.shape
         steps = self.input_norm.normalize(x).reshape(rows * length, dim)
         pred = self.predict_deltas(steps)  # [E, R·L, N]
-        disagreement = _population_variance(pred).mean(-1).view(rows, length)
+        disagreement = population_variance(pred).mean(-1).view(rows, length)
         return disagreement.unfold(1, self.window, 1).mean(-1)
 
     def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -196,7 +131,7 @@ class EnsembleUncertainty(UncertaintyEstimator):
         ``[*B, L, M]`` are resampled with replacement once per member
         (``torch.randint(P, (E, P))`` from the global RNG).
         """
-        inputs, targets = _one_step_pairs(self, obs, action)
+        inputs, targets = one_step_pairs(self, obs, action)
         index = torch.randint(inputs.shape[0], (self.num_members, inputs.shape[0]))
         index = index.to(inputs.device)
         pred = self.predict_deltas(inputs[index])

@@ -7,15 +7,10 @@ from tensordict import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
-from torchrl_recon.modules.ensemble import (
-    _blocked_scores,
-    _check_activation,
-    _check_int,
-    _one_step_pairs,
-    _population_variance,
-)
+from torchrl_recon.modules._activations import ACTIVATIONS, check_activation
+from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.reconstruction import _ACTIVATIONS
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 
@@ -80,9 +75,9 @@ class MCDropoutUncertainty(UncertaintyEstimator):
         super().__init__(
             obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key
         )
-        _check_int("hidden_size", hidden_size, 1)
-        _check_int("samples", samples, 2)
-        _check_activation(activation)
+        check_int("hidden_size", hidden_size, 1)
+        check_int("samples", samples, 2)
+        check_activation(activation)
         if isinstance(dropout, bool) or not isinstance(dropout, (int, float)):
             raise ValueError(f"dropout must be a float in (0, 1), got {dropout!r}.")
         if not 0.0 < dropout < 1.0:
@@ -112,12 +107,12 @@ class MCDropoutUncertainty(UncertaintyEstimator):
         needs_grad = torch.is_grad_enabled() and (
             x.requires_grad or self.hidden1.weight.requires_grad
         )
-        return _blocked_scores(lambda rows: self._score_rows(rows, masks), x, needs_grad)
+        return blocked_scores(lambda rows: self._score_rows(rows, masks), x, needs_grad)
 
     def _score_rows(self, x: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
         rows, length, dim = x.shape
         steps = self.input_norm.normalize(x).reshape(rows * length, dim)
-        act = _ACTIVATIONS[self.activation]
+        act = ACTIVATIONS[self.activation]
         # A mask on a layer's input is a mask on the columns of its weight: pass k runs the
         # sub-network with weights W ⊙ m_k, so the S passes are one baddbmm per layer and no
         # masked [S, P, hidden] copy is made. The first layer has no dropout before it, so
@@ -127,13 +122,13 @@ class MCDropoutUncertainty(UncertaintyEstimator):
         h = act(torch.baddbmm(self.hidden2.bias, h, w2))
         w3 = self.head.weight.t() * masks[1].transpose(1, 2)  # [S, H, N]
         pred = torch.baddbmm(self.head.bias, h, w3)  # [S, P, N]
-        spread = _population_variance(pred).mean(-1).view(rows, length)
+        spread = population_variance(pred).mean(-1).view(rows, length)
         return spread.unfold(1, self.window, 1).mean(-1)
 
     def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """One-step MSE on the (s, a) pairs of ``[*B, L, N]``, ``[*B, L, M]``, with dropout on."""
-        inputs, targets = _one_step_pairs(self, obs, action)
-        act = _ACTIVATIONS[self.activation]
+        inputs, targets = one_step_pairs(self, obs, action)
+        act = ACTIVATIONS[self.activation]
         h = F.dropout(act(self.hidden1(inputs)), self.dropout, training=True)
         h = F.dropout(act(self.hidden2(h)), self.dropout, training=True)
         return (self.head(h) - targets).pow(2).mean()

@@ -5,13 +5,16 @@ from __future__ import annotations
 import torch
 from tensordict import NestedKey
 from torch import nn
-from torch.nn import functional as F
 
+from torchrl_recon.modules._activations import (
+    ACTIVATIONS,
+    INPLACE_ACTIVATIONS,
+    check_activation,
+)
+from torchrl_recon.modules._checks import check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
-_ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
-_INPLACE = {"relu": torch.relu_, "tanh": torch.tanh_, "elu": F.elu_}
 _BLOCK = 2048  # windows per block in the no-grad path
 
 
@@ -60,10 +63,8 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         super().__init__(
             obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key
         )
-        if activation not in _ACTIVATIONS:
-            raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
-        if not isinstance(hidden_size, int) or hidden_size < 1:
-            raise ValueError(f"hidden_size must be a positive int, got {hidden_size!r}.")
+        check_activation(activation)
+        check_int("hidden_size", hidden_size)
         self.hidden_size, self.activation = hidden_size, activation
         size = window * self.feature_dim
         self.encoder = nn.Linear(size, hidden_size)
@@ -94,7 +95,7 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         rows, length, dim = x.shape
         num_windows = length - self.window + 1
         windows = window_view(x, self.window).reshape(rows * num_windows, self.window * dim)
-        hidden = _ACTIVATIONS[self.activation](
+        hidden = ACTIVATIONS[self.activation](
             torch.addmm(self.encoder.bias, windows, self.encoder.weight.t())
         )
         error = torch.addmm(self.decoder.bias, hidden, self.decoder.weight.t()) - windows
@@ -114,7 +115,7 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         w1t, w2t = self.encoder.weight.t().contiguous(), self.decoder.weight.t().contiguous()
         b2 = self.decoder.bias
         c1 = self.encoder.bias + self.encoder.weight @ b2
-        act_ = _INPLACE[self.activation]
+        act_ = INPLACE_ACTIVATIONS[self.activation]
         out = torch.empty(rows, num_windows, dtype=x.dtype)
         step = max(1, _BLOCK // num_windows)
         # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).

@@ -8,7 +8,8 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules.ensemble import _check_activation, _check_int
+from torchrl_recon.modules._activations import check_activation
+from torchrl_recon.modules._checks import check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
@@ -68,9 +69,9 @@ class RNDUncertainty(UncertaintyEstimator):
         super().__init__(
             obs_dim, action_dim, window, obs_key=obs_key, action_key=action_key, out_key=out_key
         )
-        _check_int("hidden_size", hidden_size, 1)
-        _check_int("embedding_size", embedding_size, 1)
-        _check_activation(activation)
+        check_int("hidden_size", hidden_size, 1)
+        check_int("embedding_size", embedding_size, 1)
+        check_activation(activation)
         self.hidden_size, self.embedding_size = hidden_size, embedding_size
         self.activation = activation
         act = _ACTIVATION_MODULES[activation]

@@ -8,7 +8,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules._checks import check_features, check_finite, check_int, check_window
 
 
 def window_view(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -49,8 +49,7 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
     ) -> None:
         super().__init__()
         for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("window", window)):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+            check_int(name, value)
         self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
         self.in_keys = [obs_key, action_key]
         self.out_keys = [out_key]

@@ -6,12 +6,14 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torch.nn import functional as F
 
-from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules._activations import (
+    ACTIVATIONS,
+    INPLACE_ACTIVATIONS,
+    check_activation,
+)
+from torchrl_recon.modules._checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.normalization import Normalizer
-
-_ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
 
 
 class LSTMWorldModel(TensorDictModuleBase):
@@ -62,8 +64,7 @@ class LSTMWorldModel(TensorDictModuleBase):
         out_key: NestedKey = ("next", "predicted_observation"),
     ) -> None:
         super().__init__()
-        if activation not in _ACTIVATIONS:
-            raise ValueError(f"activation {activation!r} is not one of {sorted(_ACTIVATIONS)}.")
+        check_activation(activation)
         for name, value in (
             ("obs_dim", obs_dim),
             ("action_dim", action_dim),
@@ -71,8 +72,7 @@ class LSTMWorldModel(TensorDictModuleBase):
             ("dense_size", dense_size),
             ("window", window),
         ):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+            check_int(name, value)
         self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
         self.hidden_size, self.dense_size, self.activation = hidden_size, dense_size, activation
         self.in_keys = [obs_key, action_key]
@@ -120,7 +120,7 @@ class LSTMWorldModel(TensorDictModuleBase):
         x = self._inputs(obs, action)
         batch, length = x.shape[:-2], x.shape[-2]
         out, _ = self.lstm(x.reshape(-1, length, x.shape[-1]))
-        z = _ACTIVATIONS[self.activation](self.dense(out))
+        z = ACTIVATIONS[self.activation](self.dense(out))
         return self.head(z).reshape(*batch, length, self.obs_dim)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -215,7 +215,7 @@ class LSTMWorldModel(TensorDictModuleBase):
     ) -> torch.Tensor:
         """Out-of-place rollout ``[R, N]`` → ``[R, H, N]``, differentiable w.r.t. actions and weights."""
         w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
-        act, hid = _ACTIVATIONS[self.activation], self.hidden_size
+        act, hid = ACTIVATIONS[self.activation], self.hidden_size
         rows, horizon = actions.shape[:2]
         # Action contribution to the gates for every step in one matmul.
         gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(
@@ -272,7 +272,7 @@ class LSTMWorldModel(TensorDictModuleBase):
         c = c.contiguous().clone()
         sig = torch.empty(rows, 3 * hid, dtype=dtype)
         tg = torch.empty(rows, hid, dtype=dtype)
-        act_ = {"relu": torch.relu_, "tanh": torch.tanh_, "elu": F.elu_}[self.activation]
+        act_ = INPLACE_ACTIVATIONS[self.activation]
         for t in range(horizon):
             torch.mm(steps[t], w_a, out=gates).addmm_(states[t], w_s1).addmm_(h1, w_hh1)
             torch.sigmoid(gates[:, : 3 * hid], out=sig)  # i, f, o

@@ -9,16 +9,11 @@ from typing import Literal
 import torch
 from torch import nn
 
+from torchrl_recon.modules._checks import check_int
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
 
 OnInfeasible = Literal["fallback", "raise"]
-
-
-def check_positive_int(name: str, value: object) -> None:
-    """Raise a ``ValueError`` naming ``name`` unless ``value`` is an int >= 1."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}.")
 
 
 class InfeasiblePlanWarning(RuntimeWarning):
@@ -70,7 +65,7 @@ class PlannerBase(nn.Module):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__()
-        check_positive_int("horizon", horizon)
+        check_int("horizon", horizon)
         if objective.needs_uncertainty and model.uncertainty is None:
             raise ValueError(
                 "The objective uses uncertainty (beta != 0 or a band) but the planning model has no estimator."

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase, check_positive_int
+from torchrl_recon.modules._checks import check_int
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
 
@@ -51,8 +52,8 @@ class CEMPlanner(PlannerBase):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        check_positive_int("num_candidates", num_candidates)
-        check_positive_int("iterations", iterations)
+        check_int("num_candidates", num_candidates)
+        check_int("iterations", iterations)
         if not 1 <= num_elites <= num_candidates:
             raise ValueError(
                 f"num_elites must be in [1, num_candidates={num_candidates}], got {num_elites}."

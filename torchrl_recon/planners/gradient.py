@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase, check_positive_int
+from torchrl_recon.modules._checks import check_int
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
 
@@ -46,8 +47,8 @@ class GradientPlanner(PlannerBase):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        check_positive_int("restarts", restarts)
-        check_positive_int("steps", steps)
+        check_int("restarts", restarts)
+        check_int("steps", steps)
         if not lr > 0:
             raise ValueError(f"lr must be positive, got {lr!r}.")
         self.restarts, self.steps, self.lr = restarts, steps, lr

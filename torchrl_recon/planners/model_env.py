@@ -9,8 +9,9 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
+from torchrl_recon.modules._activations import ACTIVATIONS
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
-from torchrl_recon.modules.world_model import _ACTIVATIONS, LSTMWorldModel
+from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.planning_model import CostFn
 
 H_KEY, C_KEY, U_HISTORY = "wm_h", "wm_c", "u_history"
@@ -55,7 +56,7 @@ class _StepModule(TensorDictModuleBase):
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
         obs, action = td.get("observation"), td.get("action")
-        z = _ACTIVATIONS[wm.activation](wm.dense(td.get("wm_features")))
+        z = ACTIVATIONS[wm.activation](wm.dense(td.get("wm_features")))
         next_obs = obs + wm.delta_norm.denormalize(wm.head(z))
         reward = -self.cost_fn(obs, action, next_obs)
         if self.estimator is not None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase, check_positive_int
+from torchrl_recon.modules._checks import check_int
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
 
@@ -40,7 +41,7 @@ class RandomShootingPlanner(PlannerBase):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        check_positive_int("num_candidates", num_candidates)
+        check_int("num_candidates", num_candidates)
         self.num_candidates = num_candidates
 
     @torch.inference_mode()

@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
-from torchrl_recon.modules._checks import check_finite
+from torchrl_recon.modules._checks import check_finite, check_int
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 
 ReplanMode = Literal["every_step", "every_n", "uncertainty"]
@@ -104,8 +104,8 @@ class MPCPolicy(TensorDictModuleBase):
             raise ValueError(
                 f"replan must be 'every_step', 'every_n' or 'uncertainty', got {replan!r}."
             )
-        if replan == "every_n" and (not isinstance(replan_every, int) or replan_every < 1):
-            raise ValueError(f"replan_every must be a positive int, got {replan_every!r}.")
+        if replan == "every_n":
+            check_int("replan_every", replan_every)
         if replan == "uncertainty":
             if threshold is None:
                 raise ValueError("replan='uncertainty' needs a threshold.")

@@ -144,14 +144,14 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
         FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
             the file, key or directory.
     """
-    from torchrl_recon.experiments.run_dir import (
+    from torchrl_recon.experiments.recipe import (
         RecipeError,
         apply_override,
-        check_run_dir,
         compose_recipe,
         parse_overrides,
         validate,
     )
+    from torchrl_recon.experiments.run_dir import check_run_dir
 
     if not recipe.is_file():
         raise FileNotFoundError(f"Recipe file not found: {recipe}")

@@ -28,15 +28,12 @@ from torchrl_recon.experiments.plots import (
     plot_trajectory,
     save_figures,
 )
+from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
 from torchrl_recon.experiments.run_dir import (
-    RecipeError,
     RunDirConflict,
-    compose_recipe,
     git_info,
-    load_recipe,
     prepare_run_dir,
     release_run_dir,
-    validate,
     write_results,
 )
 from torchrl_recon.experiments.stages import StopRequested

@@ -146,7 +146,7 @@ def _outcome(
     cfg: DictConfig, spec: DictConfig, kind: str, run_dir: Path, seed: int
 ) -> dict[str, Any] | None:
     """Run the ``kind`` experiment of ``outcomes`` with ``spec`` as its estimator; its headline numbers."""
-    from torchrl_recon.experiments.run_dir import load_recipe, resolve_recipe_path
+    from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path
     from torchrl_recon.experiments.runner import run
 
     recipe = resolve_recipe_path(cfg.outcomes[f"{kind}_recipe"])

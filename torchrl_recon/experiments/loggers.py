@@ -9,7 +9,8 @@ from typing import Any
 from omegaconf import DictConfig
 from torchrl.record.loggers import Logger
 
-from torchrl_recon.experiments.run_dir import experiment_name, flat_config
+from torchrl_recon.experiments.recipe import experiment_name
+from torchrl_recon.experiments.run_dir import flat_config
 
 
 def _hparams(cfg: DictConfig) -> dict[str, Any]:

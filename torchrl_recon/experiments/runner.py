@@ -12,12 +12,8 @@ from omegaconf import DictConfig
 
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import save_figures
-from torchrl_recon.experiments.run_dir import (
-    prepare_run_dir,
-    release_run_dir,
-    validate,
-    write_results,
-)
+from torchrl_recon.experiments.recipe import validate
+from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
 from torchrl_recon.experiments.summary import format_table
 
 

@@ -2,30 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import yaml
 
 from torchrl_recon.experiments.control import METRICS
-
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "control_tables.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("control_tables", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _episode(value: float) -> dict:
     return {key: value for key in METRICS}
 
 
-def test_unfinished_setting_is_reported_with_its_finished_episodes(tmp_path):
-    tables = _load()
+def test_unfinished_setting_is_reported_with_its_finished_episodes(tmp_path, results_script):
+    tables = results_script("control_tables")
     settings = [{"name": "baseline"}, {"name": "gradient"}, {"name": "not_started"}]
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({"settings": settings, "episodes": 10}))
     stages = tmp_path / "stages"

@@ -2,22 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "publish_run.py"
 
-
-def _load():
-    spec = importlib.util.spec_from_file_location("publish_run", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_publish_keeps_records_and_plots_but_not_buffers(tmp_path):
+def test_publish_keeps_records_and_plots_but_not_buffers(tmp_path, results_script):
     run, dest = tmp_path / "run", tmp_path / "dest"
     files = [
         "config.yaml",
@@ -37,7 +25,9 @@ def test_publish_keeps_records_and_plots_but_not_buffers(tmp_path):
         (run / name).parent.mkdir(parents=True, exist_ok=True)
         (run / name).write_text("x")
 
-    copied = {p.relative_to(dest).as_posix() for p in _load().publish(run, dest)}
+    copied = {
+        p.relative_to(dest).as_posix() for p in results_script("publish_run").publish(run, dest)
+    }
     assert copied == {
         "config.yaml",
         "meta.json",
@@ -49,6 +39,6 @@ def test_publish_keeps_records_and_plots_but_not_buffers(tmp_path):
     }
 
 
-def test_publish_refuses_a_directory_that_is_not_a_run(tmp_path):
+def test_publish_refuses_a_directory_that_is_not_a_run(tmp_path, results_script):
     with pytest.raises(FileNotFoundError, match="not a run directory"):
-        _load().publish(tmp_path, tmp_path / "dest")
+        results_script("publish_run").publish(tmp_path, tmp_path / "dest")

@@ -2,18 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "variant_table.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("variant_table", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _write(root: Path, variant: str, seed: int, ratio: float) -> None:
@@ -27,13 +17,13 @@ def _write(root: Path, variant: str, seed: int, ratio: float) -> None:
     path.write_text(json.dumps(results))
 
 
-def test_variants_are_paired_with_the_base_by_seed(tmp_path):
+def test_variants_are_paired_with_the_base_by_seed(tmp_path, results_script):
     for seed, (base, other) in enumerate([(1.0, 0.8), (1.1, 0.85), (0.9, 0.7)]):
         _write(tmp_path, "base", seed, base)
         _write(tmp_path, "other", seed, other)
     _write(tmp_path, "same_as_base", 0, 1.0)
     _write(tmp_path, "same_as_base", 1, 1.1)
-    tables = _load()
+    tables = results_script("variant_table")
     text = tables.table(tables.load(tmp_path))
     lines = text.splitlines()
     assert lines[2].startswith("| base | 1.000, 1.100, 0.900 | 1.000 ± 0.100 | – | 0.50 | 1.000 |")

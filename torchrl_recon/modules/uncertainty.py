@@ -14,12 +14,14 @@ from torchrl_recon.modules._checks import check_features, check_finite, check_in
 def window_view(x: torch.Tensor, window: int) -> torch.Tensor:
     """Every ``window``-step window of contiguous sequences ``[R, L, D]`` as a view ``[R, L - T + 1, T·D]``.
 
-    Each window of T rows is one contiguous run of T·D values, so no data is copied.
+    Each window of T rows is one contiguous run of T·D values, so no data is copied (a
+    non-contiguous ``x`` is made contiguous first; the strides below assume it).
 
     Examples:
         >>> window_view(torch.arange(8.0).view(1, 4, 2), 3).tolist()
         [[[0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [2.0, 3.0, 4.0, 5.0, 6.0, 7.0]]]
     """
+    x = x.contiguous()
     rows, length, dim = x.shape
     return x.as_strided((rows, length - window + 1, window * dim), (length * dim, dim, 1))
 

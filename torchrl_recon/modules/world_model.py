@@ -217,16 +217,18 @@ class LSTMWorldModel(TensorDictModuleBase):
         w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
         act, hid = ACTIVATIONS[self.activation], self.hidden_size
         rows, horizon = actions.shape[:2]
-        # Action contribution to the gates for every step in one matmul.
-        gates_a = torch.addmm(bias, actions.reshape(-1, self.action_dim), w_a).reshape(
-            rows, horizon, 4 * hid
-        )
+        # Action contribution to the gates for every step in one matmul, laid out [H, R, 4 hid]
+        # so each step is an `unbind` slice: its backward is one stack, where indexing
+        # `gates_a[:, t]` would zero-fill a full-size gradient per step (O(H²) memory traffic).
+        gates_a = torch.addmm(
+            bias, actions.transpose(0, 1).reshape(-1, self.action_dim), w_a
+        ).reshape(horizon, rows, 4 * hid)
         states = []
-        for t in range(horizon):
-            gates = torch.addmm(gates_a[:, t], torch.cat([s, h], 1), w_sh)
-            sig = torch.sigmoid(gates)
-            c = sig[:, hid : 2 * hid] * c + sig[:, :hid] * torch.tanh(gates[:, 2 * hid : 3 * hid])
-            h = sig[:, 3 * hid :] * torch.tanh(c)
+        for gates_t in gates_a.unbind(0):
+            gates = torch.addmm(gates_t, torch.cat([s, h], 1), w_sh)
+            i, f, g, o = gates.chunk(4, 1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+            h = torch.sigmoid(o) * torch.tanh(c)
             s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
             states.append(s)
         return torch.stack(states, 1)

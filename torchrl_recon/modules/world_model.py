@@ -13,6 +13,7 @@ from torchrl_recon.modules._activations import (
     check_activation,
 )
 from torchrl_recon.modules._checks import check_features, check_finite, check_int, check_window
+from torchrl_recon.modules._lstm_rollout import LSTMRollout
 from torchrl_recon.modules.normalization import Normalizer
 
 
@@ -203,11 +204,14 @@ class LSTMWorldModel(TensorDictModuleBase):
         h = h.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         c = c.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         flat_actions = actions.reshape(rows, horizon, self.action_dim)
-        needs_grad = torch.is_grad_enabled() and (
-            actions.requires_grad or any(p.requires_grad for p in self.parameters())
-        )
-        rollout = self._rollout_autograd if needs_grad else self._rollout_inplace
-        states = rollout(s0, h, c, flat_actions)
+        grad = torch.is_grad_enabled()
+        if grad and any(p.requires_grad for p in self.parameters()):
+            states = self._rollout_autograd(s0, h, c, flat_actions)  # training: weights too
+        elif grad and any(x.requires_grad for x in (s0, h, c, flat_actions)):
+            weights = self._folded_weights()  # planning: actions only, one fused autograd node
+            states = LSTMRollout.apply(s0, h, c, flat_actions, weights, self.activation)
+        else:
+            states = self._rollout_inplace(s0, h, c, flat_actions)
         return states.reshape(*batch, k, horizon, self.obs_dim)
 
     def _rollout_autograd(

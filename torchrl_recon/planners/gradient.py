@@ -2,12 +2,42 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
+from torch import nn
 
 from torchrl_recon.modules._checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
+
+
+@contextmanager
+def frozen(module: nn.Module) -> Iterator[None]:
+    """Turn ``requires_grad`` off on ``module``'s parameters for the block, then restore it.
+
+    Planning differentiates with respect to the actions only; with frozen weights autograd
+    records nothing for them and the world model takes its fused rollout
+    (:class:`~torchrl_recon.modules._lstm_rollout.LSTMRollout`).
+
+    Examples:
+        >>> layer = nn.Linear(2, 2)
+        >>> with frozen(layer):
+        ...     layer.weight.requires_grad
+        False
+        >>> layer.weight.requires_grad
+        True
+    """
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
 
 
 class GradientPlanner(PlannerBase):
@@ -62,7 +92,7 @@ class GradientPlanner(PlannerBase):
         actions = start.requires_grad_(True)
         optimizer = torch.optim.Adam([actions], lr=self.lr)
         seen_actions, seen = [], None
-        with torch.enable_grad():
+        with torch.enable_grad(), frozen(self.model):
             for step in range(self.steps + 1):
                 prediction = self.model(
                     context_obs, context_action, observation, actions, state=state

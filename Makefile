@@ -26,3 +26,4 @@ bench: setup
 	$(PY) benchmarks/env_throughput.py
 	$(PY) benchmarks/uncertainty_overhead.py
 	$(PY) benchmarks/planner_speed.py
+	$(PY) benchmarks/gradient_planning.py

@@ -7,12 +7,14 @@ plus backward, round-robin so a change of machine load hits all alike:
 
 * plain PyTorch: the world model's own ``nn.LSTM`` called one step at a time, the way a user
   would write an autoregressive rollout (the baseline);
-* ours, recorded graph: the out-of-place rollout autograd records op by op (used for training);
+* ours, recorded graph: our rollout with every op recorded by autograd (``recorded_rollout``,
+  the reference; what the library used before the fused node);
 * ours, fused: :class:`~torchrl_recon.modules._lstm_rollout.LSTMRollout`, one autograd node
-  with a hand-written backward (used by planning; bitwise the recorded graph's gradients).
+  with a hand-written backward (what ``imagine`` uses; bitwise the recorded graph's gradients).
 
-The last lines are one whole gradient plan (16 restarts × 50 Adam steps, with u) and the
-speed-ups of the fused rollout.
+Then one whole gradient plan (16 restarts × 50 Adam steps, with u), the weight gradients of a
+multi-step training batch (32 windows × 30 steps) both ways, and the speed-ups of the fused
+rollout.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import torch
 from _common import COST, context, paper_models
 
 from torchrl_recon.experiments.calibration import interleaved_median_ms
+from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 
 
@@ -63,7 +66,9 @@ def main() -> None:
         "plain PyTorch (nn.LSTM stepped)": backward(
             lambda: plain_rollout(world, s0, h, c, actions)
         ),
-        "ours, recorded graph": backward(lambda: world._rollout_autograd(s0, h, c, actions)),
+        "ours, recorded graph": backward(
+            lambda: recorded_rollout(s0, h, c, actions, "relu", *world._folded_weights())
+        ),
         "ours, fused": backward(lambda: world.imagine(*ctx, actions, state=state)),
     }
     print(
@@ -85,9 +90,32 @@ def main() -> None:
     print(
         f"one gradient plan (16 restarts x 50 steps, with u): {time.perf_counter() - start:.2f} s"
     )
+    # Multi-step training differentiates w.r.t. the weights: 32 windows x 30 steps (the recipes').
+    weights = [w.detach().requires_grad_(True) for w in world._folded_weights()]
+    train_s0, train_h, train_c = s0[:1].expand(32, -1), h[:1].expand(32, -1), c[:1].expand(32, -1)
+    train_actions = torch.rand(32, 30, world.action_dim) * 2 - 1
+
+    def train(rollout):
+        states = rollout(train_s0, train_h, train_c, train_actions, "relu", *weights)
+        return lambda: torch.autograd.grad(states.square().sum(), weights)
+
+    training = interleaved_median_ms(
+        {
+            "recorded": lambda: train(recorded_rollout)(),
+            "fused": lambda: train(LSTMRollout.apply)(),
+        },
+        args.repeats,
+    )
+    print(
+        f"weight gradients, 32 x 30 steps (training): recorded graph {training['recorded']:.1f} ms, "
+        f"fused {training['fused']:.1f} ms"
+    )
     fused = times["ours, fused"]
     print(f"speed-up vs plain PyTorch: {times['plain PyTorch (nn.LSTM stepped)'] / fused:.1f}x")
     print(f"speed-up vs the recorded graph: {times['ours, recorded graph'] / fused:.1f}x")
+    print(
+        f"speed-up of training's weight gradients: {training['recorded'] / training['fused']:.1f}x"
+    )
 
 
 if __name__ == "__main__":

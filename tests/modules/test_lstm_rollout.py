@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.modules._lstm_rollout import LSTMRollout
+from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
 from torchrl_recon.planners.gradient import frozen
 
 
@@ -30,39 +30,79 @@ def _inputs(rows: int, horizon: int, dtype=torch.float32) -> tuple[torch.Tensor,
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
 @pytest.mark.parametrize(("rows", "horizon"), [(16, 40), (1, 3), (3, 1)])
-def test_fused_rollout_is_bitwise_the_recorded_graph(activation, rows, horizon):
-    """Same states and same gradients, bit for bit: plans do not change with the fast path."""
-    model = _frozen_model(activation)
+@pytest.mark.parametrize("weights_need_grad", [False, True])
+def test_fused_rollout_is_bitwise_the_recorded_graph(activation, rows, horizon, weights_need_grad):
+    """Same states and same gradients, bit for bit: plans and training do not change."""
+    model = _frozen_model(activation).requires_grad_(weights_need_grad)
+    params = list(model.parameters()) if weights_need_grad else []
     s0, h0, c0, actions = _inputs(rows, horizon)
     weight = torch.randn(rows, horizon, 5)
-    recorded = model._rollout_autograd(s0, h0, c0, actions)
-    fused = LSTMRollout.apply(s0, h0, c0, actions, model._folded_weights(), activation)
+    inputs = (s0, h0, c0, actions, *params)
+    recorded = recorded_rollout(s0, h0, c0, actions, activation, *model._folded_weights())
+    fused = LSTMRollout.apply(s0, h0, c0, actions, activation, *model._folded_weights())
     assert torch.equal(recorded, fused)
-    grads_recorded = torch.autograd.grad((recorded * weight).square().sum(), (s0, h0, c0, actions))
-    grads_fused = torch.autograd.grad((fused * weight).square().sum(), (s0, h0, c0, actions))
-    for name, a, b in zip(("s0", "h0", "c0", "actions"), grads_recorded, grads_fused, strict=True):
+    grads_recorded = torch.autograd.grad((recorded * weight).square().sum(), inputs)
+    grads_fused = torch.autograd.grad((fused * weight).square().sum(), inputs)
+    names = ["s0", "h0", "c0", "actions", *(n for n, _ in model.named_parameters())][: len(inputs)]
+    for name, a, b in zip(names, grads_recorded, grads_fused, strict=True):
         assert torch.equal(a, b), f"{name}: max diff {(a - b).abs().max().item()}"
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
 def test_fused_rollout_passes_gradcheck(activation):
-    """The hand-written derivatives against finite differences (float64)."""
+    """The hand-written derivatives against finite differences (float64), weights included."""
     model = _frozen_model(activation, torch.float64)
-    weights = model._folded_weights()
-    inputs = _inputs(2, 4, torch.float64)
+    weights = tuple(w.detach().requires_grad_(True) for w in model._folded_weights())
+    inputs = (*_inputs(2, 4, torch.float64), *weights)
     assert torch.autograd.gradcheck(
-        lambda s, h, c, a: LSTMRollout.apply(s, h, c, a, weights, activation), inputs
+        lambda s, h, c, a, *w: LSTMRollout.apply(s, h, c, a, activation, *w), inputs
     )
 
 
-def test_imagine_takes_the_fused_rollout_only_when_the_weights_are_frozen():
+def test_multi_step_training_is_bitwise_the_recorded_graph(monkeypatch):
+    """A few Adam steps of the multi-step loss land on the same weights as with the reference."""
+    from tensordict import TensorDict
+
+    from torchrl_recon.modules import world_model as world_model_module
+    from torchrl_recon.objectives import WorldModelPredictionLoss
+
+    class Recorded:  # in place of LSTMRollout: the rollout with every op recorded
+        apply = staticmethod(recorded_rollout)
+
+    torch.manual_seed(2)
+    data = TensorDict(
+        {
+            "observation": torch.randn(4 * 20, 5) * 20 + 50,
+            "action": torch.rand(4 * 20, 3),
+            ("next", "observation"): torch.randn(4 * 20, 5) * 20 + 50,
+        },
+        [4 * 20],
+    )
+    trained = []
+    for rollout in (LSTMRollout, Recorded):
+        monkeypatch.setattr(world_model_module, "LSTMRollout", rollout)
+        model = _frozen_model().requires_grad_(True)
+        model.window = 4
+        loss = WorldModelPredictionLoss(model, slice_len=20)
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-2)
+        for _ in range(3):
+            optimizer.zero_grad()
+            loss(data)["loss_world_model"].backward()
+            optimizer.step()
+        trained.append(model.state_dict())
+    assert trained[0]["lstm.weight_hh_l0"].ne(_frozen_model().lstm.weight_hh_l0).any()
+    for name, value in trained[0].items():
+        assert torch.equal(value, trained[1][name]), name
+
+
+def test_imagine_differentiates_through_the_fused_rollout():
     model = _frozen_model().requires_grad_(True)
     context = torch.randn(2, 10, 5) * 20 + 50, torch.rand(2, 10, 3), torch.randn(2, 5) * 20 + 50
     actions = torch.rand(2, 4, 6, 3, requires_grad=True)
     trained = model.imagine(*context, actions)
-    assert not _reaches(trained.grad_fn, "LSTMRolloutBackward")  # the weights need gradients
+    assert _reaches(trained.grad_fn, "LSTMRolloutBackward")
     trained.sum().backward()
-    assert model.lstm.weight_hh_l0.grad.abs().sum() > 0
+    assert model.lstm.weight_hh_l0.grad.abs().sum() > 0 and actions.grad.abs().sum() > 0
     with frozen(model):
         planned = model.imagine(*context, actions)
     assert _reaches(planned.grad_fn, "LSTMRolloutBackward")

@@ -204,38 +204,16 @@ class LSTMWorldModel(TensorDictModuleBase):
         h = h.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         c = c.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         flat_actions = actions.reshape(rows, horizon, self.action_dim)
-        grad = torch.is_grad_enabled()
-        if grad and any(p.requires_grad for p in self.parameters()):
-            states = self._rollout_autograd(s0, h, c, flat_actions)  # training: weights too
-        elif grad and any(x.requires_grad for x in (s0, h, c, flat_actions)):
-            weights = self._folded_weights()  # planning: actions only, one fused autograd node
-            states = LSTMRollout.apply(s0, h, c, flat_actions, weights, self.activation)
+        needs_grad = torch.is_grad_enabled() and any(
+            x.requires_grad for x in (s0, h, c, flat_actions, *self.parameters())
+        )
+        if needs_grad:  # one autograd node with a hand-written backward through time
+            states = LSTMRollout.apply(
+                s0, h, c, flat_actions, self.activation, *self._folded_weights()
+            )
         else:
             states = self._rollout_inplace(s0, h, c, flat_actions)
         return states.reshape(*batch, k, horizon, self.obs_dim)
-
-    def _rollout_autograd(
-        self, s: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
-    ) -> torch.Tensor:
-        """Out-of-place rollout ``[R, N]`` → ``[R, H, N]``, differentiable w.r.t. actions and weights."""
-        w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
-        act, hid = ACTIVATIONS[self.activation], self.hidden_size
-        rows, horizon = actions.shape[:2]
-        # Action contribution to the gates for every step in one matmul, laid out [H, R, 4 hid]
-        # so each step is an `unbind` slice: its backward is one stack, where indexing
-        # `gates_a[:, t]` would zero-fill a full-size gradient per step (O(H²) memory traffic).
-        gates_a = torch.addmm(
-            bias, actions.transpose(0, 1).reshape(-1, self.action_dim), w_a
-        ).reshape(horizon, rows, 4 * hid)
-        states = []
-        for gates_t in gates_a.unbind(0):
-            gates = torch.addmm(gates_t, torch.cat([s, h], 1), w_sh)
-            i, f, g, o = gates.chunk(4, 1)
-            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
-            h = torch.sigmoid(o) * torch.tanh(c)
-            s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
-            states.append(s)
-        return torch.stack(states, 1)
 
     @torch.no_grad()
     def _rollout_inplace(

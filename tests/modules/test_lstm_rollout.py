@@ -109,6 +109,15 @@ def test_imagine_differentiates_through_the_fused_rollout():
     assert torch.equal(planned, trained)
 
 
+def test_double_backward_is_refused_not_wrong():
+    model = _frozen_model()
+    s0, h0, c0, actions = _inputs(2, 3)
+    states = LSTMRollout.apply(s0, h0, c0, actions, "relu", *model._folded_weights())
+    (grad,) = torch.autograd.grad(states.square().sum(), actions, create_graph=True)
+    with pytest.raises(RuntimeError, match="once_differentiable"):
+        grad.sum().backward()
+
+
 def _reaches(fn, name: str, depth: int = 4) -> bool:
     if fn is None or depth < 0:
         return False

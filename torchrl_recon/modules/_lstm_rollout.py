@@ -13,6 +13,7 @@ and weights) are bitwise those of :func:`recorded_rollout`, the op-by-op referen
 from __future__ import annotations
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from torchrl_recon.modules._activations import ACTIVATIONS
 
@@ -62,7 +63,7 @@ def recorded_rollout(
 
 def _mat2_grad(grad: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
     """Gradient of ``mat2`` in ``addmm(b, mat1, mat2)``, as autograd's ``mm_mat2_backward``."""
-    if mat2.stride(0) == 1 and mat2.stride(1) == mat2.size(0):  # column-major: kept so
+    if mat2.stride(0) == 1 and mat2.stride(1) == mat2.size(0):  # column-major mat2
         return grad.t().mm(mat1).t()
     return mat1.t().mm(grad)
 
@@ -78,7 +79,7 @@ class LSTMRollout(torch.autograd.Function):
             (see ``LSTMWorldModel._folded_weights``).
 
     Returns:
-        states s_1..s_H, ``[R, H, N]``.
+        states s_1..s_H, ``[R, H, N]``. Differentiable once (no double backward).
 
     Examples:
         >>> from torchrl_recon.modules import LSTMWorldModel
@@ -121,6 +122,7 @@ class LSTMRollout(torch.autograd.Function):
         return torch.stack(states, 1)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_states):
         w_a, bias, w_sh, w_d, b_d, w_out, b_out = ctx.weights
         need_weights = any(ctx.needs_input_grad[5:])

@@ -19,8 +19,7 @@ def frozen(module: nn.Module) -> Iterator[None]:
     """Turn ``requires_grad`` off on ``module``'s parameters for the block, then restore it.
 
     Planning differentiates with respect to the actions only; with frozen weights autograd
-    records nothing for them and the world model takes its fused rollout
-    (:class:`~torchrl_recon.modules._lstm_rollout.LSTMRollout`).
+    records nothing for them and the world model's rollout skips their gradients.
 
     Examples:
         >>> layer = nn.Linear(2, 2)

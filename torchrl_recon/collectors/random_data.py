@@ -10,6 +10,20 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 
+def default_frames_per_batch(frames: int, largest: int = 1000, smallest: int = 100) -> int:
+    """The largest divisor of ``frames`` up to ``largest``, so no batch collects unused steps.
+
+    When every such divisor is below ``smallest`` (batches that small cost per-batch overhead),
+    ``min(frames, largest)``: the last batch then collects steps that are dropped.
+
+    Examples:
+        >>> default_frames_per_batch(15000), default_frames_per_batch(1500), default_frames_per_batch(1499)
+        (1000, 750, 1000)
+    """
+    divisor = next(d for d in range(min(frames, largest), 0, -1) if frames % d == 0)
+    return divisor if divisor >= min(smallest, frames) else min(frames, largest)
+
+
 def collect_random(
     env: EnvBase,
     *,
@@ -55,7 +69,7 @@ def collect(
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}.")
     torch.manual_seed(seed)
-    frames_per_batch = frames_per_batch or min(frames, 1000)
+    frames_per_batch = frames_per_batch or default_frames_per_batch(frames)
     collector = Collector(
         env,
         policy=policy,

@@ -15,19 +15,11 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from torchrl_recon.modules._activations import ACTIVATIONS
+from torchrl_recon.modules._activations import ACTIVATION_BACKWARDS, ACTIVATIONS
 
 # The kernels autograd's own derivative formulas call (resolved overloads: cheaper to call).
 _sigmoid_backward = torch.ops.aten.sigmoid_backward.default
 _tanh_backward = torch.ops.aten.tanh_backward.default
-_threshold_backward = torch.ops.aten.threshold_backward.default
-_elu_backward = torch.ops.aten.elu_backward.default
-
-_ACTIVATION_BACKWARD = {
-    "relu": lambda grad, pre, out: _threshold_backward(grad, out, 0),
-    "tanh": lambda grad, pre, out: _tanh_backward(grad, out),
-    "elu": lambda grad, pre, out: _elu_backward(grad, 1.0, 1, 1, False, pre),
-}
 
 
 def recorded_rollout(
@@ -117,16 +109,16 @@ class LSTMRollout(torch.autograd.Function):
             saved.append((si, sf, tg, so, c_prev, tc, pre, z, x, h))
             states.append(s)
         ctx.saved, ctx.flat_actions = saved, flat_actions
-        ctx.weights, ctx.activation = (w_a, bias, w_sh, w_d, b_d, w_out, b_out), activation
+        ctx.weights, ctx.activation = (w_a, w_sh, w_d, w_out), activation  # those backward needs
         ctx.shape = (rows, horizon, action_dim, s0.shape[-1])
         return torch.stack(states, 1)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_states):
-        w_a, bias, w_sh, w_d, b_d, w_out, b_out = ctx.weights
+        w_a, w_sh, w_d, w_out = ctx.weights
         need_weights = any(ctx.needs_input_grad[5:])
-        act_backward = _ACTIVATION_BACKWARD[ctx.activation]
+        act_backward = ACTIVATION_BACKWARDS[ctx.activation]
         rows, horizon, action_dim, obs_dim = ctx.shape
         outputs = grad_states.unbind(1)
         w_out_t, w_d_t, w_sh_t = w_out.t(), w_d.t(), w_sh.t()

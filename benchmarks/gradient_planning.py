@@ -97,13 +97,10 @@ def main() -> None:
 
     def train(rollout):
         states = rollout(train_s0, train_h, train_c, train_actions, "relu", *weights)
-        return lambda: torch.autograd.grad(states.square().sum(), weights)
+        return torch.autograd.grad(states.square().sum(), weights)
 
     training = interleaved_median_ms(
-        {
-            "recorded": lambda: train(recorded_rollout)(),
-            "fused": lambda: train(LSTMRollout.apply)(),
-        },
+        {"recorded": lambda: train(recorded_rollout), "fused": lambda: train(LSTMRollout.apply)},
         args.repeats,
     )
     print(

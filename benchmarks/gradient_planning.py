@@ -25,7 +25,7 @@ import time
 import torch
 from _common import COST, context, paper_models
 
-from torchrl_recon.experiments.calibration import interleaved_median_ms
+from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 

@@ -15,13 +15,15 @@ step modules skip ``TensorDictModule``'s key handling.
 from __future__ import annotations
 
 import argparse
+from functools import partial
 
 import torch
-from _common import COST, context, median_seconds, paper_models
+from _common import COST, context, paper_models
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
 
+from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -58,6 +60,11 @@ def plain_model_env(world) -> WorldModelPlanningEnv:
     return env
 
 
+def _plan_no_grad(planner: TorchRLCEMPlanner, start) -> object:
+    with torch.no_grad():
+        return planner(start.clone())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--candidates", type=int, default=1000)
@@ -78,7 +85,7 @@ def main() -> None:
     cem = dict(num_candidates=args.candidates, iterations=args.iterations, num_elites=args.elites)
     print(
         f"K={args.candidates}, {args.iterations} iterations, top-k {args.elites}, threads={args.threads}, "
-        f"median of {args.repeats} calls (baseline at H>30: of {max(1, args.repeats // 2)})"
+        f"median of {args.repeats} round-robin calls (at H>30: of {max(1, args.repeats // 2)})"
     )
     first = {}
     for horizon in args.horizons:
@@ -108,16 +115,12 @@ def main() -> None:
             ),
         }
         repeats = args.repeats if horizon <= 30 else max(1, args.repeats // 2)
-        with torch.no_grad():
-            times = {
-                name: median_seconds(lambda b=baseline: b(start.clone()), repeats)
-                for name, baseline in baselines.items()
-            }
-        for name, planner in ours.items():
-            times[name] = median_seconds(lambda planner=planner: planner.plan(*ctx), repeats)
+        calls = {name: partial(_plan_no_grad, b, start) for name, b in baselines.items()}
+        calls |= {name: partial(planner.plan, *ctx) for name, planner in ours.items()}
+        times = interleaved_median_ms(calls, repeats)
         print(f"H={horizon}")
-        for name, seconds in times.items():
-            print(f"  {name:<56}{seconds * 1e3:9.1f} ms")
+        for name, ms in times.items():
+            print(f"  {name:<56}{ms:9.1f} ms")
         first = first or times
     adapter = first["TorchRL CEMPlanner (no u)"]
     print(

@@ -9,8 +9,9 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import ACTION_DIM, COST, context, median_seconds, paper_models
+from _common import ACTION_DIM, COST, context, paper_models
 
+from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.planners import PlanningModel
 
 
@@ -26,16 +27,23 @@ def main() -> None:
     rollout_only = PlanningModel(world, COST)
     with_u = PlanningModel(world, COST, uncertainty=estimator)
     ctx = context()
-    print(f"K={args.candidates}, threads={args.threads}, median of {args.repeats} calls")
+    print(
+        f"K={args.candidates}, threads={args.threads}, median of {args.repeats} round-robin calls"
+    )
     ratios = []
     for horizon in args.horizons:
         actions = torch.rand(args.candidates, horizon, ACTION_DIM) * 2 - 1
         with torch.inference_mode():
-            t_rollout = median_seconds(lambda a=actions: rollout_only(*ctx, a), args.repeats)
-            t_with_u = median_seconds(lambda a=actions: with_u(*ctx, a), args.repeats)
-        ratios.append(t_with_u / t_rollout)
+            ms = interleaved_median_ms(
+                {
+                    "rollout": lambda a=actions: rollout_only(*ctx, a),
+                    "with_u": lambda a=actions: with_u(*ctx, a),
+                },
+                args.repeats,
+            )
+        ratios.append(ms["with_u"] / ms["rollout"])
         print(
-            f"H={horizon:4d}  rollout {t_rollout * 1e3:8.1f} ms   rollout + u {t_with_u * 1e3:8.1f} ms   ratio {ratios[-1]:.2f}"
+            f"H={horizon:4d}  rollout {ms['rollout']:8.1f} ms   rollout + u {ms['with_u']:8.1f} ms   ratio {ratios[-1]:.2f}"
         )
     print(f"ratio: {ratios[0]:.2f}")
 

@@ -9,20 +9,33 @@ from pathlib import Path
 
 import pytest
 
+from torchrl_recon._timing import interleaved_median_ms
+
 BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 
 
+SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
+
+
 @pytest.mark.parametrize(
-    ("script", "args"),
+    ("script", "args", "pattern", "count"),
     [
-        ("gradient_planning.py", ["--rows", "2", "--horizon", "5", "--repeats", "2"]),
+        ("gradient_planning.py", ["--rows", "2", "--horizon", "5", "--repeats", "2"], SPEED_UP, 2),
         (
             "planner_speed.py",
             ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1"],
+            SPEED_UP,
+            2,
+        ),
+        (
+            "uncertainty_overhead.py",
+            ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
+            r"ratio: ([0-9.]+)$",
+            1,
         ),
     ],
 )
-def test_benchmark_prints_measured_speed_ups(script, args):
+def test_benchmark_prints_measured_ratios(script, args, pattern, count):
     out = subprocess.run(
         [sys.executable, script, *args, "--threads", "1"],
         cwd=BENCHMARKS,
@@ -31,5 +44,10 @@ def test_benchmark_prints_measured_speed_ups(script, args):
         timeout=300,
         check=True,
     ).stdout
-    ratios = re.findall(r"speed-up vs [^:]+: ([0-9.]+)x", out)
-    assert len(ratios) >= 2 and all(float(r) > 0 for r in ratios), out
+    ratios = re.findall(pattern, out, flags=re.MULTILINE)
+    assert len(ratios) >= count and all(float(r) > 0 for r in ratios), out
+
+
+def test_interleaved_timer_refuses_zero_repeats():
+    with pytest.raises(ValueError, match="repeats must be at least 1, got 0"):
+        interleaved_median_ms({"a": lambda: None}, 0)

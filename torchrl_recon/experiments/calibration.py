@@ -11,8 +11,6 @@ own run directory under ``outcomes/``).
 
 from __future__ import annotations
 
-import statistics
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,6 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger
 
+from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.collectors import collect_random, validation_trajectories
 from torchrl_recon.data import cut_sequences
 from torchrl_recon.evaluation import auroc, imagined_uncertainty_and_error, spearman
@@ -37,28 +36,6 @@ from torchrl_recon.experiments.stages import Stages, stage_seed
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.training import load_checkpoint, save_checkpoint
-
-
-def interleaved_median_ms(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
-    """Median wall time in ms of each function, timed in round-robin rounds after one warm-up.
-
-    Interleaving spreads a change of machine load over all functions alike, so their ratios
-    stay comparable on a busy machine.
-
-    Examples:
-        >>> times = interleaved_median_ms({"a": lambda: sum(range(10)), "b": lambda: None}, 3)
-        >>> sorted(times), all(t >= 0 for t in times.values())
-        (['a', 'b'], True)
-    """
-    for fn in fns.values():
-        fn()
-    samples: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in range(repeats):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            fn()
-            samples[name].append(time.perf_counter() - start)
-    return {name: statistics.median(times) * 1e3 for name, times in samples.items()}
 
 
 def calibration_metrics(

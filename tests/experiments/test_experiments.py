@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 from omegaconf import OmegaConf
+from tensordict import TensorDict
 
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
-from torchrl_recon.experiments.control import run_control
+from torchrl_recon.experiments.control import cost_to_u_ratio, run_control
 from torchrl_recon.experiments.exploration import run_explore
 from torchrl_recon.experiments.stages import StopRequested
 
@@ -69,6 +71,7 @@ def _control_cfg(**extra):
                         "gradient_steps": 3,
                     },
                     "beta": 0.1,
+                    "beta_relative": True,
                 },
             ],
         },
@@ -107,6 +110,10 @@ def test_control_outputs_and_resume(tmp_path):
         assert setting["mean"]["replans"] >= 1
     example = full["trajectory_example"]
     assert len(example["real"]) == len(example["predicted"]) == len(example["uncertainty"]) > 0
+    # the relative β is 0.1 in units of the random data's mean |cost| / mean u
+    assert full["beta_unit"] > 0
+    assert full["settings"]["gradient"]["beta_effective"] == pytest.approx(0.1 * full["beta_unit"])
+    assert "beta_effective" not in full["settings"]["baseline"]
 
     with pytest.raises(StopRequested):
         run_control(_control_cfg(stop_after="setting_baseline"), tmp_path / "resumed", None)
@@ -129,3 +136,12 @@ def test_control_setting_stopped_between_episodes_resumes_at_the_next_episode(tm
     assert resumed["settings"] == full["settings"]
     assert '"kept_from_before": true' in kept.read_text()  # episode 0 was not run again
     assert (stages / "setting_gradient" / "part_1.json").is_file()
+
+
+def test_relative_beta_refuses_data_without_cost_or_u():
+    data = TensorDict({"next": {"reward": torch.zeros(4, 1)}}, [4])
+    with pytest.raises(ValueError, match="mean |cost| = 0.0"):
+        cost_to_u_ratio(data, torch.ones(3))
+    data = TensorDict({"next": {"reward": torch.ones(4, 1)}}, [4])
+    with pytest.raises(ValueError, match="mean u = nan"):
+        cost_to_u_ratio(data, torch.tensor([float("nan")]))

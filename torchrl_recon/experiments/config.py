@@ -154,12 +154,18 @@ class ExploreConfig(RunConfig):
 
 @dataclass
 class ControlSetting:
-    """One arm of the control experiment: a planner, its objective and how it re-plans."""
+    """One arm of the control experiment: a planner, its objective and how it re-plans.
+
+    With ``beta_relative``, ``beta`` is in units of the random data's cost-to-u ratio (mean
+    |cost| per step over mean u per window), so β·u is that fraction of a typical step's cost
+    whatever the scales of the env's cost and of the fitted estimator.
+    """
 
     name: str = MISSING
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     alpha: float = 1.0
     beta: float = 0.0
+    beta_relative: bool = False
     band: BandConfig | None = None
     cost_threshold: float | None = None
 

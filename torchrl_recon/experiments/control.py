@@ -79,6 +79,25 @@ def episode_mean_std(episodes: list[dict]) -> tuple[dict, dict]:
     return mean, std
 
 
+def cost_to_u_ratio(data: TensorDictBase, per_window_u: torch.Tensor) -> float:
+    """Mean |cost| per step over mean u per window: the unit of a relative β (``beta_relative``).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"next": {"reward": -torch.full((4, 1), 6.0)}}, [4])
+        >>> cost_to_u_ratio(data, torch.tensor([0.5, 1.5]))
+        6.0
+    """
+    cost = float(data["next", "reward"].abs().mean())
+    u = float(per_window_u.mean())
+    if not (math.isfinite(cost) and math.isfinite(u) and cost > 0 and u > 0):
+        raise ValueError(
+            f"a relative beta needs a positive finite mean |cost| and mean u on the random data, "
+            f"got mean |cost| = {cost} and mean u = {u}."
+        )
+    return cost / u
+
+
 def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     """Run (or resume) the control experiment in ``run_dir``; return its results."""
     stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
@@ -103,6 +122,8 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     )
     if cfg.replan.threshold_on == "cumulative":
         threshold *= cfg.replan.every  # Σu over `every` steps at the same per-step level
+    relative = any(s.beta_relative for s in cfg.settings)
+    beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
     model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
 
     results, example = {}, None
@@ -115,9 +136,10 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                 if setting.band is None
                 else UncertaintyBand(setting.band.low, setting.band.high, setting.band.kind)
             )
+            beta = setting.beta * beta_unit if setting.beta_relative else setting.beta
             objective = Objective(
                 alpha=setting.alpha,
-                beta=setting.beta,
+                beta=beta,
                 band=band,
                 cost_threshold=setting.cost_threshold,
             )
@@ -152,7 +174,8 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
             episodes = [part["metrics"] for part in parts]
             first = parts[0]["trajectory_example"] if parts else None
             mean, std = episode_mean_std(episodes)
-            return {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+            record = {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+            return record | ({"beta_effective": beta} if setting.beta_relative else {})
 
         record = stages.run(name, run_setting)
         first = record.pop("trajectory_example", None)  # kept once, for the first setting
@@ -165,6 +188,7 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
         "env": cfg.env.name,
         "seed": cfg.seed,
         "replan_threshold": threshold,
+        **({"beta_unit": beta_unit} if relative else {}),
         "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
         "settings": results,
         "trajectory_example": example,

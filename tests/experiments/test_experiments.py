@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -145,3 +146,33 @@ def test_relative_beta_refuses_data_without_cost_or_u():
     data = TensorDict({"next": {"reward": torch.ones(4, 1)}}, [4])
     with pytest.raises(ValueError, match="mean u = nan"):
         cost_to_u_ratio(data, torch.tensor([float("nan")]))
+
+
+@pytest.mark.parametrize(
+    ("run", "make_cfg", "data_stage", "models_stage"),
+    [
+        (run_control, _control_cfg, "random_data", "models"),
+        (run_explore, _explore_cfg, "initial_random", "initial_models"),
+    ],
+    ids=["control", "explore"],
+)
+def test_run_stopped_before_its_models_fits_the_same_models(
+    tmp_path, run, make_cfg, data_stage, models_stage
+):
+    """The networks are built between two stages from the global RNG: a resumed run restores
+    the state the finished stage left, so it fits the models a run without a stop fits (the
+    same validation losses to the last bit)."""
+    with pytest.raises(StopRequested):
+        run(make_cfg(stop_after=models_stage), tmp_path / "straight", None)
+    for stop in (data_stage, models_stage):
+        with pytest.raises(StopRequested):
+            run(make_cfg(stop_after=stop), tmp_path / "stopped", None)
+    for name in ("straight", "stopped"):
+        assert (tmp_path / name / "stages" / f"{data_stage}.rng.pt").is_file()
+    records = [
+        json.loads((tmp_path / name / "stages" / f"{models_stage}.json").read_text())
+        for name in ("straight", "stopped")
+    ]
+    for record in records:
+        record.pop("wall_time_s")
+    assert records[0] == records[1]

@@ -34,6 +34,11 @@ def stage_seed(seed: int, name: str) -> int:
 class Stages:
     """Bookkeeping of one run directory: which stages are done, their wall times, where files go.
 
+    Each stage is seeded by :func:`stage_seed`, and the torch RNG state it leaves behind is
+    kept next to its marker (``stages/<name>.rng.pt``). A re-run that skips a finished stage
+    restores that state, so code between stages (e.g. building the networks, whose initial
+    weights come from the global RNG) draws the same numbers whether the run was stopped or not.
+
     Examples:
         >>> import tempfile
         >>> stages = Stages(Path(tempfile.mkdtemp()), seed=0)
@@ -64,6 +69,9 @@ class Stages:
     def _marker(self, name: str) -> Path:
         return self.run_dir / "stages" / f"{name}.json"
 
+    def _rng_file(self, name: str) -> Path:
+        return self.run_dir / "stages" / f"{name}.rng.pt"
+
     def done(self, name: str) -> bool:
         """Whether ``name`` finished in this or an earlier run."""
         return self._marker(name).exists()
@@ -72,11 +80,16 @@ class Stages:
         """Run ``fn`` (seeded with :func:`stage_seed`) unless ``name`` is done; return its JSON record."""
         if self.done(name):
             record = json.loads(self._marker(name).read_text())
+            if self._rng_file(name).exists():  # absent in runs made before it was kept
+                torch.set_rng_state(torch.load(self._rng_file(name), weights_only=True))
         else:
             torch.manual_seed(stage_seed(self.seed, name))
             start = time.perf_counter()
             record = fn() or {}
             record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
+            rng_tmp = self._rng_file(name).with_suffix(".tmp")
+            torch.save(torch.get_rng_state(), rng_tmp)
+            rng_tmp.replace(self._rng_file(name))  # before the marker: a done stage has both
             tmp = self._marker(name).with_suffix(".tmp")
             tmp.write_text(json.dumps(record, indent=1))
             tmp.replace(self._marker(name))

@@ -31,6 +31,14 @@ def stage_seed(seed: int, name: str) -> int:
     return (seed * 1_000_003 + zlib.crc32(name.encode())) % (2**31 - 1)
 
 
+def _write_atomically(path: Path, write: Callable[[Path], object]) -> None:
+    """Call ``write`` on a temporary file beside ``path``, then rename it over ``path``: a run
+    killed mid-write leaves the old file or none, never a torn one."""
+    tmp = path.with_name(f"{path.name}.tmp")
+    write(tmp)
+    tmp.replace(path)
+
+
 class Stages:
     """Bookkeeping of one run directory: which stages are done, their wall times, where files go.
 
@@ -87,12 +95,11 @@ class Stages:
             start = time.perf_counter()
             record = fn() or {}
             record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
-            rng_tmp = self._rng_file(name).with_suffix(".tmp")
-            torch.save(torch.get_rng_state(), rng_tmp)
-            rng_tmp.replace(self._rng_file(name))  # before the marker: a done stage has both
-            tmp = self._marker(name).with_suffix(".tmp")
-            tmp.write_text(json.dumps(record, indent=1))
-            tmp.replace(self._marker(name))
+            rng_state = torch.get_rng_state()  # saved before the marker: a done stage has both
+            _write_atomically(self._rng_file(name), lambda tmp: torch.save(rng_state, tmp))
+            _write_atomically(
+                self._marker(name), lambda tmp: tmp.write_text(json.dumps(record, indent=1))
+            )
             if self.logger is not None:
                 self.logger.log_scalar(f"wall_time/{name}", record["wall_time_s"], step=0)
         self.wall_time_s[name] = record["wall_time_s"]
@@ -136,9 +143,8 @@ class Stages:
             start = time.perf_counter()
             record = fn(i)
             record["wall_time_s"] = time.perf_counter() - start
-            tmp = marker.with_suffix(".tmp")
-            tmp.write_text(json.dumps(record))
-            tmp.replace(marker)
+            text = json.dumps(record)
+            _write_atomically(marker, lambda tmp, text=text: tmp.write_text(text))
             records.append(record)
         return records
 

@@ -224,6 +224,20 @@ def test_paper_scale_numbers(env):
     assert bool(thresholds) == (env == "drone")
 
 
+def test_drone_relative_beta_recipe_changes_only_beta():
+    """Its models and baseline are control.yaml's, so its results compare with that run's."""
+    full = OmegaConf.to_container(load_recipe(RECIPES / "drone" / "control.yaml"))
+    rel = OmegaConf.to_container(load_recipe(RECIPES / "drone" / "control_relative_beta.yaml"))
+    for key in set(full) - {"settings", "output_dir"}:
+        assert rel[key] == full[key], key
+    full_by_name = {s["name"]: s for s in full["settings"]}
+    assert rel["settings"][0] == full_by_name["baseline"]
+    for s in rel["settings"][1:]:
+        absolute = full_by_name[s["name"].replace("relative_", "")]
+        assert s["beta_relative"] and not absolute["beta_relative"]
+        assert {**s, "name": absolute["name"], "beta_relative": False} == absolute
+
+
 @pytest.mark.parametrize("env", ENVS)
 def test_smoke_recipes_shrink_every_size(env):
     e = load_recipe(RECIPES / env / "explore_smoke.yaml")

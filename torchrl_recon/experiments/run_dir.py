@@ -21,6 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from torchrl_recon._files import write_atomically
 from torchrl_recon.experiments.config import SCHEMAS
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
@@ -136,9 +137,7 @@ def _utc_now() -> str:
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
 _LOCKS: dict[str, Any] = {}

@@ -14,6 +14,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
+from torchrl_recon._files import write_atomically
 from torchrl_recon.data import buffer_contents, load_buffer, make_sequence_buffer, save_buffer
 
 
@@ -29,14 +30,6 @@ def stage_seed(seed: int, name: str) -> int:
         True
     """
     return (seed * 1_000_003 + zlib.crc32(name.encode())) % (2**31 - 1)
-
-
-def _write_atomically(path: Path, write: Callable[[Path], object]) -> None:
-    """Call ``write`` on a temporary file beside ``path``, then rename it over ``path``: a run
-    killed mid-write leaves the old file or none, never a torn one."""
-    tmp = path.with_name(f"{path.name}.tmp")
-    write(tmp)
-    tmp.replace(path)
 
 
 class Stages:
@@ -96,8 +89,8 @@ class Stages:
             record = fn() or {}
             record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
             rng_state = torch.get_rng_state()  # saved before the marker: a done stage has both
-            _write_atomically(self._rng_file(name), lambda tmp: torch.save(rng_state, tmp))
-            _write_atomically(
+            write_atomically(self._rng_file(name), lambda tmp: torch.save(rng_state, tmp))
+            write_atomically(
                 self._marker(name), lambda tmp: tmp.write_text(json.dumps(record, indent=1))
             )
             if self.logger is not None:
@@ -144,7 +137,7 @@ class Stages:
             record = fn(i)
             record["wall_time_s"] = time.perf_counter() - start
             text = json.dumps(record)
-            _write_atomically(marker, lambda tmp, text=text: tmp.write_text(text))
+            write_atomically(marker, lambda tmp, text=text: tmp.write_text(text))
             records.append(record)
         return records
 

@@ -122,6 +122,17 @@ def test_control_outputs_and_resume(tmp_path):
     assert resumed["settings"] == full["settings"]
 
 
+def test_control_error_threshold_replans_where_the_state_leaves_the_plan(tmp_path):
+    cfg = _control_cfg(replan={"mode": "every_n", "every": 100, "error_threshold": 1e-9})
+    cfg.settings = cfg.settings[:1]
+    episodes = run_control(cfg, tmp_path, None)["settings"]["baseline"]["episodes"]
+    # no prediction is exact to 1e-9: a re-plan at every step after the random warm-up, where
+    # every 100 alone gives one per episode
+    planned_steps = [e["steps"] - cfg.warmup_random_steps for e in episodes]
+    assert [e["replans"] for e in episodes] == planned_steps
+    assert all(n > 1 for n in planned_steps)
+
+
 def test_control_setting_stopped_between_episodes_resumes_at_the_next_episode(tmp_path):
     """A setting killed after its first episode keeps that episode and reruns only the rest."""
     full = run_control(_control_cfg(), tmp_path / "full", None)

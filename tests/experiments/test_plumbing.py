@@ -284,6 +284,7 @@ def test_overrides_and_seed_interpolation():
         ("control_smoke", ["settings.1.band.kind=abs"], ["settings[1].band.kind"]),
         ("control_smoke", ["settings.1.band.low=0.9"], ["settings[1].band", "above"]),
         ("control_smoke", ["settings.1.name=baseline"], ["duplicate", "baseline"]),
+        ("control_smoke", ["replan.error_threshold=0"], ["replan.error_threshold", "positive"]),
         ("explore_smoke", ["seed=0,1"], ["sweep", "-m"]),
         ("explore_smoke", ["stop_after=guided"], ["stop_after", "guided_data_<n>"]),
         ("control_smoke", ["stop_after=setting_x"], ["stop_after", "setting_u_low"]),

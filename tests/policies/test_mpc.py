@@ -50,6 +50,34 @@ def test_every_step_replans_at_every_step_after_warm_up():
     assert td["mpc_replanned"].squeeze(-1).tolist() == [False] * 3 + [True] * 5
 
 
+def _replans_and_drift(error_threshold: float | None) -> tuple[list[bool], torch.Tensor]:
+    """One 10-step rollout with plans of 6 steps; the RMS drift of each step from its plan."""
+    policy = _small_drone_policy(
+        replan="every_n", replan_every=100, error_threshold=error_threshold
+    )
+    torch.manual_seed(1)
+    td = _make_drone(policy).rollout(10, policy)
+    scale = policy.planner.model.world_model.obs_norm.scale
+    predicted = td["mpc_predicted_next_observation"][:-1]  # prediction of the next step's obs
+    drift = ((td["observation"][1:] - predicted) / scale).pow(2).mean(-1).sqrt()
+    return td["mpc_replanned"].squeeze(-1).tolist(), drift
+
+
+def test_error_threshold_replans_where_the_state_leaves_the_plan():
+    replanned, drift = _replans_and_drift(None)
+    # warm-up of 3 steps, one 6-step plan (steps 3-8), then the plan runs out.
+    assert replanned == [False] * 3 + [True] + [False] * 5 + [True]
+    on_plan = drift[3:8]  # drift at steps 4..8, each against the plan made at step 3
+    first = next(i for i in range(1, 5) if on_plan[i] > on_plan[:i].max())
+    threshold = float(on_plan[:first].max() + on_plan[first]) / 2
+    replanned, _ = _replans_and_drift(threshold)
+    # identical up to the first step whose drift crosses the threshold, which re-plans
+    assert replanned[: 4 + first + 1] == [False] * 3 + [True] + [False] * first + [True]
+    # a tiny threshold re-plans at every step after the first plan; a huge one never adds one
+    assert _replans_and_drift(1e-9)[0] == [False] * 3 + [True] * 7
+    assert _replans_and_drift(1e9)[0] == _replans_and_drift(None)[0]
+
+
 @pytest.fixture(scope="module")
 def ib_policy_factory(trained_models):
     trained = trained_models("industrial_benchmark")
@@ -140,6 +168,9 @@ def test_bad_input_and_missing_primer():
         _small_drone_policy(replan="uncertainty")
     with pytest.raises(ValueError, match="replan"):
         _small_drone_policy(replan="sometimes")
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="error_threshold"):
+            _small_drone_policy(error_threshold=bad)
 
 
 if __name__ == "__main__":

@@ -173,13 +173,16 @@ class ControlSetting:
 @dataclass
 class ReplanConfig:
     """``mode``: ``every_step``, ``every_n`` or ``uncertainty``. The uncertainty threshold is the
-    ``threshold_quantile`` of per-window u on the training data (per step), times ``threshold_scale``."""
+    ``threshold_quantile`` of per-window u on the training data (per step), times ``threshold_scale``.
+    ``error_threshold`` (not in the paper): also re-plan, in any mode, when the real state is
+    further than this from the plan's prediction (RMS in the world model's normalised units)."""
 
     mode: str = "uncertainty"
     every: int = 10
     threshold_quantile: float = 0.95
     threshold_scale: float = 1.0
     threshold_on: str = "step"
+    error_threshold: float | None = None
 
 
 @dataclass

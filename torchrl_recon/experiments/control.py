@@ -152,6 +152,7 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                     replan_every=cfg.replan.every,
                     threshold=threshold if cfg.replan.mode == "uncertainty" else None,
                     threshold_on=cfg.replan.threshold_on,
+                    error_threshold=cfg.replan.error_threshold,
                     warmup_steps=max(cfg.warmup_random_steps, model.context_length),
                 )
                 episode_seed = stage_seed(cfg.seed, f"{name}_{e}")

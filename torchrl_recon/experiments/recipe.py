@@ -347,6 +347,12 @@ def _semantic_errors(cfg: DictConfig) -> list[str]:
                 f"'replan.threshold_on' must be one of {list(THRESHOLD_ON)}, "
                 f"got {cfg.replan.threshold_on!r}"
             )
+        error_threshold = cfg.replan.error_threshold
+        if error_threshold is not None and not (0 < error_threshold < float("inf")):
+            errors.append(
+                "'replan.error_threshold' must be a positive finite number or null, "
+                f"got {error_threshold!r}"
+            )
         if not cfg.settings:
             errors.append("'settings' is empty: a control recipe needs at least one setting")
         seen: set[str] = set()

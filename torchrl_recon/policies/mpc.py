@@ -55,6 +55,12 @@ class MPCPolicy(TensorDictModuleBase):
       made (``threshold_on="cumulative"``) is at most ``threshold``; re-plan when it crosses
       it or the plan runs out. A fresh plan always executes at least one action.
 
+    With ``error_threshold`` (not in the paper), any mode also re-plans when the observed state
+    has left the plan's prediction of it: when the root mean square over the state's dimensions
+    of (observed − predicted), in units of the world model's ``obs_norm`` standard deviations,
+    exceeds it. Predicted u only sees the predicted states, so a plan kept where u is low can
+    otherwise run open loop to its end while the real states drift away.
+
     Per step it writes ``action``, ``mpc_replanned``, ``mpc_feasible`` (False when no
     candidate met the planner's constraints; the planner's warning is not repeated) and the predicted next
     observation, u and cost of the action taken, so predicted and real trajectories can be
@@ -68,6 +74,8 @@ class MPCPolicy(TensorDictModuleBase):
         replan_every: n for ``"every_n"``.
         threshold: u threshold for ``"uncertainty"``.
         threshold_on: ``"step"`` or ``"cumulative"``.
+        error_threshold: also re-plan when the observed state is further than this from the
+            plan's prediction (RMS in normalised units); ``None`` (default) never.
         warm_start: pass the unexecuted rest of the previous plan to the planner as ``init``.
         warmup_steps: random actions after each reset (at least the context length ``C``).
         obs_key, action_key: TensorDict keys.
@@ -94,6 +102,7 @@ class MPCPolicy(TensorDictModuleBase):
         replan_every: int = 1,
         threshold: float | None = None,
         threshold_on: Literal["step", "cumulative"] = "step",
+        error_threshold: float | None = None,
         warm_start: bool = True,
         warmup_steps: int | None = None,
         obs_key: str = "observation",
@@ -115,6 +124,11 @@ class MPCPolicy(TensorDictModuleBase):
                 )
         if threshold_on not in ("step", "cumulative"):
             raise ValueError(f"threshold_on must be 'step' or 'cumulative', got {threshold_on!r}.")
+        if error_threshold is not None and not (0 < error_threshold < float("inf")):
+            raise ValueError(
+                f"error_threshold must be a positive finite number or None, got {error_threshold!r}."
+            )
+        self.error_threshold = error_threshold
         self.planner, self.replan, self.replan_every = planner, replan, replan_every
         self.threshold, self.threshold_on, self.warm_start = threshold, threshold_on, warm_start
         model = planner.model
@@ -174,6 +188,20 @@ class MPCPolicy(TensorDictModuleBase):
             upcoming = (plan_u.cumsum(-1)).gather(-1, idx[:, None]).squeeze(-1)
         return exhausted | (upcoming > self.threshold)
 
+    def _drifted(
+        self, obs: torch.Tensor, plan_states: torch.Tensor, step: torch.Tensor
+    ) -> torch.Tensor:
+        """Rows whose observation is further than ``error_threshold`` from the plan's prediction
+        of it (``plan_states[step - 1]``, the state predicted after the last planned action)."""
+        if self.error_threshold is None:
+            return torch.zeros_like(step, dtype=torch.bool)
+        on_plan = (step >= 1) & (step <= self.horizon)
+        predicted = _at_step(plan_states, (step - 1).clamp(0, self.horizon - 1))
+        norm = getattr(self.planner.model.world_model, "obs_norm", None)
+        scale = norm.scale if norm is not None else torch.ones(self.obs_dim)
+        rms = ((obs - predicted) / scale).pow(2).mean(-1).sqrt()
+        return on_plan & (rms > self.error_threshold)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if PLAN not in tensordict.keys():
             raise KeyError(
@@ -194,7 +222,8 @@ class MPCPolicy(TensorDictModuleBase):
         feasible = torch.ones(rows, dtype=torch.bool)
 
         ready = seen >= self.warmup_steps
-        replanned = ready & self._needs_plan(step, plan_u)
+        drifted = self._drifted(obs, state[PLAN_STATES], step)
+        replanned = ready & (self._needs_plan(step, plan_u) | drifted)
         if replanned.any():
             idx = replanned.nonzero().squeeze(-1)
             with warnings.catch_warnings():  # recorded per step in mpc_feasible instead

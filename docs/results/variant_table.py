@@ -1,8 +1,11 @@
 """Markdown table of exploration variants: active/random ratio per seed, paired test against a base.
 
 Run: python docs/results/variant_table.py docs/results/explore_variants/minitaur [--base base]
+     python docs/results/variant_table.py docs/results/explore_variants_full/minitaur \
+         --base-root docs/results/explore/minitaur
 
-The directory holds ``<variant>/seed<n>/results.json`` (explore runs). For each variant it prints
+The directory holds ``<variant>/seed<n>/results.json`` (explore runs); ``--base-root`` takes the
+base from another directory of ``seed<n>/results.json`` (e.g. the main runs). For each variant it prints
 the ratio of each seed, their mean ± std, a paired t-test across the seeds both variants ran
 against ``--base``, the mean fraction of active plans that found a candidate above the Σu
 threshold, and the mean validation MSE of each arm.
@@ -20,11 +23,16 @@ from scipy import stats
 
 def load(root: Path) -> dict[str, dict[int, dict]]:
     """``{variant: {seed: results}}`` of every ``<variant>/seed<n>/results.json`` under ``root``."""
-    out: dict[str, dict[int, dict]] = {}
-    for path in sorted(root.glob("*/seed*/results.json")):
-        seed = int(path.parent.name.removeprefix("seed"))
-        out.setdefault(path.parent.parent.name, {})[seed] = json.loads(path.read_text())
-    return out
+    variants = sorted({path.parent.parent for path in root.glob("*/seed*/results.json")})
+    return {variant.name: load_seeds(variant) for variant in variants}
+
+
+def load_seeds(root: Path) -> dict[int, dict]:
+    """``{seed: results}`` of every ``seed<n>/results.json`` under ``root``."""
+    return {
+        int(path.parent.name.removeprefix("seed")): json.loads(path.read_text())
+        for path in sorted(root.glob("seed*/results.json"))
+    }
 
 
 def table(runs: dict[str, dict[int, dict]], base: str = "base") -> str:
@@ -61,8 +69,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("root", type=Path)
     parser.add_argument("--base", default="base")
+    parser.add_argument("--base-root", type=Path, help="take the base's seed<n>/ runs from here")
     args = parser.parse_args()
-    print(table(load(args.root), args.base))
+    runs = load(args.root)
+    if args.base_root is not None:
+        base = load_seeds(args.base_root)
+        if not base:
+            parser.error(f"--base-root {args.base_root}: no seed<n>/results.json found there")
+        runs[args.base] = base
+    print(table(runs, args.base))
 
 
 if __name__ == "__main__":

@@ -30,3 +30,16 @@ def test_variants_are_paired_with_the_base_by_seed(tmp_path, results_script):
     other = next(line for line in lines if line.startswith("| other "))
     assert "| 0.783 ± 0.076 | 0.0059 |" in other  # paired t: diffs .2,.25,.2 → t = 13, 2 dof
     assert "| same |" in next(line for line in lines if line.startswith("| same_as_base "))
+
+
+def test_the_base_can_come_from_another_directory(tmp_path, results_script):
+    for seed, ratio in enumerate([1.0, 1.1]):
+        path = tmp_path / "main" / f"seed{seed}" / "results.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"ratio": ratio, "arms": {}, "data": {}}))
+    tables = results_script("variant_table")
+    assert tables.load_seeds(tmp_path / "main") == {
+        0: {"ratio": 1.0, "arms": {}, "data": {}},
+        1: {"ratio": 1.1, "arms": {}, "data": {}},
+    }
+    assert tables.load_seeds(tmp_path / "missing") == {}

@@ -1,0 +1,15 @@
+"""Errors the library raises for bad input and damaged files (the CLI maps them to exit code 2)."""
+
+from __future__ import annotations
+
+
+class DamagedFileError(ValueError):
+    """A file the library reads back is missing, truncated, altered or would run code.
+
+    The message names the file, what was expected and what to do (e.g. delete the stage record
+    that wrote it, so that the stage is computed again).
+
+    Examples:
+        >>> issubclass(DamagedFileError, ValueError)
+        True
+    """

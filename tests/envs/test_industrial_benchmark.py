@@ -31,7 +31,7 @@ ENV_ID = "torchrl_recon/IndustrialBenchmark-v0"
 TOL = 1e-9
 
 
-# A copy of ../shared/specs/ib_reference_trajectories.json (the spec's §13.1 reference data),
+# The reference trajectories of industrial_benchmark_python.IDS (see docs/envs/industrial_benchmark.md),
 # kept in the repo so the conformance test never depends on files outside it.
 REFERENCE = Path(__file__).resolve().parents[1] / "data" / "ib_reference_trajectories.json"
 

@@ -1,4 +1,4 @@
-"""Tests for ``torchrl_recon/Minitaur-v0`` (spec /work/shared/specs/minitaur.md, section 11).
+"""Tests for ``torchrl_recon/Minitaur-v0`` (behaviour documented in docs/envs/minitaur.md).
 
 pybullet runs at a few hundred env steps/s here, so episodes are short and most tests turn
 self-collision off (the reset state and the standing test do not depend on it).

@@ -3,7 +3,7 @@
 This module holds the simulator core without any gymnasium machinery: the constants, the
 deterministic sub-models (effective actions, operational cost, mis-calibration / "Goldstone"
 landscape) and :class:`IndustrialBenchmarkDynamics`, which advances the full state one step at a
-time. It follows ``/work/shared/specs/industrial_benchmark.md`` (the behaviour of
+time. It follows the reference Python implementation (the behaviour of
 ``industrial_benchmark_python.IDS`` at commit ``afeed69``), including the order of every random
 draw, so that driving it with ``numpy.random.RandomState(seed)`` reproduces the reference
 bit for bit.

@@ -1,7 +1,7 @@
 """Minitaur quadruped on pybullet (gymnasium 1.x), with the paper's forward-distance cost.
 
 Built directly on ``pybullet`` in DIRECT mode with ``pybullet_data``'s Minitaur URDF, following
-``/work/shared/specs/minitaur.md`` (the old-``gym`` ``pybullet_envs`` package is never imported).
+the reference ``MinitaurBulletEnv`` as described in ``docs/envs/minitaur.md`` (the old-``gym`` ``pybullet_envs`` package is never imported).
 Each :class:`MinitaurEnv` owns one physics client and frees it in :meth:`MinitaurEnv.close`.
 
 Observation (34 float32 dims): motor angles (0-7), motor velocities (8-15), observed motor

@@ -1,6 +1,6 @@
 """Minitaur motor and leg models: the DC-motor model and the leg-space action mapping.
 
-Re-implemented from the specification ``/work/shared/specs/minitaur.md`` (sections 3 and 5),
+Re-implemented from the reference motor model described in ``docs/envs/minitaur.md``,
 which documents the reference ``pybullet_envs/bullet/{motor,minitaur}.py``. Only numpy is used;
 the pybullet calls live in :mod:`torchrl_recon.envs.minitaur`.
 """

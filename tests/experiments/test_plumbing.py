@@ -382,7 +382,7 @@ def test_prepare_run_dir_writes_config_and_meta(tmp_path):
 
 
 def test_git_info_outside_a_checkout(tmp_path):
-    assert git_info(tmp_path) == {"commit": "unknown", "dirty": None, "source_dir": str(tmp_path)}
+    assert git_info(tmp_path) == {"commit": "unknown", "dirty": None}
 
 
 def test_changed_config_is_refused_but_logger_progress_stop_after_may_change(tmp_path):

@@ -107,7 +107,7 @@ def git_info(directory: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     if directory is None:
         directory = Path(__file__).resolve().parents[1]
     directory = Path(directory)
-    info: dict[str, Any] = {"commit": "unknown", "dirty": None, "source_dir": str(directory)}
+    info: dict[str, Any] = {"commit": "unknown", "dirty": None}
 
     def git(*args: str) -> str | None:
         try:
@@ -255,7 +255,7 @@ def prepare_run_dir(
         "experiment": cfg.experiment,
         "env": cfg.env.name,
         "seed": int(cfg.seed),
-        "run_dir": str(run_dir),
+        "run_dir": str(cfg.output_dir),  # as configured: no machine path in shared results
         "versions": package_versions(),
         "git": git_info(),
         "hostname": socket.gethostname(),

@@ -1,0 +1,92 @@
+"""Choosing the torch device of a run (``device: auto``) and describing it for ``meta.json``."""
+
+from __future__ import annotations
+
+import platform
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
+_CUDA_INDEX = re.compile(r"cuda:(\d+)")
+
+
+def check_device(spec: str) -> str:
+    """Refuse a device name that is none of :data:`DEVICE_CHOICES`; return it unchanged.
+
+    Only the spelling is checked here (a recipe is checked before any work, perhaps on a machine
+    without the GPU it will run on); :func:`resolve_device` checks that the device exists.
+
+    Examples:
+        >>> check_device("cuda:1")
+        'cuda:1'
+        >>> check_device("gpu")
+        Traceback (most recent call last):
+        ...
+        ValueError: device must be one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), got 'gpu'.
+    """
+    if spec in ("auto", "cpu", "cuda") or _CUDA_INDEX.fullmatch(str(spec)):
+        return spec
+    raise ValueError(f"device must be one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), got {spec!r}.")
+
+
+def resolve_device(spec: str = "auto") -> torch.device:
+    """The torch device a recipe's ``device`` names: ``auto`` is CUDA when available, else CPU.
+
+    Raises:
+        ValueError: the name is not a device choice, or names a CUDA device this machine lacks.
+
+    Examples:
+        >>> resolve_device("cpu")
+        device(type='cpu')
+        >>> resolve_device("auto").type in ("cpu", "cuda")
+        True
+    """
+    check_device(spec)
+    if spec == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(spec)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = device.index or 0
+        if index >= count:
+            raise ValueError(
+                f"device {spec!r}: this machine has {count} CUDA device(s); "
+                "use device=cpu or device=auto."
+            )
+    return device
+
+
+def cpu_model() -> str:
+    """The processor's model name (``/proc/cpuinfo`` on Linux, else ``platform.processor()``)."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            if line.lower().startswith(("model name", "cpu model", "hardware")):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def describe_device(device: torch.device | str) -> dict[str, Any]:
+    """What ``meta.json`` records of the device: its name, and for the CPU its model and the
+    vector instructions torch uses (results are bit-identical only on the same kind).
+
+    Examples:
+        >>> info = describe_device("cpu")
+        >>> sorted(info)
+        ['cpu_capability', 'cpu_model', 'device', 'name']
+    """
+    device = torch.device(device)
+    info: dict[str, Any] = {
+        "device": str(device),
+        "cpu_model": cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+    }
+    if device.type == "cuda":
+        info["name"] = torch.cuda.get_device_name(device)
+        info["cuda"] = torch.version.cuda
+    else:
+        info["name"] = info["cpu_model"]
+    return info

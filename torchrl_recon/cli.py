@@ -44,7 +44,8 @@ RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
 _STATUS_ENV = "TORCHRL_RECON_STATUS"
 """A file each Hydra job appends its exit code to (jobs may run in other processes)."""
-_DEBUG_ENV = "HYDRA_FULL_ERROR"
+_DEBUG_ENV = "TORCHRL_RECON_DEBUG"
+"""Set by ``--debug`` (``HYDRA_FULL_ERROR=1`` does the same): tracebacks are shown."""
 
 EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -55,7 +56,8 @@ EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 def debug_enabled() -> bool:
     """Whether tracebacks are shown: ``--debug`` or ``HYDRA_FULL_ERROR=1``."""
-    return os.environ.get(_DEBUG_ENV) == "1"
+    flag = os.environ.get(_DEBUG_ENV)  # "0" / "1" once a run has decided (Hydra's is then set)
+    return flag == "1" if flag is not None else os.environ.get("HYDRA_FULL_ERROR") == "1"
 
 
 def exit_code(error: BaseException) -> int:
@@ -74,19 +76,31 @@ def exit_code(error: BaseException) -> int:
     return EXIT_USER if isinstance(error, user) else EXIT_BUG
 
 
-def report(error: BaseException, code: int | None = None) -> int:
+def report(error: BaseException, code: int | None = None, message: str | None = None) -> int:
     """Print ``error: <message>`` on stderr (after the traceback in debug mode); return the exit code."""
     code = exit_code(error) if code is None else code
     if debug_enabled():
         traceback.print_exception(type(error), error, error.__traceback__)
-    message = str(error) or type(error).__name__
+    message = message or str(error) or type(error).__name__
     if code != EXIT_USER:
         message = (
-            f"unexpected {type(error).__name__}: {message} "
-            "(re-run with --debug for the traceback, and report it)"
+            f"unexpected {type(error).__name__}: {message} (re-run with --debug for the traceback)"
         )
     print(f"error: {message}", file=sys.stderr, flush=True)
     return code
+
+
+def _hydra_message(error: BaseException) -> str:
+    """Hydra's own error (several lines, a list of options, its search path) on one line."""
+    text = str(error)
+    if error.__cause__ is not None and str(error.__cause__) not in text:
+        text += "\n" + str(error.__cause__)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    cut = next((i for i, line in enumerate(lines) if line.startswith("Config search path")), None)
+    head, rest = lines[0], lines[1:cut]
+    if rest and rest[0].endswith(":"):  # "Available options in 'hydra/launcher':" + one per line
+        return f"{head} ({rest[0]} {', '.join(rest[1:])})"
+    return " ".join([head, *rest])
 
 
 def _interrupted(run_dir: Path | None) -> int:
@@ -338,12 +352,13 @@ def run_recipe(
     directory), 130 (interrupted) or 1 (a bug). In a multirun, a job that fails does not stop
     the others; the worst code is returned. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
     """
-    with _env(_DEBUG_ENV, "1" if debug else None):
+    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
         return _run_recipe(kind, Path(recipe), list(overrides), multirun)
 
 
 def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -> int:
     import hydra
+    from hydra.errors import HydraException
 
     from torchrl_recon.experiments.run_dir import RunDirConflict
 
@@ -377,13 +392,16 @@ def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -
     sys.argv = argv
     code = EXIT_OK
     try:
-        with _env(_ARGV_ENV, json.dumps(command)):
+        # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs catch theirs)
+        with _env(_ARGV_ENV, json.dumps(command)), _env("HYDRA_FULL_ERROR", "1"):
             app()
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
         code = _interrupted(None)
-    except Exception as e:  # Hydra's own errors, raised as they are under HYDRA_FULL_ERROR=1
+    except HydraException as e:  # a bad Hydra setting or config group choice
+        code = report(e, EXIT_USER, _hydra_message(e))
+    except Exception as e:
         code = report(e)
     finally:
         sys.argv = saved_argv

@@ -162,3 +162,13 @@ def test_debug_flag_shows_the_traceback(where, tmp_path, capsys, monkeypatch):
     ]
     assert not (tmp_path / "run").exists()
     assert "HYDRA_FULL_ERROR" not in os.environ  # the switch ends with the command
+
+
+def test_a_bad_hydra_setting_is_one_error_line_and_exit_2(tmp_path, capsys):
+    code = run_recipe("explore", IB_EXPLORE, [f"output_dir={tmp_path}/run", "hydra/launcher=nope"])
+    err = capsys.readouterr().err
+    assert code == 2
+    lines = _error_lines(err)
+    assert len(lines) == 1 and "Could not find 'hydra/launcher/nope'" in lines[0]
+    assert "Available options in 'hydra/launcher': basic, joblib" in lines[0]
+    assert "Traceback" not in err and not (tmp_path / "run").exists()

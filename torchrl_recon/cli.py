@@ -8,17 +8,28 @@ on the command line and seeds swept with Hydra's multirun (``-m``), e.g.::
         hydra/launcher=joblib hydra.launcher.n_jobs=2
     torchrl-recon summarize outputs/explore/drone
 
+Every failure ends in one ``error: ...`` line on stderr (tracebacks only with ``--debug`` or
+``HYDRA_FULL_ERROR=1``). Exit codes: 0 done (or stopped by ``stop_after``); 2 a bad recipe or
+override, a missing recipe, a damaged file or a locked / conflicting run directory; 130
+interrupted (Ctrl-C, SIGINT, SIGTERM: re-run the same command to resume); 1 anything else
+(a bug: re-run with ``--debug`` and report the traceback).
+
 See docs/experiments.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
+import signal
 import sys
-from collections.abc import Sequence
+import tempfile
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import torch
@@ -31,6 +42,109 @@ EXPERIMENTS = {
 }
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
+_STATUS_ENV = "TORCHRL_RECON_STATUS"
+"""A file each Hydra job appends its exit code to (jobs may run in other processes)."""
+_DEBUG_ENV = "TORCHRL_RECON_DEBUG"
+"""Set by ``--debug`` (``HYDRA_FULL_ERROR=1`` does the same): tracebacks are shown."""
+
+EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+# ----------------------------------------------------------------------------------------------
+# Failures: one line each
+
+
+def debug_enabled() -> bool:
+    """Whether tracebacks are shown: ``--debug`` or ``HYDRA_FULL_ERROR=1``."""
+    flag = os.environ.get(_DEBUG_ENV)  # "0" / "1" once a run has decided (Hydra's is then set)
+    return flag == "1" if flag is not None else os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def exit_code(error: BaseException) -> int:
+    """2 for what the user can fix (recipe, missing file, damaged file, run directory), else 1.
+
+    Examples:
+        >>> from torchrl_recon.errors import DamagedFileError
+        >>> exit_code(DamagedFileError("x")), exit_code(ZeroDivisionError())
+        (2, 1)
+    """
+    from torchrl_recon.errors import DamagedFileError
+    from torchrl_recon.experiments.recipe import RecipeError
+    from torchrl_recon.experiments.run_dir import RunDirConflict
+
+    user = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
+    return EXIT_USER if isinstance(error, user) else EXIT_BUG
+
+
+def report(error: BaseException, code: int | None = None, message: str | None = None) -> int:
+    """Print ``error: <message>`` on stderr (after the traceback in debug mode); return the exit code."""
+    code = exit_code(error) if code is None else code
+    if debug_enabled():
+        traceback.print_exception(type(error), error, error.__traceback__)
+    message = message or str(error) or type(error).__name__
+    if code != EXIT_USER:
+        message = (
+            f"unexpected {type(error).__name__}: {message} (re-run with --debug for the traceback)"
+        )
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    return code
+
+
+def _hydra_message(error: BaseException) -> str:
+    """Hydra's own error (several lines, a list of options, its search path) on one line."""
+    text = str(error)
+    if error.__cause__ is not None and str(error.__cause__) not in text:
+        text += "\n" + str(error.__cause__)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    cut = next((i for i, line in enumerate(lines) if line.startswith("Config search path")), None)
+    head, rest = lines[0], lines[1:cut]
+    if rest and rest[0].endswith(":"):  # "Available options in 'hydra/launcher':" + one per line
+        return f"{head} ({rest[0]} {', '.join(rest[1:])})"
+    return " ".join([head, *rest])
+
+
+def _interrupted(run_dir: Path | None) -> int:
+    from torchrl_recon.experiments.runner import interrupted_message
+
+    if debug_enabled():
+        traceback.print_exc()
+    print(interrupted_message(run_dir), file=sys.stderr, flush=True)
+    return EXIT_INTERRUPTED
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into ``KeyboardInterrupt`` (like Ctrl-C), unless it is ignored or handled."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@contextlib.contextmanager
+def _env(name: str, value: str | None) -> Iterator[None]:
+    """Set (or leave alone, when ``value`` is None) an environment variable for a block."""
+    saved = os.environ.get(name)
+    if value is not None:
+        os.environ[name] = value
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = saved
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -84,8 +198,40 @@ def hydra_settings(kind: str) -> dict[str, str]:
     }
 
 
-def _task(cfg) -> None:
-    """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node)."""
+def _record_exit(code: int) -> None:
+    """Tell :func:`run_recipe` a job's exit code (a job may run in another process)."""
+    path = os.environ.get(_STATUS_ENV)
+    if not path:  # not started by run_recipe: end like a command would
+        raise SystemExit(code)
+    with open(path, "a") as f:
+        f.write(f"{code}\n")
+
+
+def _run_dir_of(cfg) -> Path | None:
+    try:
+        return Path(str(cfg.output_dir)).expanduser().resolve()
+    except Exception:  # an interpolation that does not resolve: no directory to name
+        return None
+
+
+def _task(cfg) -> int:
+    """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node).
+
+    A failure prints one ``error:`` line and records its exit code, so that a multirun goes on
+    with its other jobs; an interrupt names the last finished stage and ends the command (130).
+    """
+    try:
+        _run_job(cfg)
+    except KeyboardInterrupt:
+        raise SystemExit(_interrupted(_run_dir_of(cfg))) from None
+    except Exception as e:
+        code = report(e)
+        _record_exit(code)
+        return code
+    return EXIT_OK
+
+
+def _run_job(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from torchrl_recon.experiments.runner import run
@@ -154,7 +300,9 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
     from torchrl_recon.experiments.run_dir import check_run_dir
 
     if not recipe.is_file():
-        raise FileNotFoundError(f"Recipe file not found: {recipe}")
+        raise FileNotFoundError(
+            f"Recipe file not found: {recipe}. `torchrl-recon {kind} --help` lists the shipped recipes."
+        )
     cfg = compose_recipe(recipe)
     found = cfg.get("experiment")
     if found != kind:
@@ -189,26 +337,40 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
 
 
 def run_recipe(
-    kind: str, recipe: str | os.PathLike[str], overrides: Sequence[str] = (), multirun: bool = False
+    kind: str,
+    recipe: str | os.PathLike[str],
+    overrides: Sequence[str] = (),
+    multirun: bool = False,
+    *,
+    debug: bool = False,
 ) -> int:
     """Run a recipe through a Hydra app built here; returns the exit code.
 
     ``sys.argv`` is rewritten to ``[prog, --config-dir, <recipe dir>, --config-name, <recipe
     stem>, <hydra settings>, *overrides]`` (plus ``--multirun``) for the duration of the call.
+    Every failure prints one ``error:`` line; the code is 0, 2 (user error: recipe, file, run
+    directory), 130 (interrupted) or 1 (a bug). In a multirun, a job that fails does not stop
+    the others; the worst code is returned. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
     """
+    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
+        return _run_recipe(kind, Path(recipe), list(overrides), multirun)
+
+
+def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -> int:
     import hydra
+    from hydra.errors import HydraException
 
     from torchrl_recon.experiments.run_dir import RunDirConflict
 
-    recipe = Path(recipe)
-    flags, plain = _split_overrides(list(overrides))
+    flags, plain = _split_overrides(overrides)
     try:
         precheck(kind, recipe, plain)
     except (FileNotFoundError, ValueError, RunDirConflict) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        return report(e, EXIT_USER)
     given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
     settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
+    fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
+    os.close(fd)
     argv = [
         "torchrl-recon",
         "--config-dir",
@@ -217,27 +379,35 @@ def run_recipe(
         recipe.stem,
         *flags,
         *settings,
+        f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
         *plain,
     ]
     if multirun:
         argv.append("--multirun")
     app = hydra.main(version_base="1.3", config_path=None)(_task)
-    saved_argv, saved_env = sys.argv, os.environ.get(_ARGV_ENV)
-    os.environ[_ARGV_ENV] = json.dumps(
-        ["torchrl-recon", kind, str(recipe), *overrides] + (["--multirun"] if multirun else [])
+    saved_argv = sys.argv
+    command = ["torchrl-recon", kind, str(recipe), *overrides] + (
+        ["--multirun"] if multirun else []
     )
     sys.argv = argv
+    code = EXIT_OK
     try:
-        app()
+        # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs catch theirs)
+        with _env(_ARGV_ENV, json.dumps(command)), _env("HYDRA_FULL_ERROR", "1"):
+            app()
     except SystemExit as e:
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
+        code = _interrupted(None)
+    except HydraException as e:  # a bad Hydra setting or config group choice
+        code = report(e, EXIT_USER, _hydra_message(e))
+    except Exception as e:
+        code = report(e)
     finally:
         sys.argv = saved_argv
-        if saved_env is None:
-            os.environ.pop(_ARGV_ENV, None)
-        else:
-            os.environ[_ARGV_ENV] = saved_env
-    return 0
+        jobs = [int(line) for line in Path(status).read_text().split()]
+        Path(status).unlink(missing_ok=True)
+    return code or max(jobs, default=EXIT_OK)
 
 
 def _experiment(args: argparse.Namespace) -> int:
@@ -247,6 +417,9 @@ def _experiment(args: argparse.Namespace) -> int:
         while flag in overrides:
             overrides.remove(flag)
             multirun = True
+    while "--debug" in overrides:  # given after the recipe: argparse leaves it in the overrides
+        overrides.remove("--debug")
+        os.environ[_DEBUG_ENV] = "1"
     return run_recipe(args.command, args.recipe, overrides, multirun=multirun)
 
 
@@ -319,12 +492,18 @@ def build_parser() -> argparse.ArgumentParser:
         "  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 "
         "hydra/launcher=joblib hydra.launcher.n_jobs=2\n"
         "  torchrl-recon summarize outputs/explore/drone\n\n"
+        "exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run\n"
+        "directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).\n\n"
         "Details: docs/experiments.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
+    parser.add_argument("--debug", action="store_true", help=debug_help)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser(
-        "demo", help="collect random data in each environment and print a summary"
+        "demo", help="collect random data in each environment and print a summary", parents=[common]
     )
     demo.add_argument("--steps", type=int, default=200)
     demo.add_argument("--seed", type=int, default=0)
@@ -332,6 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
     for kind, text in EXPERIMENTS.items():
         p = sub.add_parser(
             kind,
+            parents=[common],
             help=text,
             description=f"{text}. Runs RECIPE through Hydra: overrides are key=value "
             "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
@@ -351,6 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=_experiment)
     summ = sub.add_parser(
         "summarize",
+        parents=[common],
         help="aggregate results.json files across seeds (Table 1 statistics, control means)",
         description="Find results.json below each DIR, aggregate them per experiment kind and "
         "environment, and print the tables.",
@@ -364,10 +545,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit code."""
+    """Run the command line; returns the exit code (0, 2 user error, 130 interrupted, 1 bug).
+
+    Every failure ends in one ``error: ...`` line on stderr; ``--debug`` (or
+    ``HYDRA_FULL_ERROR=1``) also prints the traceback.
+    """
     args = build_parser().parse_args(argv)
-    torch.set_num_threads(min(2, torch.get_num_threads()))
-    return args.func(args)
+    with _env(_DEBUG_ENV, "1" if getattr(args, "debug", False) else None), _sigterm_as_interrupt():
+        try:
+            torch.set_num_threads(min(2, torch.get_num_threads()))
+            return args.func(args)
+        except KeyboardInterrupt:
+            return _interrupted(None)
+        except Exception as e:
+            return report(e)
 
 
 if __name__ == "__main__":

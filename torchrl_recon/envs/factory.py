@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
-import inspect
 from functools import partial
 
 import torch
@@ -20,20 +18,6 @@ from torchrl.envs import (
 )
 
 from torchrl_recon.envs.registry import get_entry, register_envs
-
-
-def _check_env_kwargs(entry_point: str, kwargs: dict) -> None:
-    module, attr = entry_point.split(":")
-    cls = getattr(importlib.import_module(module), attr)
-    params = inspect.signature(cls.__init__).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        return
-    allowed = sorted(k for k in params if k != "self")
-    unknown = sorted(set(kwargs) - set(allowed))
-    if unknown:
-        raise TypeError(
-            f"{cls.__name__} got unknown keyword(s) {unknown}; expected a subset of {allowed}."
-        )
 
 
 def _make_gym_env(gym_id: str, **kwargs) -> GymEnv:
@@ -87,7 +71,7 @@ def make_env(
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
     if not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {seed!r}.")
-    _check_env_kwargs(entry.entry_point, env_kwargs)
+    entry.check_kwargs(env_kwargs)
     if max_episode_steps is not None:
         if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
             raise ValueError(

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+import inspect
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import torch
@@ -27,6 +29,54 @@ class EnvEntry:
         """Import and return the batched torch cost ``cost(obs, action, next_obs) -> [...]``."""
         module, attr = self.cost_fn_path.split(":")
         return getattr(importlib.import_module(module), attr)
+
+    def env_class(self) -> type:
+        """Import and return the gymnasium environment class."""
+        module, attr = self.entry_point.split(":")
+        return getattr(importlib.import_module(module), attr)
+
+    def keywords(self) -> dict[str, Any] | None:
+        """The constructor keywords of the environment class and their defaults.
+
+        Read from the class's ``__init__`` signature; a keyword without a default maps to
+        ``inspect.Parameter.empty``. None when the constructor takes ``**kwargs`` (any keyword).
+
+        Examples:
+            >>> sorted(get_entry("industrial_benchmark").keywords())
+            ['reference_rng', 'setpoint', 'stationary_setpoint']
+        """
+        params = inspect.signature(self.env_class().__init__).parameters
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return None
+        return {
+            name: p.default
+            for name, p in params.items()
+            if name != "self" and p.kind is not inspect.Parameter.VAR_POSITIONAL
+        }
+
+    def check_kwargs(self, kwargs: Mapping[str, Any]) -> None:
+        """Refuse constructor keywords the environment class does not take.
+
+        Raises:
+            TypeError: naming the environment, the unknown keywords and the accepted ones.
+
+        Examples:
+            >>> get_entry("drone").check_kwargs({"delta": 0.1})
+            >>> try:
+            ...     get_entry("drone").check_kwargs({"action_mode": "leg"})
+            ... except TypeError as e:
+            ...     print(str(e).split(";")[0])
+            environment 'drone' (DroneEnv) has no keyword(s) ['action_mode']
+        """
+        allowed = self.keywords()
+        if allowed is None:
+            return
+        unknown = sorted(set(kwargs) - set(allowed))
+        if unknown:
+            raise TypeError(
+                f"environment {self.name!r} ({self.env_class().__name__}) has no keyword(s) "
+                f"{unknown}; it accepts {sorted(allowed)}."
+            )
 
 
 ENVS: dict[str, EnvEntry] = {

@@ -1,5 +1,7 @@
 """Typed schemas of the recipes. A YAML recipe is merged onto these, so an unknown key or a
-wrong type is an error before any work starts."""
+wrong type is an error before any work starts. The values' ranges (every number finite, counts
+>= 1, ``guided.ratio`` > 1, ``training.val_fraction`` in (0, 1), env keywords of the chosen
+env, ...) are checked next, by :mod:`torchrl_recon.experiments.recipe_checks`."""
 
 from __future__ import annotations
 
@@ -112,7 +114,8 @@ class ValidationConfig:
 class GuidedConfig:
     """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean and,
     when ``cap`` is set, Σu ≤ ``cap`` × mean; ``beta = -1`` maximises Σu among them (eq. 4),
-    ``beta = 0`` takes any of them (the paper's "sample until")."""
+    ``beta = 0`` takes any of them (the paper's "sample until"). ``ratio`` > 1, ``cap`` null or
+    > ``ratio``, ``beta`` <= 0."""
 
     steps: int = 15000
     ratio: float = 1.2

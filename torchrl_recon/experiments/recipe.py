@@ -2,14 +2,14 @@
 
 A recipe is a YAML file holding every number of one experiment; it is merged onto the typed
 schema of :mod:`torchrl_recon.experiments.config` so that an unknown key or a wrong type is an
-error naming the key before any work starts. Run directories are :mod:`.run_dir`'s job.
+error naming the key before any work starts; :mod:`.recipe_checks` then checks the values
+(names, ranges, finite numbers, env keywords). Run directories are :mod:`.run_dir`'s job.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,40 +18,10 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from torchrl_recon.experiments.config import SCHEMAS, ControlSetting, EstimatorSpec
-
-PLANNER_KINDS = ("shooting", "cem", "gradient")
-BAND_KINDS = ("absolute", "quantile", "mean_ratio")
-LOGGER_BACKENDS = ("wandb", "csv", "none")
-LOGGER_MODES = ("offline", "online")
-REPLAN_MODES = ("every_step", "every_n", "uncertainty")
-THRESHOLD_ON = ("step", "cumulative")
-VALIDATION_POLICIES = ("random", "offset_noise")
-WORLD_MODEL_MODES = ("multi_step", "one_step")
+from torchrl_recon.experiments.recipe_checks import recipe_errors
 
 LIST_FIELDS = {"control": ("settings", ControlSetting), "calibrate": ("estimators", EstimatorSpec)}
 """List fields whose items are checked against their own schema (OmegaConf merges lists whole)."""
-
-STAGE_PATTERNS = {
-    "explore": (
-        r"initial_random",
-        r"initial_models",
-        r"validation",
-        r"guided_data_\d+",
-        r"guided_refit_\d+",
-        r"random_arm",
-        r"retrain_(random|active)_\d+",
-    ),
-    "control": (r"random_data", r"models", r"setting_.+"),
-    "calibrate": (
-        r"random_data",
-        r"world_model",
-        r"fit_.+",
-        r"evaluation",
-        r"timing",
-        r"outcome_.+",
-    ),
-}
-"""Stage names of ``run_explore`` / ``run_control`` / ``run_calibration`` (a ``stop_after`` must match one)."""
 
 
 class RecipeError(ValueError):
@@ -125,7 +95,10 @@ def parse_overrides(overrides: Sequence[str]) -> list[Any]:
     try:
         return OverridesParser.create().parse_overrides(list(overrides))
     except Exception as e:  # hydra.errors.OverrideParseException
-        raise RecipeError(f"cannot parse the overrides {list(overrides)}: {e}") from e
+        raise RecipeError(
+            f"cannot parse the overrides {list(overrides)}: {_first_line(e)} (Hydra's override "
+            "syntax: key=value, +key=value, ~key; quote values holding spaces or brackets)"
+        ) from e
 
 
 _OWN_VALUE = object()
@@ -224,16 +197,32 @@ def _merge_checked(schema: Any, data: Any, *, prefix: str, source: str) -> DictC
 
 
 def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> DictConfig:
-    """Check a recipe against its schema and the known names; return the typed, resolved config.
+    """Check a recipe against its schema and its values; return the typed, resolved config.
 
     Works on a config loaded by :func:`load_recipe` or composed by Hydra (its ``hydra`` node,
     if any, is dropped). Checks: ``experiment`` is one of :data:`SCHEMAS`; no unknown key and no
-    wrong type (schema merge); no missing value; ``env.name`` is a registered environment;
-    planner kinds, band kinds and bounds, logger backend and mode, re-planning and validation
-    modes are known; control setting names are unique.
+    wrong type (schema merge); no missing value; then every value
+    (:func:`~torchrl_recon.experiments.recipe_checks.recipe_errors`): no NaN or infinite number
+    at any depth; counts, sizes, rates and ratios in their ranges (e.g. ``guided.ratio`` above
+    1, ``training.val_fraction`` in (0, 1), enough random data for a held-out trajectory);
+    ``env.name`` registered and ``env.kwargs`` keywords of that env's class; kinds, modes and
+    backends known; setting and estimator names unique and usable as file names. Nothing is
+    written: the CLI and :func:`~torchrl_recon.experiments.runner.run` call it before the run
+    directory exists.
 
     Raises:
-        RecipeError: (a ``ValueError``) naming the offending key.
+        RecipeError: (a ``ValueError``) naming every offending key, on one line.
+
+    Examples:
+        >>> import torchrl_recon
+        >>> recipes = Path(torchrl_recon.__file__).parents[1] / "recipes"
+        >>> cfg = compose_recipe(recipes / "drone" / "explore_smoke.yaml")
+        >>> cfg.guided.ratio = float("nan")
+        >>> try:
+        ...     validate(cfg, source="explore_smoke.yaml")
+        ... except RecipeError as e:
+        ...     print(e)
+        explore_smoke.yaml: 'guided.ratio' must be a finite number, got nan
     """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(dict(cfg))
@@ -269,154 +258,10 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     missing = sorted(OmegaConf.missing_keys(merged))
     if missing:
         raise RecipeError(f"{source}: no value given for {', '.join(repr(k) for k in missing)}.")
-    errors = _semantic_errors(merged)
+    errors = recipe_errors(merged)
     if errors:
         raise RecipeError(f"{source}: " + "; ".join(errors))
     return merged
-
-
-def _check_planner(planner: DictConfig, key: str, errors: list[str]) -> None:
-    if planner.kind not in PLANNER_KINDS:
-        errors.append(f"'{key}.kind' must be one of {list(PLANNER_KINDS)}, got {planner.kind!r}")
-    for name in ("horizon", "num_candidates", "iterations", "num_elites", "restarts"):
-        if planner[name] < 1:
-            errors.append(f"'{key}.{name}' must be >= 1, got {planner[name]}")
-
-
-def _estimator_errors(spec: DictConfig, key: str, window: int) -> list[str]:
-    """Build the estimator a block names (tiny dims) so a bad kind or keyword fails before any work."""
-    from torchrl_recon.experiments.common import build_estimator
-
-    try:
-        build_estimator(spec, 1, 1, window)
-    except (ValueError, TypeError) as e:
-        return [f"'{key}': {e}"]
-    return []
-
-
-def _semantic_errors(cfg: DictConfig) -> list[str]:
-    from torchrl_recon.envs import get_entry
-    from torchrl_recon.planners.objective import UncertaintyBand
-
-    errors: list[str] = []
-    try:
-        get_entry(cfg.env.name)
-    except ValueError as e:
-        errors.append(f"'env.name': {e}")
-    if cfg.logger.backend not in LOGGER_BACKENDS:
-        errors.append(
-            f"'logger.backend' must be one of {list(LOGGER_BACKENDS)}, got {cfg.logger.backend!r}"
-        )
-    if cfg.logger.mode not in LOGGER_MODES:
-        errors.append(f"'logger.mode' must be one of {list(LOGGER_MODES)}, got {cfg.logger.mode!r}")
-    if cfg.training.world_model_mode not in WORLD_MODEL_MODES:
-        errors.append(
-            f"'training.world_model_mode' must be one of {list(WORLD_MODEL_MODES)}, "
-            f"got {cfg.training.world_model_mode!r}"
-        )
-    errors.extend(
-        _estimator_errors(cfg.models.uncertainty, "models.uncertainty", cfg.models.window)
-    )
-    if cfg.threads < 1:
-        errors.append(f"'threads' must be >= 1, got {cfg.threads}")
-    if cfg.env.episode_steps < 1:
-        errors.append(f"'env.episode_steps' must be >= 1, got {cfg.env.episode_steps}")
-    if cfg.stop_after is not None and not _is_stage(cfg):
-        errors.append(
-            f"'stop_after': {cfg.stop_after!r} is not a stage of {cfg.experiment}; stages: "
-            + ", ".join(_stage_list(cfg))
-        )
-    if cfg.experiment == "calibrate":
-        errors.extend(_calibrate_errors(cfg))
-    elif cfg.experiment == "explore":
-        _check_planner(cfg.guided.planner, "guided.planner", errors)
-        if cfg.validation.policy not in VALIDATION_POLICIES:
-            errors.append(
-                f"'validation.policy' must be one of {list(VALIDATION_POLICIES)}, "
-                f"got {cfg.validation.policy!r}"
-            )
-        if cfg.retrainings < 1:
-            errors.append(f"'retrainings' must be >= 1, got {cfg.retrainings}")
-    else:
-        if cfg.replan.mode not in REPLAN_MODES:
-            errors.append(
-                f"'replan.mode' must be one of {list(REPLAN_MODES)}, got {cfg.replan.mode!r}"
-            )
-        if cfg.replan.threshold_on not in THRESHOLD_ON:
-            errors.append(
-                f"'replan.threshold_on' must be one of {list(THRESHOLD_ON)}, "
-                f"got {cfg.replan.threshold_on!r}"
-            )
-        error_threshold = cfg.replan.error_threshold
-        if error_threshold is not None and not (0 < error_threshold < float("inf")):
-            errors.append(
-                "'replan.error_threshold' must be a positive finite number or null, "
-                f"got {error_threshold!r}"
-            )
-        if not cfg.settings:
-            errors.append("'settings' is empty: a control recipe needs at least one setting")
-        seen: set[str] = set()
-        for i, setting in enumerate(cfg.settings):
-            key = f"settings[{i}]"
-            if setting.name in seen:
-                errors.append(f"'{key}.name': duplicate setting name {setting.name!r}")
-            seen.add(setting.name)
-            _check_planner(setting.planner, f"{key}.planner", errors)
-            if setting.band is not None:
-                if setting.band.kind not in BAND_KINDS:
-                    errors.append(
-                        f"'{key}.band.kind' must be one of {list(BAND_KINDS)}, got {setting.band.kind!r}"
-                    )
-                else:
-                    try:
-                        UncertaintyBand(
-                            low=setting.band.low, high=setting.band.high, kind=setting.band.kind
-                        )
-                    except ValueError as e:
-                        errors.append(f"'{key}.band': {e}")
-    return errors
-
-
-def _calibrate_errors(cfg: DictConfig) -> list[str]:
-    errors: list[str] = []
-    if not cfg.estimators:
-        errors.append("'estimators' is empty: a calibrate recipe needs at least one estimator")
-    names = [spec.name for spec in cfg.estimators]
-    for name in sorted({n for n in names if names.count(n) > 1}):
-        errors.append(f"'estimators': duplicate estimator name {name!r}")
-    for i, spec in enumerate(cfg.estimators):
-        errors.extend(_estimator_errors(spec, f"estimators[{i}]", cfg.models.window))
-    if cfg.evaluation.policy not in VALIDATION_POLICIES:
-        errors.append(
-            f"'evaluation.policy' must be one of {list(VALIDATION_POLICIES)}, "
-            f"got {cfg.evaluation.policy!r}"
-        )
-    for key in (
-        "evaluation.trajectories",
-        "evaluation.horizon",
-        "evaluation.ood_windows",
-        "timing.candidates",
-        "timing.repeats",
-        "timing.iterations",
-        "timing.num_elites",
-        "random_steps",
-        "random_episode_steps",
-    ):
-        value = OmegaConf.select(cfg, key)
-        if value < 1:
-            errors.append(f"'{key}' must be >= 1, got {value}")
-    if not cfg.timing.horizons or min(cfg.timing.horizons) < 1:
-        errors.append(
-            f"'timing.horizons' must be a non-empty list of ints >= 1, got {list(cfg.timing.horizons)}"
-        )
-    for kind in ("explore", "control"):
-        recipe = cfg.outcomes[f"{kind}_recipe"]
-        if recipe is not None:
-            try:
-                resolve_recipe_path(recipe)
-            except FileNotFoundError as e:
-                errors.append(f"'outcomes.{kind}_recipe': {e}")
-    return errors
 
 
 def resolve_recipe_path(path: str | os.PathLike[str]) -> Path:
@@ -433,31 +278,6 @@ def resolve_recipe_path(path: str | os.PathLike[str]) -> Path:
     raise FileNotFoundError(
         f"no recipe file {str(path)!r} (looked in {Path.cwd()} and {candidates[1].parent})"
     )
-
-
-def _stage_list(cfg: DictConfig) -> list[str]:
-    if cfg.experiment == "control":
-        return ["random_data", "models", *(f"setting_{s.name}" for s in cfg.settings)]
-    if cfg.experiment == "calibrate":
-        names = [s.name for s in cfg.estimators]
-        return [
-            "random_data",
-            "world_model",
-            *(f"fit_{n}" for n in names),
-            "evaluation",
-            "timing",
-            *(f"outcome_{n}_{k}" for n in names for k in ("explore", "control")),
-        ]
-    return [
-        p.replace("\\d+", "<n>").replace("(random|active)", "<arm>")
-        for p in STAGE_PATTERNS["explore"]
-    ]
-
-
-def _is_stage(cfg: DictConfig) -> bool:
-    if cfg.experiment in ("control", "calibrate"):
-        return cfg.stop_after in _stage_list(cfg)
-    return any(re.fullmatch(p, cfg.stop_after) for p in STAGE_PATTERNS["explore"])
 
 
 def experiment_name(cfg: DictConfig) -> str:

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -31,6 +33,39 @@ def _experiment_fn(kind: str):
 
         return run_calibration
     raise ValueError(f"Unknown experiment {kind!r}.")
+
+
+def last_finished_stage(run_dir: str | os.PathLike[str]) -> str | None:
+    """The stage whose record (``stages/<name>.json``) was written last, or None when none was.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchrl_recon.experiments.stages import Stages
+        >>> stages = Stages(Path(tempfile.mkdtemp()), seed=0)
+        >>> last_finished_stage(stages.run_dir) is None
+        True
+        >>> _ = stages.run("random_data", lambda: {})
+        >>> last_finished_stage(stages.run_dir)
+        'random_data'
+    """
+    records = [p for p in Path(run_dir).glob("stages/*.json") if p.is_file()]
+    if not records:
+        return None
+    return max(records, key=lambda p: p.stat().st_mtime_ns).stem
+
+
+def interrupted_message(run_dir: str | os.PathLike[str] | None) -> str:
+    """The line printed when a run is interrupted: the last finished stage and how to resume.
+
+    Examples:
+        >>> interrupted_message(None)
+        'interrupted before any stage finished; run the same command to start again'
+    """
+    stage = last_finished_stage(run_dir) if run_dir is not None else None
+    where = f" of {run_dir}" if run_dir is not None else ""
+    if stage is None:
+        return f"interrupted before any stage finished{where}; run the same command to start again"
+    return f"interrupted after stage '{stage}'{where}; run the same command to resume"
 
 
 def _log_results(logger, results: Mapping[str, Any]) -> None:

@@ -90,19 +90,6 @@ def report(error: BaseException, code: int | None = None, message: str | None = 
     return code
 
 
-def _hydra_message(error: BaseException) -> str:
-    """Hydra's own error (several lines, a list of options, its search path) on one line."""
-    text = str(error)
-    if error.__cause__ is not None and str(error.__cause__) not in text:
-        text += "\n" + str(error.__cause__)
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    cut = next((i for i, line in enumerate(lines) if line.startswith("Config search path")), None)
-    head, rest = lines[0], lines[1:cut]
-    if rest and rest[0].endswith(":"):  # "Available options in 'hydra/launcher':" + one per line
-        return f"{head} ({rest[0]} {', '.join(rest[1:])})"
-    return " ".join([head, *rest])
-
-
 def _interrupted(run_dir: Path | None) -> int:
     from torchrl_recon.experiments.runner import interrupted_message
 
@@ -278,62 +265,41 @@ def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
     return flags, rest
 
 
-def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> None:
-    """Validate the recipe with the overrides before Hydra starts anything.
+def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> list[str]:
+    """Validate every job of the command before Hydra starts anything; return the overrides
+    to hand to Hydra (a schema key the recipe lacks gets its ``+``).
 
-    Plain overrides are applied; each value of a sweep (``seed=0,1,2``) is checked on its own;
-    Hydra's own keys and config-group choices are left to Hydra. The run directory is checked
-    too (an existing run there must have the same config). Every job validates its composed
-    config again before doing any work.
+    Each job of a sweep (the product of the command line's sweeps and the recipe's own
+    ``hydra.sweeper.params``) is composed by Hydra and checked on its own, and so is its run
+    directory (an existing run there must have the same config). Every job validates its
+    composed config again before doing any work.
 
     Raises:
         FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
             the file, key or directory.
     """
-    from torchrl_recon.experiments.recipe import (
-        RecipeError,
-        apply_override,
-        compose_recipe,
-        parse_overrides,
-        validate,
-    )
+    from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
+    from torchrl_recon.experiments.recipe import RecipeError, validate
     from torchrl_recon.experiments.run_dir import check_run_dir
 
     if not recipe.is_file():
         raise FileNotFoundError(
             f"Recipe file not found: {recipe}. `torchrl-recon {kind} --help` lists the shipped recipes."
         )
-    cfg = compose_recipe(recipe)
-    found = cfg.get("experiment")
+    base = compose_recipe(recipe, with_hydra=True)
+    found = base.get("experiment")
     if found != kind:
         raise RecipeError(
             f"{recipe}: its experiment is {found!r}: run it with `torchrl-recon {found} {recipe}`."
             if found in EXPERIMENTS
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
-    sweeps = []
-    for o in parse_overrides(overrides):
-        if o.is_hydra_override() or "/" in o.key_or_group or o.package is not None:
-            continue  # Hydra's own settings and config-group choices: Hydra checks them
-        if o.is_sweep_override():
-            sweeps.append(o)
-        else:
-            apply_override(cfg, o)
-    source = str(recipe)
-    checked = validate(cfg, source=source)
-    if not sweeps:
-        check_run_dir(checked)
-    for o in sweeps:
-        try:
-            values = list(o.sweep_iterator())
-        except Exception:  # glob() and other sweeps that need the config: left to the jobs
-            continue
-        for value in values:
-            one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-            apply_override(one, o, value)
-            checked = validate(one, source=f"{source} with {o.key_or_group}={value}")
-            if len(sweeps) == 1:
-                check_run_dir(checked)
+    completed = with_additions(base, overrides)
+    for job in sweep_jobs(base, completed):
+        swept = [o for o in job if o not in completed]
+        source = f"{recipe} with {' '.join(swept)}" if swept else str(recipe)
+        check_run_dir(validate(compose_recipe(recipe, job), source=source))
+    return completed
 
 
 def run_recipe(
@@ -360,11 +326,12 @@ def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -
     import hydra
     from hydra.errors import HydraException
 
+    from torchrl_recon.experiments.compose import hydra_error_message, search_path_override
     from torchrl_recon.experiments.run_dir import RunDirConflict
 
     flags, plain = _split_overrides(overrides)
     try:
-        precheck(kind, recipe, plain)
+        plain = precheck(kind, recipe, plain)
     except (FileNotFoundError, ValueError, RunDirConflict) as e:
         return report(e, EXIT_USER)
     given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
@@ -380,6 +347,7 @@ def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -
         *flags,
         *settings,
         f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
+        search_path_override(),
         *plain,
     ]
     if multirun:
@@ -400,7 +368,7 @@ def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -
     except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
         code = _interrupted(None)
     except HydraException as e:  # a bad Hydra setting or config group choice
-        code = report(e, EXIT_USER, _hydra_message(e))
+        code = report(e, EXIT_USER, hydra_error_message(e))
     except Exception as e:
         code = report(e)
     finally:

@@ -13,3 +13,14 @@ class DamagedFileError(ValueError):
         >>> issubclass(DamagedFileError, ValueError)
         True
     """
+
+
+class RecipeError(ValueError):
+    """A recipe or an override is not valid: unknown key, wrong type, bad value, no composition.
+
+    The message names the recipe file and every offending key.
+
+    Examples:
+        >>> issubclass(RecipeError, ValueError)
+        True
+    """

@@ -41,7 +41,8 @@ from torchrl_recon.experiments.summary import format_table, summarize
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 ENVS = ("industrial_benchmark", "drone", "minitaur")
-ALL_RECIPES = sorted(RECIPES.glob("*/*.yaml"))
+ALL_RECIPES = sorted(p for p in RECIPES.glob("*/*.yaml") if p.parent.name != "all_envs")
+SWEEP_RECIPES = sorted(RECIPES.glob("all_envs/*.yaml"))
 
 
 # ------------------------------------------------------------------------------------------
@@ -134,6 +135,31 @@ def test_every_recipe_loads_and_validates(path):
     assert f"seed{cfg.seed}" in cfg.output_dir
     again = validate(cfg)  # idempotent, and usable on an already typed config
     assert OmegaConf.to_container(again) == OmegaConf.to_container(cfg)
+
+
+@pytest.mark.parametrize("path", SWEEP_RECIPES, ids=lambda p: p.name)
+def test_all_envs_sweep_runs_each_env_recipe(path):
+    """Every job of recipes/all_envs/<kind>.yaml is its env's own recipe with the job's seed."""
+    from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs
+
+    jobs = sweep_jobs(compose_recipe(path, with_hydra=True), [])
+    envs = {"drone", "industrial_benchmark", "minitaur"}
+    assert len(jobs) == {"explore": 15, "control": 3}[path.stem]
+    for job in jobs:
+        values = dict(o.split("=") for o in job)
+        env, seed = values[f"{path.stem}_env"], values["seed"]
+        envs.discard(env)
+        cfg = load_recipe(path, job)
+        own = load_recipe(RECIPES / env / f"{path.stem}.yaml", [f"seed={seed}"])
+        assert OmegaConf.to_container(cfg) == OmegaConf.to_container(own)
+    assert not envs
+
+
+def test_recipe_outside_recipes_extends_a_shipped_one(tmp_path):
+    user = tmp_path / "mine.yaml"
+    user.write_text("defaults:\n  - /drone/explore_smoke@_here_\n  - _self_\nretrainings: 3\n")
+    cfg = load_recipe(user, ["threads=2", "env.kwargs={delta: 0.1}"])
+    assert (cfg.env.name, cfg.retrainings, cfg.threads, cfg.env.kwargs.delta) == ("drone", 3, 2, 0.1)
 
 
 def test_recipe_set_is_complete():
@@ -328,14 +354,13 @@ def test_missing_recipe_file(tmp_path):
         load_recipe(tmp_path / "nope.yaml")
     child = tmp_path / "child.yaml"
     child.write_text("defaults: [missing_base, _self_]\nseed: 1\n")
-    with pytest.raises(FileNotFoundError, match="missing_base"):
+    with pytest.raises(RecipeError, match=r"child.yaml: .*missing_base"):
         load_recipe(child)
 
 
 def test_validate_drops_hydra_node():
-    cfg = compose_recipe(RECIPES / "drone" / "explore_smoke.yaml")
-    cfg.hydra = {"run": {"dir": "x"}}
-    assert "hydra" not in validate(cfg)
+    cfg = compose_recipe(RECIPES / "drone" / "explore_smoke.yaml", with_hydra=True)
+    assert "hydra" in cfg and "hydra" not in validate(cfg)
 
 
 # ------------------------------------------------------------------------------------------

@@ -17,6 +17,8 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
+from torchrl_recon.errors import RecipeError
+from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
 from torchrl_recon.experiments.config import SCHEMAS, ControlSetting, EstimatorSpec
 from torchrl_recon.experiments.recipe_checks import recipe_errors
 
@@ -24,127 +26,16 @@ LIST_FIELDS = {"control": ("settings", ControlSetting), "calibrate": ("estimator
 """List fields whose items are checked against their own schema (OmegaConf merges lists whole)."""
 
 
-class RecipeError(ValueError):
-    """A recipe (or an override) is not valid: unknown key, wrong type, unknown name."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Loading and validation
-
-
-def _load_yaml(path: Path) -> DictConfig:
-    try:
-        cfg = OmegaConf.load(path)
-    except OmegaConfBaseException as e:
-        raise RecipeError(f"{path}: cannot parse the recipe: {e}") from e
-    except Exception as e:  # yaml.YAMLError and friends
-        raise RecipeError(f"{path}: cannot parse the recipe: {e}") from e
-    if not isinstance(cfg, DictConfig):
-        raise RecipeError(f"{path}: a recipe must be a YAML mapping, got {type(cfg).__name__}.")
-    return cfg
-
-
-def compose_recipe(path: Path, stack: tuple[Path, ...] = ()) -> DictConfig:
-    """Load ``path`` and resolve a Hydra-style ``defaults`` list of sibling recipes.
-
-    Supports the subset the recipes use: entries naming another recipe of the same directory
-    (``explore`` or ``/explore``, without ``.yaml``) and ``_self_`` (implicitly last, as in
-    Hydra >= 1.1). Entries that only configure Hydra itself (``override hydra/...``) are ignored.
-    """
-    path = path.resolve()
-    if path in stack:
-        chain = " -> ".join(str(p) for p in (*stack, path))
-        raise RecipeError(f"recipe defaults form a cycle: {chain}")
-    cfg = _load_yaml(path)
-    defaults = cfg.pop("defaults", None) if "defaults" in cfg else None
-    if defaults is None:
-        return cfg
-    if not isinstance(defaults, ListConfig):
-        raise RecipeError(f"{path}: 'defaults' must be a list, got {defaults!r}.")
-    entries = list(defaults)
-    if "_self_" not in entries:
-        entries.append("_self_")
-    out = OmegaConf.create({})
-    for entry in entries:
-        if entry == "_self_":
-            out = OmegaConf.merge(out, cfg)
-        elif isinstance(entry, str):
-            name = entry.lstrip("/")
-            if name.endswith(".yaml"):
-                name = name[: -len(".yaml")]
-            child = path.parent / f"{name}.yaml"
-            if not child.is_file():
-                raise FileNotFoundError(f"{path}: defaults entry {entry!r}: no recipe file {child}")
-            out = OmegaConf.merge(out, compose_recipe(child, (*stack, path)))
-        elif isinstance(entry, DictConfig) and all(
-            str(k).removeprefix("override ").startswith("hydra") for k in entry
-        ):
-            continue  # Hydra's own settings (launcher, sweeper, ...): not part of the recipe
-        else:
-            raise RecipeError(
-                f"{path}: unsupported defaults entry {OmegaConf.to_container(entry) if isinstance(entry, DictConfig) else entry!r}; "
-                "only sibling recipe names and _self_ are supported."
-            )
-    return out
-
-
-def parse_overrides(overrides: Sequence[str]) -> list[Any]:
-    """Parse Hydra-syntax overrides (``key=value``, ``+key=value``, ``~key``) with Hydra's parser."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    try:
-        return OverridesParser.create().parse_overrides(list(overrides))
-    except Exception as e:  # hydra.errors.OverrideParseException
-        raise RecipeError(
-            f"cannot parse the overrides {list(overrides)}: {_first_line(e)} (Hydra's override "
-            "syntax: key=value, +key=value, ~key; quote values holding spaces or brackets)"
-        ) from e
-
-
-_OWN_VALUE = object()
-
-
-def apply_override(cfg: DictConfig, override: Any, value: Any = _OWN_VALUE) -> None:
-    """Apply one parsed (non-sweep) override to a plain config, in place.
-
-    ``value`` replaces the override's own value (used to check one value of a sweep).
-    List elements are addressed by index (``settings.0.beta=0.3``).
-    """
-    key = override.key_or_group
-    if override.is_delete():
-        parent, _, leaf = key.rpartition(".")
-        node = OmegaConf.select(cfg, parent) if parent else cfg
-        if node is None or leaf not in node:
-            raise RecipeError(f"override ~{key}: there is no key {key!r} to delete.")
-        del node[leaf]
-        return
-    new = override.value() if value is _OWN_VALUE else value
-    try:
-        OmegaConf.update(cfg, key, new, merge=True, force_add=True)
-    except OmegaConfBaseException as e:
-        raise RecipeError(f"override {key}={new!r}: {_first_line(e)}") from e
-
-
-def _apply_overrides(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
-    for o in parse_overrides(overrides):
-        if o.is_sweep_override():
-            raise RecipeError(
-                f"override {o.input_line!r} is a sweep; sweeps need the command line's -m (Hydra multirun)."
-            )
-        if o.is_hydra_override() or "/" in o.key_or_group:
-            continue  # Hydra's own settings: only meaningful through the command line
-        apply_override(cfg, o)
-    return cfg
-
-
 def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> DictConfig:
-    """Load a recipe without Hydra, apply ``key=value`` overrides and validate it.
+    """Compose a recipe with ``key=value`` overrides (as the CLI's jobs are) and validate it.
 
     Args:
-        path: the recipe YAML file. A ``defaults: [other, _self_]`` list naming sibling recipes
-            is honoured (the smoke recipes use it).
+        path: the recipe YAML file. Its ``defaults`` list is Hydra's: sibling recipes
+            (``[explore, _self_]``, as the smoke recipes do), shipped ones
+            (``[/drone/explore@_here_, _self_]``) and config groups.
         overrides: Hydra-syntax overrides, e.g. ``["seed=3", "guided.ratio=1.5",
-            "settings.0.beta=0.1"]`` (``+key=value`` adds, ``~key`` deletes; no sweeps).
+            "settings.0.beta=0.1"]`` (a schema key the recipe lacks is added; ``~key``
+            deletes; no sweeps).
 
     Returns:
         The typed, resolved configuration (see :func:`validate`).
@@ -161,11 +52,14 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
         ('outputs/smoke/explore/drone/seed3', 1.2)
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Recipe file not found: {path}")
-    cfg = compose_recipe(path)
-    cfg = _apply_overrides(cfg, list(overrides))
-    return validate(cfg, source=str(path))
+    base = compose_recipe(path, with_hydra=True)
+    jobs = sweep_jobs(base, with_additions(base, overrides), recipe_params=False)
+    if len(jobs) != 1:
+        raise RecipeError(
+            f"{path}: the overrides {list(overrides)} sweep several values; sweeps need the "
+            "command line's -m (Hydra multirun)."
+        )
+    return validate(compose_recipe(path, jobs[0]), source=str(path))
 
 
 def _first_line(msg: str) -> str:

@@ -123,7 +123,7 @@ class Stages:
             raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
         files = record.pop(FILES_KEY, None)
         if files is not None and name not in self._verified:
-            owner = f"stage '{name}' ({marker.name})"
+            owner = f"stage '{name}'"
             verify_files(self.run_dir, files, owner=owner, remedy=remedy)
             self._owner.update(dict.fromkeys(files, name))
         self._verified.add(name)

@@ -10,6 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+from torchrl_recon._files import with_hash
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
 from torchrl_recon.experiments.control import cost_to_u_ratio, run_control
 from torchrl_recon.experiments.exploration import run_explore
@@ -141,8 +142,9 @@ def test_control_setting_stopped_between_episodes_resumes_at_the_next_episode(tm
     (stages / "setting_gradient.json").unlink()
     (stages / "setting_gradient" / "part_1.json").unlink()
     kept = stages / "setting_gradient" / "part_0.json"
-    before = kept.read_text()
-    kept.write_text(before.replace('"wall_time_s"', '"kept_from_before": true, "wall_time_s"'))
+    record = json.loads(kept.read_text())
+    record.pop("_sha256")  # an edited part is written with its new hash, as Stages writes one
+    kept.write_text(json.dumps(with_hash({**record, "kept_from_before": True})))
 
     resumed = run_control(_control_cfg(), tmp_path / "full", None)
     assert resumed["settings"] == full["settings"]
@@ -185,5 +187,5 @@ def test_run_stopped_before_its_models_fits_the_same_models(
         for name in ("straight", "stopped")
     ]
     for record in records:
-        record.pop("wall_time_s")
-    assert records[0] == records[1]
+        record.pop("wall_time_s"), record.pop("_sha256")  # the record's hash covers its wall time
+    assert records[0] == records[1]  # the checkpoints' hashes included

@@ -2,14 +2,40 @@
 
 from __future__ import annotations
 
+import math
+import re
 from pathlib import Path
+from typing import Any
 
 import torch
-from tensordict import NestedKey, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
+
+from torchrl_recon._files import read_json
+from torchrl_recon.errors import DamagedFileError
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
 _PREFETCH_FILE = "prefetch.pkl"
+_TD_TYPE = "<class 'tensordict._td.TensorDict'>"
+_META_KEYS = ("shape", "device", "_type", "names")
+_DTYPES = {
+    f"torch.{name}": getattr(torch, name)
+    for name in (
+        "bool",
+        "uint8",
+        "int8",
+        "int16",
+        "int32",
+        "int64",
+        "float16",
+        "bfloat16",
+        "float32",
+        "float64",
+        "complex64",
+        "complex128",
+    )
+}
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
 
 
 def make_sequence_buffer(
@@ -87,18 +113,188 @@ def save_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> None:
     Path(path, _PREFETCH_FILE).unlink(missing_ok=True)
 
 
+def load_buffer_data(path: str | Path) -> TensorDictBase:
+    """The transitions a buffer saved by :func:`save_buffer` holds, checked, in memory.
+
+    Every file is read as data: JSON metadata, and memory-mapped tensors whose files must have
+    exactly the size their ``meta.json`` gives (a truncated file is refused, never grown back).
+    Only plain tensors are accepted: a non-tensor entry (TensorDict stores those as a pickle
+    sidecar), a nested tensor or any file ``save_buffer`` does not write is refused, and
+    ``TensorDict.load_memmap`` runs with ``allow_pickle=False``. Nothing in ``path`` is written.
+
+    Raises:
+        FileNotFoundError: ``path`` has no ``storage`` folder.
+        DamagedFileError: a file is missing, malformed, truncated, unexpected or a pickle.
+
+    Examples:
+        >>> import tempfile
+        >>> from tensordict import TensorDict
+        >>> rb = make_sequence_buffer(10, slice_len=2, num_slices=1)
+        >>> _ = rb.extend(TensorDict({"x": torch.arange(10.0)}, [10]))
+        >>> path = Path(tempfile.mkdtemp()) / "rb"
+        >>> save_buffer(rb, path)
+        >>> load_buffer_data(path)["x"][:3].tolist()
+        [0.0, 1.0, 2.0]
+    """
+    data, _ = _read_saved_buffer(Path(path))
+    return data
+
+
 def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictReplayBuffer:
-    """Restore ``buffer`` (built with the same components) from ``path`` written by :func:`save_buffer`."""
-    if not Path(path, "storage").exists():
+    """Restore ``buffer`` (built with the same components) from ``path`` written by :func:`save_buffer`.
+
+    The stored transitions and the writer's position are restored through the storage's and
+    the writer's public API; the buffer keeps its own sampler, batch size and transforms. The
+    files are checked and read as data, never unpickled (see :func:`load_buffer_data`).
+
+    Raises:
+        FileNotFoundError: ``path`` has no ``storage`` folder.
+        DamagedFileError: a file is missing, malformed, truncated, unexpected or a pickle.
+        ValueError: the saved transitions do not fit in ``buffer``.
+
+    Examples:
+        >>> import tempfile
+        >>> from tensordict import TensorDict
+        >>> rb = make_sequence_buffer(10, slice_len=2, num_slices=1)
+        >>> _ = rb.extend(TensorDict({"x": torch.arange(10.0)}, [10]))
+        >>> path = Path(tempfile.mkdtemp()) / "rb"
+        >>> save_buffer(rb, path)
+        >>> len(load_buffer(make_sequence_buffer(10, slice_len=2, num_slices=1), path))
+        10
+    """
+    path = Path(path)
+    data, writer_state = _read_saved_buffer(path)
+    room = buffer.storage.max_size
+    if len(data) > room or writer_state["_cursor"] > room:
+        raise ValueError(
+            f"The buffer saved at {path} holds {len(data)} transitions (writer at "
+            f"{writer_state['_cursor']}); the buffer given has room for {room}."
+        )
+    if len(data):
+        buffer.storage.set(torch.arange(len(data)), data)
+    buffer.writer.load_state_dict(writer_state)
+    return buffer
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading a saved buffer as data
+
+
+def _damaged(file: Path, problem: str) -> DamagedFileError:
+    return DamagedFileError(
+        f"{file}: {problem}; refusing to load the replay buffer (save_buffer never writes this)."
+    )
+
+
+def _json(file: Path) -> Any:
+    return read_json(file, remedy="refusing to load the replay buffer.")
+
+
+def _int_list(value: Any) -> bool:
+    return isinstance(value, list) and all(type(v) is int and v >= 0 for v in value)
+
+
+def _check_tensordict_dir(
+    folder: Path, batch: list[int] | None, extra: tuple[str, ...] = ()
+) -> list[int]:
+    """Check a memory-mapped TensorDict folder as data; return its batch shape.
+
+    Each entry must be a plain tensor (known dtype, not nested, a ``.memmap`` file of exactly
+    its size) or a nested TensorDict folder; nothing else may be in the folder but ``extra``.
+    """
+    meta_file = folder / "meta.json"
+    meta = _json(meta_file)
+    if not isinstance(meta, dict) or meta.get("_type") != _TD_TYPE:
+        raise _damaged(
+            meta_file, f"not the metadata of a plain TensorDict (expected _type {_TD_TYPE})"
+        )
+    shape = meta.get("shape")
+    if not _int_list(shape) or (batch is not None and shape[: len(batch)] != batch):
+        raise _damaged(meta_file, f"batch shape {shape!r} does not extend its parent's {batch}")
+    expected = {"meta.json", *extra}
+    for key, entry in meta.items():
+        if key in _META_KEYS:
+            continue
+        if not isinstance(entry, dict) or not _PLAIN_KEY.fullmatch(key) or key in (".", ".."):
+            raise _damaged(meta_file, f"entry {key!r} is not a tensor or TensorDict entry")
+        if "type" in entry:
+            if entry["type"] != "TensorDict":
+                raise _damaged(
+                    meta_file,
+                    f"entry {key!r} is a {entry['type']!r} (non-tensor data is stored as a pickle)",
+                )
+            _check_tensordict_dir(folder / key, shape)
+            expected.add(key)
+            continue
+        dtype, dims = _DTYPES.get(entry.get("dtype")), entry.get("shape")
+        if dtype is None or not _int_list(dims) or entry.get("is_nested", False):
+            raise _damaged(meta_file, f"entry {key!r} is not a plain tensor of a known dtype")
+        if dims[: len(shape)] != shape:
+            raise _damaged(meta_file, f"entry {key!r} has shape {dims}, not batch shape {shape}")
+        file = folder / f"{key}.memmap"
+        nbytes = math.prod(dims) * dtype.itemsize
+        if nbytes:
+            size = file.stat().st_size if file.is_file() else None
+            if size != nbytes:
+                problem = "missing" if size is None else f"{size} bytes"
+                raise _damaged(file, f"{problem}, expected {nbytes} ({dims} of {entry['dtype']})")
+            expected.add(file.name)
+    for child in folder.iterdir():
+        if child.name not in expected:
+            raise _damaged(child, "not part of the saved TensorDict")
+    return shape
+
+
+def _read_saved_buffer(path: Path) -> tuple[TensorDictBase, dict[str, int]]:
+    """The stored transitions (in memory) and the writer state of a saved buffer folder."""
+    storage = path / "storage"
+    if not storage.is_dir():
         raise FileNotFoundError(
             f"No saved replay buffer at {path} (expected a 'storage' folder from save_buffer)."
         )
-    if Path(path, _PREFETCH_FILE).exists():
-        raise ValueError(
-            f"{Path(path, _PREFETCH_FILE)} is a pickle; refusing to load it. Buffers written by save_buffer have none."
-        )
-    buffer.loads(path)
-    return buffer
+    if (path / _PREFETCH_FILE).exists():
+        raise _damaged(path / _PREFETCH_FILE, "a pickle (TorchRL's prefetch queue)")
+    for child in path.iterdir():
+        empty_dir = child.is_dir() and not any(child.iterdir())
+        if child.name not in ("storage", "writer", "buffer_metadata.json") and not empty_dir:
+            raise _damaged(child, "not a file save_buffer writes (it may be a pickle)")
+    buffer_meta = _json(path / "buffer_metadata.json")
+    if not isinstance(buffer_meta, dict):
+        raise _damaged(path / "buffer_metadata.json", "not a JSON object")
+    writer_dir = path / "writer"
+    writer_meta = _json(writer_dir / "metadata.json")
+    for child in writer_dir.iterdir():
+        if child.name != "metadata.json":
+            raise _damaged(child, "not a file of a round-robin writer")
+    if (
+        not isinstance(writer_meta, dict)
+        or set(writer_meta) - {"cursor", "write_count"}
+        or type(writer_meta.get("cursor")) is not int
+        or type(writer_meta.get("write_count", 0)) is not int
+    ):
+        raise _damaged(writer_dir / "metadata.json", "not a round-robin writer's cursor and count")
+    storage_meta_file = storage / "storage_metadata.json"
+    storage_meta = _json(storage_meta_file)
+    if (
+        not isinstance(storage_meta, dict)
+        or storage_meta.get("is_pytree") is not False
+        or type(storage_meta.get("len")) is not int
+    ):
+        raise _damaged(storage_meta_file, "not the metadata of a TensorDict storage")
+    shape = _check_tensordict_dir(storage, None, extra=("storage_metadata.json",))
+    length = storage_meta["len"]
+    if not shape or not 0 <= length <= shape[0]:
+        raise _damaged(storage_meta_file, f"length {length} does not fit storage shape {shape}")
+    try:
+        stored = TensorDict.load_memmap(storage, device="cpu", allow_pickle=False)
+    except Exception as err:  # checked above; anything left is damage
+        raise _damaged(storage, f"could not be read ({err})") from None
+    data = stored[:length].clone()  # in memory: the files are never written through
+    del stored
+    state = {"_cursor": writer_meta["cursor"]}
+    if "write_count" in writer_meta:
+        state["_write_count"] = writer_meta["write_count"]
+    return data, state
 
 
 def cut_sequences(

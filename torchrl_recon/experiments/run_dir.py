@@ -21,7 +21,8 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_recon._files import write_atomically
+from torchrl_recon._files import read_json, write_atomically
+from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.config import SCHEMAS
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
@@ -184,14 +185,9 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     new = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(new, dict)
     run_dir = Path(cfg.output_dir).expanduser().resolve()
-    config_path = run_dir / "config.yaml"
-    if not config_path.exists():
+    if not (run_dir / "config.yaml").exists():
         return new
-    saved = OmegaConf.load(config_path)
-    schema = SCHEMAS.get(saved.get("experiment"))
-    if schema is not None:
-        # Keys added to the schema after the run was made compare at their defaults.
-        saved = OmegaConf.merge(OmegaConf.structured(schema), saved)
+    saved = read_config(run_dir)
     old = OmegaConf.to_container(saved, resolve=False)
     assert isinstance(old, dict)
     diffs = config_differences(old, new)
@@ -233,24 +229,23 @@ def prepare_run_dir(
     _lock(run_dir)
     try:
         new = check_run_dir(cfg)
-    except RunDirConflict:
+    except (RunDirConflict, DamagedFileError):
         release_run_dir(run_dir)
         raise
     config_path = run_dir / "config.yaml"
     resumed = config_path.exists()
-    _atomic_write(config_path, OmegaConf.to_yaml(OmegaConf.create(new)))
-
     meta_path = run_dir / "meta.json"
     previous: list[dict[str, Any]] = []
     if resumed and meta_path.exists():
-        try:
-            old_meta = json.loads(meta_path.read_text())
-            previous = list(old_meta.get("previous", []))
-            previous.append(
-                {k: old_meta.get(k) for k in ("started_utc", "git", "argv", "hostname")}
-            )
-        except (OSError, ValueError):
-            previous = []
+        try:  # read before anything is written: a refused resume changes no file
+            old_meta = read_meta(run_dir)
+        except DamagedFileError:
+            release_run_dir(run_dir)
+            raise
+        previous = list(old_meta.get("previous") or [])
+        previous.append({k: old_meta.get(k) for k in ("started_utc", "git", "argv", "hostname")})
+    _atomic_write(config_path, OmegaConf.to_yaml(OmegaConf.create(new)))
+
     meta = {
         "experiment": cfg.experiment,
         "env": cfg.env.name,
@@ -295,9 +290,8 @@ def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -
     """
     run_dir = Path(run_dir)
     meta: dict[str, Any] = {}
-    meta_path = run_dir / "meta.json"
-    if meta_path.exists():
-        meta = json.loads(meta_path.read_text())
+    if (run_dir / "meta.json").exists():
+        meta = read_meta(run_dir)
     meta["finished_utc"] = _utc_now()
     payload = {**dict(results), "meta": meta}
     path = run_dir / "results.json"
@@ -305,9 +299,82 @@ def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -
     return path
 
 
+def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
+    """The ``config.yaml`` of a run directory, read as plain YAML (never runs code).
+
+    Keys added to the experiment's schema after the run was made are filled with their defaults.
+
+    Raises:
+        FileNotFoundError: the directory has no ``config.yaml``.
+        DamagedFileError: the file is not a YAML mapping that fits the experiment's schema.
+    """
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"{Path(run_dir)} is not a run directory (no config.yaml).")
+    remedy = (
+        "it is the resolved recipe of the run; restore it, or delete the run directory to start "
+        "over."
+    )
+    try:
+        saved = OmegaConf.load(path)  # a YAML safe loader: tags such as !!python/object are refused
+    except Exception as err:
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise DamagedFileError(f"{path} is not valid YAML ({reason}); {remedy}") from None
+    if not isinstance(saved, DictConfig):
+        raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
+    schema = SCHEMAS.get(saved.get("experiment"))
+    if schema is not None:
+        # Keys added to the schema after the run was made compare at their defaults.
+        try:
+            saved = OmegaConf.merge(OmegaConf.structured(schema), saved)
+        except Exception as err:
+            reason = str(err).strip().splitlines()[0]
+            raise DamagedFileError(
+                f"{path} does not fit the {saved.get('experiment')!r} schema ({reason}); {remedy}"
+            ) from None
+    return saved
+
+
+def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """The ``meta.json`` of a run directory (versions, git commit, host, command lines).
+
+    Raises:
+        DamagedFileError: the file is missing, not JSON or not a JSON object.
+    """
+    path = Path(run_dir) / "meta.json"
+    remedy = (
+        "it only records how and where the run was made: delete it to resume (the record of "
+        "earlier starts is lost)."
+    )
+    meta = read_json(path, remedy=remedy)
+    if not isinstance(meta, dict) or not isinstance(meta.get("previous", []), list):
+        raise DamagedFileError(f"{path} is not the JSON object meta.json holds; {remedy}")
+    return meta
+
+
 def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a ``results.json`` file (or the one inside a run directory)."""
+    """Read a ``results.json`` file (or the one inside a run directory) as plain JSON.
+
+    Raises:
+        FileNotFoundError: there is no such file.
+        DamagedFileError: the file is not JSON, or not the results of an experiment.
+
+    Examples:
+        >>> import tempfile
+        >>> run_dir = Path(tempfile.mkdtemp())
+        >>> _ = write_results(run_dir, {"experiment": "explore", "env": "drone", "seed": 0})
+        >>> read_results(run_dir)["env"]
+        'drone'
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "results.json"
-    return json.loads(path.read_text())
+    if not path.is_file():
+        raise FileNotFoundError(f"No results file at {path}.")
+    remedy = "re-run the experiment to write it again, or leave that run directory out."
+    results = read_json(path, remedy=remedy)
+    if not isinstance(results, dict) or not isinstance(results.get("experiment"), str):
+        raise DamagedFileError(
+            f"{path} is not the results of an experiment (no 'experiment'); {remedy}"
+        )
+    return results

@@ -11,7 +11,6 @@ from episodes without a planned step, are left out).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import warnings
@@ -22,13 +21,18 @@ from typing import Any
 import numpy as np
 
 from torchrl_recon.experiments.control import METRICS as CONTROL_METRICS
+from torchrl_recon.experiments.run_dir import read_results
 
 MIN_SEEDS_TTEST = 2
 MIN_SEEDS_WILCOXON = 5
 
 
 def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
-    """``results.json`` files: given directly, or found anywhere below the given directories."""
+    """``results.json`` files: given directly, or found anywhere below the given directories.
+
+    Only paths are returned; read each with
+    :func:`~torchrl_recon.experiments.run_dir.read_results` (plain JSON, checked).
+    """
     found: list[Path] = []
     for p in paths:
         p = Path(p)
@@ -197,12 +201,14 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: a path does not exist or no ``results.json`` was found.
+        DamagedFileError: a ``results.json`` is not JSON or not an experiment's results
+            (read as plain JSON by :func:`~torchrl_recon.experiments.run_dir.read_results`).
         ValueError: the files mix experiment kinds, or one env repeats a seed.
     """
     files = find_results(paths)
     if not files:
         raise FileNotFoundError("No results.json found in the given paths.")
-    results = [json.loads(f.read_text()) for f in files]
+    results = [read_results(f) for f in files]
     kinds = sorted({r.get("experiment") for r in results}, key=str)
     if len(kinds) != 1:
         raise ValueError(

@@ -29,7 +29,9 @@ def check_device(spec: str) -> str:
     """
     if spec in ("auto", "cpu", "cuda") or _CUDA_INDEX.fullmatch(str(spec)):
         return spec
-    raise ValueError(f"device must be one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), got {spec!r}.")
+    raise ValueError(
+        f"device must be one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), got {spec!r}."
+    )
 
 
 def resolve_device(spec: str = "auto") -> torch.device:

@@ -159,7 +159,12 @@ def test_recipe_outside_recipes_extends_a_shipped_one(tmp_path):
     user = tmp_path / "mine.yaml"
     user.write_text("defaults:\n  - /drone/explore_smoke@_here_\n  - _self_\nretrainings: 3\n")
     cfg = load_recipe(user, ["threads=2", "env.kwargs={delta: 0.1}"])
-    assert (cfg.env.name, cfg.retrainings, cfg.threads, cfg.env.kwargs.delta) == ("drone", 3, 2, 0.1)
+    assert (cfg.env.name, cfg.retrainings, cfg.threads, cfg.env.kwargs.delta) == (
+        "drone",
+        3,
+        2,
+        0.1,
+    )
 
 
 def test_recipe_set_is_complete():

@@ -125,7 +125,7 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
     """
     groups = set(base.hydra.runtime.choices) if "hydra" in base else set()
     out = []
-    for text, o in zip(overrides, _parse(overrides)):
+    for text, o in zip(overrides, _parse(overrides), strict=True):
         key = o.key_or_group
         plain = o.type.name == "CHANGE" and o.package is None and not o.is_hydra_override()
         if plain and key not in groups:
@@ -159,7 +159,7 @@ def sweep_jobs(
     if not recipe_params:
         params = {}
     fixed, swept = [], {}
-    for text, o in zip(overrides, _parse(overrides)):
+    for text, o in zip(overrides, _parse(overrides), strict=True):
         if o.is_sweep_override() and not o.is_hydra_override():
             swept[text.split("=", 1)[0]] = o
         else:

@@ -393,6 +393,7 @@ def _experiment(args: argparse.Namespace) -> int:
 
 def _summarize(args: argparse.Namespace) -> int:
     from torchrl_recon.experiments.plots import plot_calibration, plot_control_errors, plot_table1
+    from torchrl_recon.experiments.run_dir import read_results
     from torchrl_recon.experiments.summary import find_results, format_table, summarize
 
     try:
@@ -406,7 +407,7 @@ def _summarize(args: argparse.Namespace) -> int:
     by_kind: dict[str, list[Path]] = {}
     results = {}
     for f in files:
-        r = json.loads(f.read_text())
+        r = read_results(f)
         results[f] = r
         by_kind.setdefault(str(r.get("experiment")), []).append(f)
     out = Path(args.out) if args.out else None

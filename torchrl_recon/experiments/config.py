@@ -127,13 +127,17 @@ class GuidedConfig:
 
 @dataclass
 class RunConfig:
-    """What every experiment run has: which env, seed and threads, where it writes, the models,
-    how they are trained, and the logger."""
+    """What every experiment run has: which env, seed, threads and device, where it writes, the
+    models, how they are trained, and the logger.
+
+    ``device``: ``auto`` (CUDA when available, else CPU), ``cpu``, ``cuda`` or ``cuda:N``; the
+    networks, planning and fitting run there, the envs stay on the CPU."""
 
     experiment: str = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
     seed: int = 0
     threads: int = 1
+    device: str = "auto"
     output_dir: str = MISSING
     stop_after: str | None = None
     progress: bool = True

@@ -15,6 +15,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_recon.devices import check_device
+
 PLANNER_KINDS = ("shooting", "cem", "gradient")
 BAND_KINDS = ("absolute", "quantile", "mean_ratio")
 LOGGER_BACKENDS = ("wandb", "csv", "none")
@@ -192,6 +194,10 @@ def _run_errors(cfg: DictConfig, errors: _Errors) -> None:
     errors.at_least(cfg, ("env.episode_steps",), 1)
     errors.one_of(cfg, "logger.backend", LOGGER_BACKENDS)
     errors.one_of(cfg, "logger.mode", LOGGER_MODES)
+    try:
+        check_device(cfg.device)
+    except ValueError as e:
+        errors.append(f"'device': {e}")
     errors.at_least(cfg, ("threads", "models.window", "models.world_model.hidden_size"), 1)
     errors.at_least(cfg, ("models.world_model.dense_size", "models.uncertainty.hidden_size"), 1)
     errors.extend(_world_model_errors(cfg))

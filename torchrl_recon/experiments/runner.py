@@ -12,6 +12,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from torchrl_recon.devices import describe_device, resolve_device
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import save_figures
 from torchrl_recon.experiments.recipe import validate
@@ -103,7 +104,8 @@ def run(
 ) -> dict[str, Any] | None:
     """Validate ``cfg``, prepare its run directory and logger, run the experiment, store results.
 
-    Steps: :func:`validate` (before any work) → ``torch.set_num_threads(cfg.threads)`` →
+    Steps: :func:`validate` (before any work) → the device (``cfg.device``; ``meta.json``
+    records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` →
     :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
     :func:`make_logger` → ``run_explore`` / ``run_control`` → ``results.json`` → figures →
     the results table on stdout → logger shutdown.
@@ -115,7 +117,9 @@ def run(
     from torchrl_recon.experiments.stages import StopRequested
 
     cfg = validate(cfg)
+    device = resolve_device(cfg.device)  # a CUDA device this machine lacks: refused here
     torch.set_num_threads(int(cfg.threads))
+    extra_meta = {**dict(extra_meta or {}), "device": describe_device(device)}
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
     print(f"[{cfg.experiment}] {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
     logger = None

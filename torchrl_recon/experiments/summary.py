@@ -226,7 +226,32 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
         envs = {env: _calibrate_env_summary(runs) for env, runs in by_env.items()}
     else:
         raise ValueError(f"Unknown experiment kind {kind!r} in results.")
-    return {"experiment": kind, "files": [str(f) for f in files], "envs": envs}
+    processors = sorted({processor(r) for r in results})
+    return {
+        "experiment": kind,
+        "files": [str(f) for f in files],
+        "envs": envs,
+        "processors": processors,
+    }
+
+
+def processor(results: Mapping[str, Any]) -> str:
+    """The device a run was made on, from its ``meta``: results are bit-identical only on the
+    same commit and the same kind of processor.
+
+    Examples:
+        >>> meta = {"device": {"device": "cpu", "cpu_model": "AMD EPYC", "cpu_capability": "AVX512"}}
+        >>> processor({"meta": meta})
+        'cpu: AMD EPYC (AVX512)'
+        >>> processor({"meta": {}})
+        'not recorded'
+    """
+    info = results.get("meta", {}).get("device")
+    if not info:
+        return "not recorded"
+    if str(info.get("device", "")).startswith("cuda"):
+        return f"{info['device']}: {info.get('name')} (CPU {info.get('cpu_model')})"
+    return f"{info.get('device')}: {info.get('cpu_model')} ({info.get('cpu_capability')})"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -302,7 +327,15 @@ def _calibrate_table(title: str, rows_by_name: Mapping[str, Any], horizon: int) 
 
 
 def format_table(results_or_summary: Mapping[str, Any]) -> str:
-    """A plain-text table of one results dict or of a :func:`summarize` output."""
+    """A plain-text table of one results dict or of a :func:`summarize` output (which ends with
+    the processors the runs were made on)."""
+    text = _table(results_or_summary)
+    if "processors" in results_or_summary:
+        text += "\nmade on: " + "; ".join(results_or_summary["processors"])
+    return text
+
+
+def _table(results_or_summary: Mapping[str, Any]) -> str:
     r = results_or_summary
     kind = r.get("experiment")
     if "envs" in r:  # a summary

@@ -13,13 +13,11 @@ def _ranks(x: torch.Tensor) -> torch.Tensor:
     x = x.double().flatten()
     order = torch.argsort(x)
     ranks = torch.empty_like(x)
-    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64)
+    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64, device=x.device)
     unique, inverse = torch.unique(x, return_inverse=True)
     if len(unique) < len(x):
-        sums = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, ranks)
-        counts = torch.zeros(len(unique), dtype=torch.float64).index_add_(
-            0, inverse, torch.ones_like(ranks)
-        )
+        sums = x.new_zeros(len(unique)).index_add_(0, inverse, ranks)
+        counts = x.new_zeros(len(unique)).index_add_(0, inverse, torch.ones_like(ranks))
         ranks = (sums / counts)[inverse]
     return ranks
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules.checks import check_features, check_finite, check_window
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 

@@ -10,6 +10,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
 from torchrl_recon.modules.activations import ACTIVATIONS
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.planning_model import CostFn
@@ -117,7 +118,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         module = TensorDictSequential(
             _InputModule(world_model), lstm, _StepModule(world_model, cost_fn, uncertainty, beta)
         )
-        device = world_model.obs_norm.loc.device
+        device = module_device(world_model)
         super().__init__(module, device=device)
         self.lstm_world_model, self.estimator = world_model, uncertainty
         n, m, hid = world_model.obs_dim, world_model.action_dim, world_model.hidden_size

@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from torchrl_recon.modules.checks import check_features, check_finite, check_window
+from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
@@ -87,6 +88,8 @@ class PlanningModel(nn.Module):
     Keyword Args:
         uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
         action_low, action_high: action bounds (floats or ``[M]`` tensors); must be finite.
+            Stored as buffers on the world model's device and dtype (``.to()`` moves them
+            with the rest); planners draw their candidates there.
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -118,8 +121,15 @@ class PlanningModel(nn.Module):
                 f"uncertainty estimator dims (obs {uncertainty.obs_dim}, action {uncertainty.action_dim}) differ from "
                 f"the world model's (obs {self.obs_dim}, action {self.action_dim})."
             )
-        low = torch.as_tensor(action_low, dtype=torch.float32).expand(self.action_dim).clone()
-        high = torch.as_tensor(action_high, dtype=torch.float32).expand(self.action_dim).clone()
+        # The bounds, and every candidate drawn within them, follow the world model's device and
+        # dtype; they are checked on the CPU first.
+        dtype, device = torch.float32, torch.device("cpu")
+        if isinstance(world_model, nn.Module):
+            dtype, device = module_dtype(world_model), module_device(world_model)
+        low, high = (
+            torch.as_tensor(value, dtype=dtype, device="cpu").expand(self.action_dim)
+            for value in (action_low, action_high)
+        )
         if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
             raise ValueError(
                 f"action bounds must be finite, got low={low.tolist()}, high={high.tolist()}."
@@ -128,8 +138,8 @@ class PlanningModel(nn.Module):
             raise ValueError(
                 f"action_low must be below action_high, got low={low.tolist()}, high={high.tolist()}."
             )
-        self.register_buffer("action_low", low)
-        self.register_buffer("action_high", high)
+        self.register_buffer("action_low", low.to(device).clone())
+        self.register_buffer("action_high", high.to(device).clone())
 
     @property
     def context_length(self) -> int:

@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
@@ -34,13 +35,6 @@ class FitResult:
 def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
     out = loss_module(batch)
     return sum(v for k, v in out.items() if k.startswith("loss"))
-
-
-def _device(module: nn.Module) -> torch.device:
-    """Where ``module``'s parameters (or, without any, its buffers) are; the CPU if it has none."""
-    for tensor in (*module.parameters(), *module.buffers()):
-        return tensor.device
-    return torch.device("cpu")
 
 
 @torch.no_grad()
@@ -105,7 +99,7 @@ def train_loss_module(
         else None
     )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
-    device = _device(loss_module)  # the buffers' storage may stay on the CPU
+    device = module_device(loss_module)  # the buffers' storage may stay on the CPU
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []

@@ -544,6 +544,17 @@ def test_planning_model_bounds_and_policy_state_follow_the_world_model():
     assert env.device.type == "meta" and model.dense.weight.device.type == "meta"
 
 
+def test_a_context_on_another_device_than_the_planner_is_a_clear_error():
+    model = LSTMWorldModel(N, M, window=T, hidden_size=8, dense_size=8).to("meta")
+    planner = RandomShootingPlanner(
+        PlanningModel(model, drone_cost), Objective(), horizon=4, num_candidates=8
+    )
+    with pytest.raises(
+        ValueError, match=r"observation is on cpu but the planning model is on meta"
+    ):
+        planner.plan(*_context())
+
+
 @pytest.mark.parametrize("kind", [None, "reconstruction", "mc_dropout"])
 @pytest.mark.parametrize("planner", sorted(PLANNERS))
 def test_plan_in_float64_follows_the_models_dtype(planner, kind):

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 
@@ -66,10 +68,13 @@ def imagined_uncertainty_and_error(
     For each real trajectory ``[V, window + H]``, the world model imagines the last ``H``
     states from the real actions after a real context of ``window`` steps; the estimator
     scores every window of (context + imagined states, actions) ending in the imagined part.
+    The trajectories are moved to the world model's device, where the results are.
 
     Returns:
         ``(cumulative_u [V], mean_squared_error [V])``, the error in units of ``scale``.
     """
+    if isinstance(world_model, nn.Module):
+        trajectories = trajectories.to(module_device(world_model))
     obs, action = trajectories["observation"], trajectories["action"]
     next_obs = trajectories["next", "observation"]
     pred = world_model.imagine(
@@ -81,5 +86,5 @@ def imagined_uncertainty_and_error(
     u = estimator.score(states, action[:, window - t + 1 :])
     err = pred - next_obs[:, window:]
     if scale is not None:
-        err = err / scale
+        err = err / scale.to(err.device)
     return u.sum(-1), err.pow(2).mean((-1, -2))

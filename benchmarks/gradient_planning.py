@@ -5,40 +5,38 @@ Gradient planning (``GradientPlanner``) differentiates a rollout of ``rows`` act
 over ``horizon`` steps with respect to the actions, once per Adam step. Timed here, forward
 plus backward, round-robin so a change of machine load hits all alike:
 
-* plain PyTorch: the world model's own ``nn.LSTM`` called one step at a time, the way a user
-  would write an autoregressive rollout (the baseline);
-* ours, recorded graph: our rollout with every op recorded by autograd (``recorded_rollout``,
-  the reference; what the library used before the fused node);
-* ours, fused: :class:`~torchrl_recon.modules._lstm_rollout.LSTMRollout`, one autograd node
-  with a hand-written backward (what ``imagine`` uses; bitwise the recorded graph's gradients).
+* plain PyTorch: the world model's own ``nn.LSTM`` called one step at a time
+  (``LSTMWorldModel.step``), the way a user would write an autoregressive rollout (the
+  baseline);
+* ours, recorded graph: our rollout with every op recorded by autograd
+  (``LSTMWorldModel.rollout(..., recorded=True)``, the reference; what the library used before
+  the fused node);
+* ours, fused: one autograd node with a hand-written backward (what ``imagine`` and
+  ``rollout`` use; bitwise the recorded graph's gradients).
 
-Then one whole gradient plan (16 restarts × 50 Adam steps, with u), the weight gradients of a
-multi-step training batch (32 windows × 30 steps) both ways, and the speed-ups of the fused
-rollout.
+Then one whole gradient plan (16 restarts × 50 Adam steps, with u), the gradients of the
+weights of a multi-step training batch (32 windows × 30 steps) both ways, and the speed-ups of
+the fused rollout.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import time
 
 import torch
 from _common import COST, context, paper_models
 
 from torchrl_recon._timing import interleaved_median_ms
-from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 
 
 def plain_rollout(world, s, h, c, actions: torch.Tensor) -> torch.Tensor:
     """Autoregressive rollout with ``world.lstm`` stepped once per action, ``[R, H, N]``."""
-    h, c = h[None].contiguous(), c[None].contiguous()
-    states = []
+    state, states = (h, c), []
     for t in range(actions.shape[1]):
-        x = world._inputs(s, actions[:, t])[:, None]
-        out, (h, c) = world.lstm(x, (h, c))
-        z = torch.relu(world.dense(out[:, 0]))
-        s = s + world.delta_norm.denormalize(world.head(z))
+        s, state = world.step(s, actions[:, t], state)
         states.append(s)
     return torch.stack(states, 1)
 
@@ -66,9 +64,7 @@ def main() -> None:
         "plain PyTorch (nn.LSTM stepped)": backward(
             lambda: plain_rollout(world, s0, h, c, actions)
         ),
-        "ours, recorded graph": backward(
-            lambda: recorded_rollout(s0, h, c, actions, "relu", *world._folded_weights())
-        ),
+        "ours, recorded graph": backward(lambda: world.rollout(s0, actions, (h, c), recorded=True)),
         "ours, fused": backward(lambda: world.imagine(*ctx, actions, state=state)),
     }
     print(
@@ -91,17 +87,18 @@ def main() -> None:
         f"one gradient plan (16 restarts x 50 steps, with u): {time.perf_counter() - start:.2f} s"
     )
     # Multi-step training differentiates w.r.t. the weights: 32 windows x 30 steps (the recipes').
-    weights = [w.detach().requires_grad_(True) for w in world._folded_weights()]
-    train_s0, train_h, train_c = s0[:1].expand(32, -1), h[:1].expand(32, -1), c[:1].expand(32, -1)
+    trainable = copy.deepcopy(world).requires_grad_(True)
+    weights = list(trainable.parameters())
+    train_s0 = s0[:1].expand(32, -1)
+    train_state = (h[:1].expand(32, -1), c[:1].expand(32, -1))
     train_actions = torch.rand(32, 30, world.action_dim) * 2 - 1
 
-    def train(rollout):
-        states = rollout(train_s0, train_h, train_c, train_actions, "relu", *weights)
+    def train(recorded: bool):
+        states = trainable.rollout(train_s0, train_actions, train_state, recorded=recorded)
         return torch.autograd.grad(states.square().sum(), weights)
 
     training = interleaved_median_ms(
-        {"recorded": lambda: train(recorded_rollout), "fused": lambda: train(LSTMRollout.apply)},
-        args.repeats,
+        {"recorded": lambda: train(True), "fused": lambda: train(False)}, args.repeats
     )
     print(
         f"weight gradients, 32 x 30 steps (training): recorded graph {training['recorded']:.1f} ms, "

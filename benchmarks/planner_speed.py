@@ -45,7 +45,9 @@ def plain_model_env(world) -> WorldModelPlanningEnv:
         return next_obs, reward, torch.zeros_like(reward, dtype=torch.bool)
 
     env.world_model = TensorDictSequential(
-        TensorDictModule(world._inputs, in_keys=["observation", "action"], out_keys=["wm_input"]),
+        TensorDictModule(
+            world.normalize_inputs, in_keys=["observation", "action"], out_keys=["wm_input"]
+        ),
         LSTMModule(
             lstm=world.lstm,
             in_keys=["wm_input", "wm_h", "wm_c"],

@@ -157,3 +157,49 @@ def test_inplace_and_autograd_rollouts_agree(activation):
 
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])
+
+
+def test_step_by_step_prediction_equals_the_rollout():
+    """``step`` (nn.LSTM once per step) and ``rollout`` (the fused loop) predict the same states."""
+    model = _model()
+    ctx_s, ctx_a, s0, acts = (
+        torch.randn(2, 4, 3),
+        torch.randn(2, 4, 2),
+        torch.randn(2, 3),
+        torch.rand(2, 6, 2),
+    )
+    state = model.warmup(ctx_s, ctx_a)
+    with torch.no_grad():
+        rolled = model.rollout(s0, acts, state)
+        s, stepped = s0, []
+        for t in range(6):
+            s, state = model.step(s, acts[:, t], state)
+            stepped.append(s)
+    torch.testing.assert_close(torch.stack(stepped, 1), rolled, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(rolled, model.imagine(ctx_s, ctx_a, s0, acts[:, None])[:, 0])
+
+
+def test_recorded_rollout_is_the_reference_of_the_fused_one():
+    model = _model()
+    ctx_s, ctx_a = torch.randn(3, 4, 3), torch.randn(3, 4, 2)
+    s0, acts = torch.randn(3, 3), torch.rand(3, 5, 2)
+    results = []
+    for recorded in (True, False):
+        model.zero_grad()
+        states = model.rollout(s0, acts, model.warmup(ctx_s, ctx_a), recorded=recorded)
+        states.square().sum().backward()
+        results.append((states.detach(), [p.grad.clone() for p in model.parameters()]))
+    assert torch.equal(results[0][0], results[1][0])
+    assert all(torch.equal(a, b) for a, b in zip(results[0][1], results[1][1], strict=True))
+
+
+def test_step_and_rollout_reject_mismatched_batches():
+    model = _model()
+    with pytest.raises(ValueError, match="disagree on batch dims"):
+        model.step(torch.zeros(2, 3), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"expected \[\*B, H, 2\] with \*B = \(2,\)"):
+        model.rollout(
+            torch.zeros(2, 3),
+            torch.zeros(3, 5, 2),
+            model.warmup(torch.zeros(2, 4, 3), torch.zeros(2, 4, 2)),
+        )

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 
@@ -13,13 +15,11 @@ def _ranks(x: torch.Tensor) -> torch.Tensor:
     x = x.double().flatten()
     order = torch.argsort(x)
     ranks = torch.empty_like(x)
-    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64)
+    ranks[order] = torch.arange(1, len(x) + 1, dtype=torch.float64, device=x.device)
     unique, inverse = torch.unique(x, return_inverse=True)
     if len(unique) < len(x):
-        sums = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, ranks)
-        counts = torch.zeros(len(unique), dtype=torch.float64).index_add_(
-            0, inverse, torch.ones_like(ranks)
-        )
+        sums = x.new_zeros(len(unique)).index_add_(0, inverse, ranks)
+        counts = x.new_zeros(len(unique)).index_add_(0, inverse, torch.ones_like(ranks))
         ranks = (sums / counts)[inverse]
     return ranks
 
@@ -68,10 +68,13 @@ def imagined_uncertainty_and_error(
     For each real trajectory ``[V, window + H]``, the world model imagines the last ``H``
     states from the real actions after a real context of ``window`` steps; the estimator
     scores every window of (context + imagined states, actions) ending in the imagined part.
+    The trajectories are moved to the world model's device, where the results are.
 
     Returns:
         ``(cumulative_u [V], mean_squared_error [V])``, the error in units of ``scale``.
     """
+    if isinstance(world_model, nn.Module):
+        trajectories = trajectories.to(module_device(world_model))
     obs, action = trajectories["observation"], trajectories["action"]
     next_obs = trajectories["next", "observation"]
     pred = world_model.imagine(
@@ -83,5 +86,5 @@ def imagined_uncertainty_and_error(
     u = estimator.score(states, action[:, window - t + 1 :])
     err = pred - next_obs[:, window:]
     if scale is not None:
-        err = err / scale
+        err = err / scale.to(err.device)
     return u.sum(-1), err.pow(2).mean((-1, -2))

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
+
+from torchrl_recon.modules.device import module_device
 
 
 def multi_step_errors(
@@ -15,7 +18,8 @@ def multi_step_errors(
 ) -> torch.Tensor:
     """Squared prediction error per trajectory and step, ``[V, H]``, averaged over state dims.
 
-    Each trajectory ``[V, window + H]`` gives the model a real context of ``window`` steps;
+    Each trajectory ``[V, window + H]`` gives the model a real context of ``window`` steps
+    (moved to the model's device, where the result is);
     the model then predicts the next ``H`` states open loop from the real actions (as a planner
     would), and the predictions are compared with the real next states. Errors are in units of
     ``scale`` (per state dim; e.g. the standard deviation of a fixed reference dataset), raw
@@ -33,6 +37,8 @@ def multi_step_errors(
         >>> multi_step_errors(LinearDeltaModel(3, 1), td, window=5).shape
         torch.Size([2, 10])
     """
+    if isinstance(model, nn.Module):
+        trajectories = trajectories.to(module_device(model))
     obs, action = trajectories["observation"], trajectories["action"]
     next_obs = trajectories["next", "observation"]
     if obs.ndim != 3 or obs.shape[1] <= window:
@@ -45,5 +51,5 @@ def multi_step_errors(
         )[:, 0]
     err = pred - next_obs[:, window:]
     if scale is not None:
-        err = err / scale
+        err = err / scale.to(err.device)
     return err.pow(2).mean(-1)

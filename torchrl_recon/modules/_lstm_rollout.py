@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from torchrl_recon.modules._activations import ACTIVATION_BACKWARDS, ACTIVATIONS
+from torchrl_recon.modules.activations import ACTIVATION_BACKWARDS, ACTIVATIONS
 
 # The kernels autograd's own derivative formulas call (resolved overloads: cheaper to call).
 _sigmoid_backward = torch.ops.aten.sigmoid_backward.default

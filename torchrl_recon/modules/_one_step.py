@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import torch
 
-from torchrl_recon.modules._checks import check_features, check_finite
+from torchrl_recon.modules.checks import check_features, check_finite
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 _BLOCK = 2048  # steps per block in the no-grad path

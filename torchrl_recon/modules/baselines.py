@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchrl_recon.modules._checks import check_features
+from torchrl_recon.modules.checks import check_features
 
 
 class LinearDeltaModel(nn.Module):
@@ -39,7 +39,7 @@ class LinearDeltaModel(nn.Module):
             .double()
         )
         y = (next_obs - obs).reshape(-1, self.obs_dim).double()
-        gram = x.T @ x + 1e-6 * torch.eye(x.shape[1], dtype=x.dtype)
+        gram = x.T @ x + 1e-6 * torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
         self.weight.copy_(torch.linalg.solve(gram, x.T @ y).to(self.weight.dtype))
 
     def imagine(

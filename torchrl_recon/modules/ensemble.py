@@ -8,9 +8,9 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._activations import ACTIVATIONS, check_activation
-from torchrl_recon.modules._checks import check_int
 from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.modules.activations import ACTIVATIONS
+from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
@@ -129,10 +129,10 @@ class EnsembleUncertainty(UncertaintyEstimator):
 
         Bootstrap per minibatch: the P transitions inside the sequences ``[*B, L, N]``,
         ``[*B, L, M]`` are resampled with replacement once per member
-        (``torch.randint(P, (E, P))`` from the global RNG).
+        (``torch.randint(P, (E, P))`` from the global RNG of the inputs' device).
         """
         inputs, targets = one_step_pairs(self, obs, action)
-        index = torch.randint(inputs.shape[0], (self.num_members, inputs.shape[0]))
-        index = index.to(inputs.device)
+        p = inputs.shape[0]
+        index = torch.randint(p, (self.num_members, p), device=inputs.device)
         pred = self.predict_deltas(inputs[index])
         return (pred - targets[index]).pow(2).mean()

@@ -7,9 +7,9 @@ from tensordict import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
-from torchrl_recon.modules._activations import ACTIVATIONS, check_activation
-from torchrl_recon.modules._checks import check_int
 from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.modules.activations import ACTIVATIONS
+from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
@@ -29,12 +29,12 @@ class MCDropoutUncertainty(UncertaintyEstimator):
     (σ_s²), like :class:`~torchrl_recon.modules.EnsembleUncertainty`.
 
     The S passes run as one batched pass. Each call draws per-pass masks of shape
-    ``[S, 1, hidden]`` (one per hidden layer) from the global CPU RNG, scaled by 1/(1 − p),
-    and shares them across every row of the call: all candidates a planner scores in one
-    call see the same S sub-networks (common random numbers), so their u differ only
-    because their (s, a) differ, and mask noise does not reorder them. Successive calls draw
-    new masks, so u is stochastic across calls; seed ``torch.manual_seed`` for reproducible
-    scores.
+    ``[S, 1, hidden]`` (one per hidden layer) from the global RNG of the inputs' device,
+    scaled by 1/(1 − p), and shares them across every row of the call: all candidates a
+    planner scores in one call see the same S sub-networks (common random numbers), so their
+    u differ only because their (s, a) differ, and mask noise does not reorder them.
+    Successive calls draw new masks, so u is stochastic across calls; seed
+    ``torch.manual_seed`` for reproducible scores.
 
     Args:
         obs_dim: state size N.
@@ -103,7 +103,7 @@ class MCDropoutUncertainty(UncertaintyEstimator):
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         keep = 1.0 - self.dropout
         shape = (2, self.samples, 1, self.hidden_size)  # one mask per hidden layer and pass
-        masks = torch.bernoulli(torch.full(shape, keep)).to(x).div_(keep)
+        masks = torch.bernoulli(torch.full(shape, keep, device=x.device)).to(x).div_(keep)
         needs_grad = torch.is_grad_enabled() and (
             x.requires_grad or self.hidden1.weight.requires_grad
         )

@@ -6,12 +6,8 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._activations import (
-    ACTIVATIONS,
-    INPLACE_ACTIVATIONS,
-    check_activation,
-)
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.activations import ACTIVATIONS, INPLACE_ACTIVATIONS
+from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
@@ -116,11 +112,11 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         b2 = self.decoder.bias
         c1 = self.encoder.bias + self.encoder.weight @ b2
         act_ = INPLACE_ACTIVATIONS[self.activation]
-        out = torch.empty(rows, num_windows, dtype=x.dtype)
+        out = x.new_empty(rows, num_windows)
         step = max(1, _BLOCK // num_windows)
         # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).
-        shifted_buf = torch.empty(step * num_windows, size, dtype=x.dtype)
-        hidden_buf = torch.empty(step * num_windows, self.hidden_size, dtype=x.dtype)
+        shifted_buf = x.new_empty(step * num_windows, size)
+        hidden_buf = x.new_empty(step * num_windows, self.hidden_size)
         for i in range(0, rows, step):
             block = x[i : i + step]
             n = block.shape[0] * num_windows

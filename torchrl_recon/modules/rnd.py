@@ -8,8 +8,7 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._activations import check_activation
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 

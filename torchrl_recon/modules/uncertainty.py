@@ -8,7 +8,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_recon.modules._checks import check_features, check_finite, check_int, check_window
+from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 
 
 def window_view(x: torch.Tensor, window: int) -> torch.Tensor:

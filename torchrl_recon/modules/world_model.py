@@ -7,13 +7,15 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from torchrl_recon.modules._activations import (
-    ACTIVATIONS,
-    INPLACE_ACTIVATIONS,
+from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
+from torchrl_recon.modules.activations import ACTIVATIONS, INPLACE_ACTIVATIONS
+from torchrl_recon.modules.checks import (
     check_activation,
+    check_features,
+    check_finite,
+    check_int,
+    check_window,
 )
-from torchrl_recon.modules._checks import check_features, check_finite, check_int, check_window
-from torchrl_recon.modules._lstm_rollout import LSTMRollout
 from torchrl_recon.modules.normalization import Normalizer
 
 
@@ -31,6 +33,10 @@ class LSTMWorldModel(TensorDictModuleBase):
     * :meth:`imagine`: warm up on a real context of ``window`` (s, a) pairs, then roll out
       ``[*B, K, H, M]`` candidate action sequences autoregressively, all candidates at once,
       differentiably with respect to the actions.
+
+    Their parts are public too: :meth:`warmup` (the LSTM state after a context), :meth:`step`
+    (one autoregressive step) and :meth:`rollout` (many steps from a warmed-up state).
+    Every output is made on the device and dtype of the model and its inputs.
 
     Args:
         obs_dim: state size N.
@@ -96,6 +102,11 @@ class LSTMWorldModel(TensorDictModuleBase):
             "activation": self.activation,
         }
 
+    @property
+    def feature_dim(self) -> int:
+        """Features per step of the LSTM's input, N + M."""
+        return self.obs_dim + self.action_dim
+
     def fit_normalization(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
     ) -> None:
@@ -107,7 +118,14 @@ class LSTMWorldModel(TensorDictModuleBase):
         self.action_norm.fit(action)
         self.delta_norm.fit(next_obs - obs)
 
-    def _inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def normalize_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The LSTM's input for raw ``obs`` ``[..., N]`` and ``action`` ``[..., M]``: both
+        standardised, concatenated, ``[..., N + M]``.
+
+        Examples:
+            >>> LSTMWorldModel(6, 3).normalize_inputs(torch.zeros(5, 6), torch.ones(5, 3)).shape
+            torch.Size([5, 9])
+        """
         return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
 
     def predict_delta(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -118,7 +136,7 @@ class LSTMWorldModel(TensorDictModuleBase):
             raise ValueError(
                 f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
             )
-        x = self._inputs(obs, action)
+        x = self.normalize_inputs(obs, action)
         batch, length = x.shape[:-2], x.shape[-2]
         out, _ = self.lstm(x.reshape(-1, length, x.shape[-1]))
         z = ACTIVATIONS[self.activation](self.dense(out))
@@ -143,7 +161,7 @@ class LSTMWorldModel(TensorDictModuleBase):
                 "disagree on batch/time dims."
             )
         check_finite("context_obs", context_obs)
-        x = self._inputs(
+        x = self.normalize_inputs(
             context_obs[..., -self.window :, :], context_action[..., -self.window :, :]
         )
         batch = x.shape[:-2]
@@ -204,16 +222,112 @@ class LSTMWorldModel(TensorDictModuleBase):
         h = h.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         c = c.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
         flat_actions = actions.reshape(rows, horizon, self.action_dim)
-        needs_grad = torch.is_grad_enabled() and any(
-            x.requires_grad for x in (s0, h, c, flat_actions, *self.parameters())
-        )
-        if needs_grad:  # one autograd node with a hand-written backward through time
-            states = LSTMRollout.apply(
+        states = self._rollout(s0, h, c, flat_actions)
+        return states.reshape(*batch, k, horizon, self.obs_dim)
+
+    def step(
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """One-step prediction: s_{t+1} from s_t ``[*B, N]``, a_t ``[*B, M]`` and the LSTM state.
+
+        Args:
+            observation: s_t, ``[*B, N]``.
+            action: a_t, ``[*B, M]``.
+            state: ``(h, c)`` ``[*B, hidden]`` from :meth:`warmup` or the previous step; zeros
+                when None.
+
+        Returns:
+            ``(s_{t+1} [*B, N], (h, c))``: feed both back for the next step (this calls the
+            model's ``nn.LSTM`` once per step; :meth:`rollout` does many steps at once).
+
+        Examples:
+            >>> model = LSTMWorldModel(6, 3)
+            >>> s, state = model.step(torch.zeros(2, 6), torch.zeros(2, 3))
+            >>> s, state = model.step(s, torch.ones(2, 3), state)
+            >>> s.shape, state[0].shape
+            (torch.Size([2, 6]), torch.Size([2, 32]))
+        """
+        check_features("observation", observation, self.obs_dim)
+        check_features("action", action, self.action_dim)
+        if observation.shape[:-1] != action.shape[:-1]:
+            raise ValueError(
+                f"observation {tuple(observation.shape)} and action {tuple(action.shape)} "
+                "disagree on batch dims."
+            )
+        batch, hid = observation.shape[:-1], self.hidden_size
+        x = self.normalize_inputs(observation, action).reshape(-1, 1, self.feature_dim)
+        hx = None
+        if state is not None:
+            hx = tuple(s.reshape(1, -1, hid).contiguous() for s in state)
+        out, (h, c) = self.lstm(x, hx)
+        z = ACTIVATIONS[self.activation](self.dense(out[:, 0]))
+        delta = self.delta_norm.denormalize(self.head(z)).reshape(*batch, self.obs_dim)
+        return observation + delta, (h[0].reshape(*batch, hid), c[0].reshape(*batch, hid))
+
+    def rollout(
+        self,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor],
+        *,
+        recorded: bool = False,
+    ) -> torch.Tensor:
+        """Roll action sequences out autoregressively from a warmed-up state, one row each.
+
+        Args:
+            observation: s_t, ``[*B, N]``.
+            actions: a_{t..t+H-1}, ``[*B, H, M]``.
+            state: ``(h, c)`` ``[*B, hidden]`` (from :meth:`warmup`).
+
+        Keyword Args:
+            recorded: record every op with autograd (the slow reference) instead of the
+                default: an in-place loop when nothing needs a gradient, else one autograd
+                node with a hand-written backward through time, bitwise the reference's
+                states and gradients.
+
+        Returns:
+            s_{t+1..t+H}, ``[*B, H, N]``, differentiable w.r.t. the actions, the start state and
+            the model's parameters.
+
+        Examples:
+            >>> model = LSTMWorldModel(6, 3, window=4)
+            >>> state = model.warmup(torch.zeros(2, 4, 6), torch.zeros(2, 4, 3))
+            >>> model.rollout(torch.zeros(2, 6), torch.rand(2, 20, 3), state).shape
+            torch.Size([2, 20, 6])
+        """
+        check_features("observation", observation, self.obs_dim)
+        check_features("actions", actions, self.action_dim, min_ndim=2)
+        batch, hid = observation.shape[:-1], self.hidden_size
+        if actions.shape[:-2] != batch:
+            raise ValueError(
+                f"actions has shape {tuple(actions.shape)}; expected [*B, H, {self.action_dim}] "
+                f"with *B = {tuple(batch)}."
+            )
+        horizon = actions.shape[-2]
+        s0 = observation.reshape(-1, self.obs_dim)
+        h, c = (x.reshape(-1, hid) for x in state)
+        flat_actions = actions.reshape(-1, horizon, self.action_dim)
+        if recorded:
+            states = recorded_rollout(
                 s0, h, c, flat_actions, self.activation, *self._folded_weights()
             )
         else:
-            states = self._rollout_inplace(s0, h, c, flat_actions)
-        return states.reshape(*batch, k, horizon, self.obs_dim)
+            states = self._rollout(s0, h, c, flat_actions)
+        return states.reshape(*batch, horizon, self.obs_dim)
+
+    def _rollout(
+        self, s0: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
+        """``[R, N]``, ``[R, hid]``, ``[R, hid]``, ``[R, H, M]`` → ``[R, H, N]`` on the fastest path."""
+        needs_grad = torch.is_grad_enabled() and any(
+            x.requires_grad for x in (s0, h, c, actions, *self.parameters())
+        )
+        if needs_grad:  # one autograd node with a hand-written backward through time
+            return LSTMRollout.apply(s0, h, c, actions, self.activation, *self._folded_weights())
+        return self._rollout_inplace(s0, h, c, actions)
 
     @torch.no_grad()
     def _rollout_inplace(
@@ -231,31 +345,31 @@ class LSTMWorldModel(TensorDictModuleBase):
         w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
         n, hid, dense = self.obs_dim, self.hidden_size, self.dense_size
         rows, horizon = actions.shape[:2]
-        dtype = s.dtype
+        like = dict(dtype=s.dtype, device=s.device)
         order = torch.cat(
             [
-                torch.arange(0, 2 * hid),
-                torch.arange(3 * hid, 4 * hid),
-                torch.arange(2 * hid, 3 * hid),
+                torch.arange(0, 2 * hid, device=s.device),
+                torch.arange(3 * hid, 4 * hid, device=s.device),
+                torch.arange(2 * hid, 3 * hid, device=s.device),
             ]
         )
         w_s1 = torch.cat([w_sh[:n], bias[None]])[:, order].contiguous()  # [N + 1, 4 hid]
-        w_hh1 = torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, dtype=dtype)])[:, order].contiguous()
+        w_hh1 = torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)])[:, order].contiguous()
         w_d1 = torch.cat([w_d, b_d[None]]).contiguous()  # [hid + 1, dense]
-        w_out1 = torch.zeros(dense + 1, n + 1, dtype=dtype)  # the last column keeps the states' 1
+        w_out1 = torch.zeros(dense + 1, n + 1, **like)  # the last column keeps the states' 1
         w_out1[:dense, :n], w_out1[dense, :n] = w_out, b_out
         w_a = w_a[:, order].contiguous()
         steps = actions.transpose(0, 1).contiguous()  # [H, R, M]: one contiguous slice per step
-        gates = torch.empty(rows, 4 * hid, dtype=dtype)
-        states = torch.ones(horizon + 1, rows, n + 1, dtype=dtype)
+        gates = torch.empty(rows, 4 * hid, **like)
+        states = torch.ones(horizon + 1, rows, n + 1, **like)
         states[0, :, :n] = s
-        h1 = torch.ones(rows, hid + 1, dtype=dtype)
+        h1 = torch.ones(rows, hid + 1, **like)
         h1[:, :hid] = h
-        z1 = torch.ones(rows, dense + 1, dtype=dtype)
+        z1 = torch.ones(rows, dense + 1, **like)
         h_view, z_view = h1[:, :hid], z1[:, :dense]
         c = c.contiguous().clone()
-        sig = torch.empty(rows, 3 * hid, dtype=dtype)
-        tg = torch.empty(rows, hid, dtype=dtype)
+        sig = torch.empty(rows, 3 * hid, **like)
+        tg = torch.empty(rows, hid, **like)
         act_ = INPLACE_ACTIVATIONS[self.activation]
         for t in range(horizon):
             torch.mm(steps[t], w_a, out=gates).addmm_(states[t], w_s1).addmm_(h1, w_hh1)

@@ -9,7 +9,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
 
@@ -54,6 +54,10 @@ class PlannerBase(nn.Module):
     the planner falls back to the least-violating candidate and reports ``feasible=False``
     (``on_infeasible="fallback"``, with an :class:`InfeasiblePlanWarning`), or raises :class:`InfeasiblePlanError`
     (``on_infeasible="raise"``).
+
+    Candidates are made on the device and dtype of the planning model (its action bounds):
+    move the planner, or the :class:`PlanningModel`, with ``.to(device)`` and pass the context
+    on that device.
     """
 
     def __init__(
@@ -79,12 +83,29 @@ class PlannerBase(nn.Module):
             on_infeasible,
         )
 
+    def _draw(
+        self, sample, batch: torch.Size, k: int, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """``sample`` (``torch.rand`` or ``torch.randn``) of shape ``[*B, k, H, M]`` on the model's
+        device and dtype: from the global RNG of that device, or from ``generator`` on its own
+        device, then moved."""
+        like = self.model.action_low
+        shape = (*batch, k, self.horizon, self.model.action_dim)
+        if generator is None:
+            return sample(shape, dtype=like.dtype, device=like.device)
+        drawn = sample(shape, generator=generator, dtype=like.dtype, device=generator.device)
+        return drawn.to(like.device)
+
     def _uniform(
         self, batch: torch.Size, k: int, generator: torch.Generator | None = None
     ) -> torch.Tensor:
         low, high = self.model.action_low, self.model.action_high
-        u = torch.rand(*batch, k, self.horizon, self.model.action_dim, generator=generator)
-        return low + (high - low) * u
+        return low + (high - low) * self._draw(torch.rand, batch, k, generator)
+
+    def _normal(
+        self, batch: torch.Size, k: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        return self._draw(torch.randn, batch, k, generator)
 
     def _clamp(self, actions: torch.Tensor) -> torch.Tensor:
         return torch.maximum(torch.minimum(actions, self.model.action_high), self.model.action_low)
@@ -100,11 +121,17 @@ class PlannerBase(nn.Module):
         observation: torch.Tensor,
         *,
         init: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
     ) -> PlanResult:
         """Plan from a real context ``[*B, T, N]``, ``[*B, T, M]`` and state ``[*B, N]``.
 
-        Args:
+        All on the planning model's device; the result is on it too.
+
+        Keyword Args:
             init: optional warm start ``[*B, H, M]`` (e.g. the previous plan shifted by one step).
+            generator: draw the random candidates from this generator (on its own device, then
+                moved to the model's), e.g. a CPU ``torch.Generator`` for the same candidates
+                on every device. Default: the global RNG of the model's device.
         """
         self.model.check_context(context_obs, context_action, observation)
         if init is not None and init.shape != (
@@ -119,11 +146,11 @@ class PlannerBase(nn.Module):
             context_obs, context_action
         )  # once per plan, shared by every iteration
         candidates, prediction, bounds = self._optimise(
-            context_obs, context_action, observation, init, state
+            context_obs, context_action, observation, init, state, generator
         )
         return self._choose(candidates, prediction, bounds)
 
-    def _optimise(self, context_obs, context_action, observation, init, state):
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
         raise NotImplementedError
 
     def _choose(self, candidates: torch.Tensor, prediction: Prediction, bounds) -> PlanResult:

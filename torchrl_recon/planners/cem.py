@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
@@ -68,7 +68,7 @@ class CEMPlanner(PlannerBase):
         self.smoothing, self.min_std = smoothing, min_std
 
     @torch.inference_mode()
-    def _optimise(self, context_obs, context_action, observation, init, state):
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
         low, high = self.model.action_low, self.model.action_high
         span = high - low
@@ -76,27 +76,25 @@ class CEMPlanner(PlannerBase):
         best_candidates = best_prediction = bounds = None
         for it in range(self.iterations):
             if mean is None and init is None:
-                candidates = self._uniform(batch, self.num_candidates)
+                candidates = self._uniform(batch, self.num_candidates, generator)
             elif mean is None:
                 # Warm start: half uniform (the reference for relative bands), half around `init`.
-                uniform = self._uniform(batch, self.num_candidates - self.num_candidates // 2)
-                noise = torch.randn(
-                    *batch, self.num_candidates // 2, self.horizon, self.model.action_dim
-                )
+                half = self.num_candidates // 2
+                uniform = self._uniform(batch, self.num_candidates - half, generator)
+                noise = self._normal(batch, half, generator)
                 candidates = torch.cat(
                     [uniform, self._clamp(init.unsqueeze(-3) + 0.25 * span * noise)], -3
                 )
             else:
-                noise = torch.randn(
-                    *batch, self.num_candidates, self.horizon, self.model.action_dim
-                )
+                noise = self._normal(batch, self.num_candidates, generator)
                 candidates = self._clamp(mean + std * noise)
             prediction = self.model(
                 context_obs, context_action, observation, candidates, state=state
             )
             if it == 0 and self.objective.band is not None:
                 reference = torch.arange(
-                    self.num_candidates - (self.num_candidates // 2 if init is not None else 0)
+                    self.num_candidates - (self.num_candidates // 2 if init is not None else 0),
+                    device=candidates.device,
                 )
                 bounds = self._bounds(prediction.take(reference.expand(*batch, -1)))
             key = rank_key(

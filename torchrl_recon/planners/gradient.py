@@ -8,7 +8,7 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
@@ -82,10 +82,10 @@ class GradientPlanner(PlannerBase):
             raise ValueError(f"lr must be positive, got {lr!r}.")
         self.restarts, self.steps, self.lr = restarts, steps, lr
 
-    def _optimise(self, context_obs, context_action, observation, init, state):
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
         with torch.no_grad():
-            start = self._uniform(batch, self.restarts)
+            start = self._uniform(batch, self.restarts, generator)
             if init is not None:
                 start[..., 0, :, :] = init
         actions = start.requires_grad_(True)
@@ -107,6 +107,7 @@ class GradientPlanner(PlannerBase):
                 with torch.no_grad():
                     actions.copy_(self._clamp(actions))
         # Relative bands are resolved on the uniform initial restarts (restart 0 is `init` when given).
-        uniform = torch.arange(1 if init is not None and self.restarts > 1 else 0, self.restarts)
+        first = 1 if init is not None and self.restarts > 1 else 0
+        uniform = torch.arange(first, self.restarts, device=start.device)
         bounds = self._bounds(seen.take(uniform.expand(*batch, -1)))
         return torch.cat(seen_actions, -3), seen, bounds

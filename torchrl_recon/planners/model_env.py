@@ -9,7 +9,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
-from torchrl_recon.modules._activations import ACTIVATIONS
+from torchrl_recon.modules.activations import ACTIVATIONS
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.planning_model import CostFn
@@ -26,7 +27,8 @@ class _InputModule(TensorDictModuleBase):
         self.in_keys, self.out_keys = ["observation", "action"], ["wm_input"]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        return td.set("wm_input", self.world_model._inputs(td.get("observation"), td.get("action")))
+        wm_input = self.world_model.normalize_inputs(td.get("observation"), td.get("action"))
+        return td.set("wm_input", wm_input)
 
 
 class _StepModule(TensorDictModuleBase):
@@ -76,7 +78,8 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
     (``wm_h``, ``wm_c``), ``is_init`` and, with an estimator, the last ``T − 1`` (s, a) pairs
     (``u_history``) are part of the observation spec, so they are carried through rollouts.
     The reward is ``−cost − beta·u`` of each imagined transition. Start a rollout from
-    :meth:`initial_state`, which warms the LSTM up on a real context.
+    :meth:`initial_state`, which warms the LSTM up on a real context. The env's device is the
+    world model's (it is not moved).
 
     Args:
         world_model: the world model.
@@ -115,21 +118,22 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         module = TensorDictSequential(
             _InputModule(world_model), lstm, _StepModule(world_model, cost_fn, uncertainty, beta)
         )
-        super().__init__(module)
+        device = module_device(world_model)
+        super().__init__(module, device=device)
         self.lstm_world_model, self.estimator = world_model, uncertainty
         n, m, hid = world_model.obs_dim, world_model.action_dim, world_model.hidden_size
         observation = {
-            "observation": Unbounded((n,)),
-            H_KEY: Unbounded((1, hid)),
-            C_KEY: Unbounded((1, hid)),
-            "is_init": Categorical(2, (1,), dtype=torch.bool),
+            "observation": Unbounded((n,), device=device),
+            H_KEY: Unbounded((1, hid), device=device),
+            C_KEY: Unbounded((1, hid), device=device),
+            "is_init": Categorical(2, (1,), dtype=torch.bool, device=device),
         }
         if uncertainty is not None:
-            observation[U_HISTORY] = Unbounded((uncertainty.window - 1, n + m))
-        self.observation_spec = Composite(observation)
+            observation[U_HISTORY] = Unbounded((uncertainty.window - 1, n + m), device=device)
+        self.observation_spec = Composite(observation, device=device)
         self.state_spec = self.observation_spec.clone()
-        self.action_spec = Bounded(action_low, action_high, (m,))
-        self.reward_spec = Unbounded((1,))
+        self.action_spec = Bounded(action_low, action_high, (m,), device=device)
+        self.reward_spec = Unbounded((1,), device=device)
 
     def initial_state(
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
@@ -144,7 +148,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
                 "observation": observation,
                 H_KEY: h.unsqueeze(-2),
                 C_KEY: c.unsqueeze(-2),
-                "is_init": torch.zeros(*batch, 1, dtype=torch.bool),
+                "is_init": torch.zeros(*batch, 1, dtype=torch.bool, device=observation.device),
             },
             batch,
         )

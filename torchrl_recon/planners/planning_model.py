@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchrl_recon.modules._checks import check_features, check_finite, check_window
+from torchrl_recon.modules.checks import check_features, check_finite, check_window
+from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
@@ -87,6 +88,8 @@ class PlanningModel(nn.Module):
     Keyword Args:
         uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
         action_low, action_high: action bounds (floats or ``[M]`` tensors); must be finite.
+            Stored as buffers on the world model's device and dtype (``.to()`` moves them
+            with the rest); planners draw their candidates there.
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -118,8 +121,15 @@ class PlanningModel(nn.Module):
                 f"uncertainty estimator dims (obs {uncertainty.obs_dim}, action {uncertainty.action_dim}) differ from "
                 f"the world model's (obs {self.obs_dim}, action {self.action_dim})."
             )
-        low = torch.as_tensor(action_low, dtype=torch.float32).expand(self.action_dim).clone()
-        high = torch.as_tensor(action_high, dtype=torch.float32).expand(self.action_dim).clone()
+        # The bounds, and every candidate drawn within them, follow the world model's device and
+        # dtype; they are checked on the CPU first.
+        dtype, device = torch.float32, torch.device("cpu")
+        if isinstance(world_model, nn.Module):
+            dtype, device = module_dtype(world_model), module_device(world_model)
+        low, high = (
+            torch.as_tensor(value, dtype=dtype, device="cpu").expand(self.action_dim)
+            for value in (action_low, action_high)
+        )
         if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
             raise ValueError(
                 f"action bounds must be finite, got low={low.tolist()}, high={high.tolist()}."
@@ -128,8 +138,8 @@ class PlanningModel(nn.Module):
             raise ValueError(
                 f"action_low must be below action_high, got low={low.tolist()}, high={high.tolist()}."
             )
-        self.register_buffer("action_low", low)
-        self.register_buffer("action_high", high)
+        self.register_buffer("action_low", low.to(device).clone())
+        self.register_buffer("action_high", high.to(device).clone())
 
     @property
     def context_length(self) -> int:
@@ -151,7 +161,7 @@ class PlanningModel(nn.Module):
     def check_context(
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
     ) -> None:
-        """Validate a real context: dims, length >= :attr:`context_length`, finite values."""
+        """Validate a real context: dims, length >= :attr:`context_length`, device, finite values."""
         check_features("observation", observation, self.obs_dim)
         check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
         check_features("context_action", context_action, self.action_dim, min_ndim=2)
@@ -164,11 +174,17 @@ class PlanningModel(nn.Module):
                 f"context_obs {tuple(context_obs.shape)}, context_action {tuple(context_action.shape)} and "
                 f"observation {tuple(observation.shape)} disagree on batch dims."
             )
+        device = self.action_low.device
         for name, x in (
             ("observation", observation),
             ("context_obs", context_obs),
             ("context_action", context_action),
         ):
+            if x.device != device:
+                raise ValueError(
+                    f"{name} is on {x.device} but the planning model is on {device}; move the "
+                    f"inputs with .to({str(device)!r}) (or the planner with .to({str(x.device)!r}))."
+                )
             check_finite(name, x)
 
     def forward(

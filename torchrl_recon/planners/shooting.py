@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.modules._checks import check_int
+from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
@@ -45,7 +45,7 @@ class RandomShootingPlanner(PlannerBase):
         self.num_candidates = num_candidates
 
     @torch.inference_mode()
-    def _optimise(self, context_obs, context_action, observation, init, state):
-        candidates = self._uniform(observation.shape[:-1], self.num_candidates)
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
+        candidates = self._uniform(observation.shape[:-1], self.num_candidates, generator)
         prediction = self.model(context_obs, context_action, observation, candidates, state=state)
         return candidates, prediction, self._bounds(prediction)

@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
-from torchrl_recon.modules._checks import check_finite, check_int
+from torchrl_recon.modules.checks import check_finite, check_int
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 
 ReplanMode = Literal["every_step", "every_n", "uncertainty"]
@@ -65,6 +65,11 @@ class MPCPolicy(TensorDictModuleBase):
     candidate met the planner's constraints; the planner's warning is not repeated) and the predicted next
     observation, u and cost of the action taken, so predicted and real trajectories can be
     compared.
+
+    It computes on the planning model's device (move the planner with ``.to(device)``) and
+    writes its outputs on the device of the observation it was given. With a collector, keep
+    the env on the CPU and pass ``env_device="cpu"``, ``policy_device=<the model's device>``;
+    the primer's specs are on the model's device.
 
     Args:
         planner: the planner (its model's ``obs_dim``/``action_dim`` and horizon are used).
@@ -155,20 +160,31 @@ class MPCPolicy(TensorDictModuleBase):
             *[("next", k) for k in STATE_KEYS],
         ]
 
+    @property
+    def device(self) -> torch.device:
+        """The planning model's device, where the policy computes."""
+        return self.planner.model.action_low.device
+
     def state_spec(self) -> Composite:
-        """Specs of the carried state (unbatched)."""
+        """Specs of the carried state (unbatched), on the planning model's device and dtype."""
         c, h, n, m = self.context, self.horizon, self.obs_dim, self.action_dim
+        like = self.planner.model.action_low
+
+        def spec(*shape: int, dtype: torch.dtype = like.dtype) -> Unbounded:
+            return Unbounded(shape, dtype=dtype, device=like.device)
+
         return Composite(
             {
-                OBS_HISTORY: Unbounded((c, n)),
-                ACTION_HISTORY: Unbounded((c, m)),
-                PLAN: Unbounded((h, m)),
-                PLAN_STATES: Unbounded((h, n)),
-                PLAN_COST: Unbounded((h,)),
-                PLAN_U: Unbounded((h,)),
-                PLAN_STEP: Unbounded((1,), dtype=torch.int64),
-                SEEN: Unbounded((1,), dtype=torch.int64),
-            }
+                OBS_HISTORY: spec(c, n),
+                ACTION_HISTORY: spec(c, m),
+                PLAN: spec(h, m),
+                PLAN_STATES: spec(h, n),
+                PLAN_COST: spec(h),
+                PLAN_U: spec(h),
+                PLAN_STEP: spec(1, dtype=torch.int64),
+                SEEN: spec(1, dtype=torch.int64),
+            },
+            device=like.device,
         )
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
@@ -198,7 +214,7 @@ class MPCPolicy(TensorDictModuleBase):
         on_plan = (step >= 1) & (step <= self.horizon)
         predicted = _at_step(plan_states, (step - 1).clamp(0, self.horizon - 1))
         norm = getattr(self.planner.model.world_model, "obs_norm", None)
-        scale = norm.scale if norm is not None else torch.ones(self.obs_dim)
+        scale = norm.scale if norm is not None else obs.new_ones(self.obs_dim)
         rms = ((obs - predicted) / scale).pow(2).mean(-1).sqrt()
         return on_plan & (rms > self.error_threshold)
 
@@ -211,15 +227,20 @@ class MPCPolicy(TensorDictModuleBase):
         batch = tensordict.batch_size
         flat = tensordict.reshape(-1)
         rows = flat.shape[0]
-        obs = flat.get(self.obs_key)
-        check_finite(f"{self.obs_key!r} given to MPCPolicy", obs)
-        state = flat.select(*STATE_KEYS).clone()
+        given = flat.get(self.obs_key)
+        check_finite(f"{self.obs_key!r} given to MPCPolicy", given)
+        device, out_device = self.device, given.device
+        obs = given.to(device)
+        state = flat.select(*STATE_KEYS).to(device).clone()
         plan, plan_u = state[PLAN], state[PLAN_U]
         step, seen = state[PLAN_STEP].squeeze(-1), state[SEEN].squeeze(-1)
-        is_init = flat.get("is_init", torch.zeros(rows, 1, dtype=torch.bool)).reshape(rows)
+        is_init = flat.get("is_init", None)
+        if is_init is None:
+            is_init = torch.zeros(rows, dtype=torch.bool, device=device)
+        is_init = is_init.to(device).reshape(rows)
         step.masked_fill_(is_init, self.horizon)
         seen.masked_fill_(is_init, 0)
-        feasible = torch.ones(rows, dtype=torch.bool)
+        feasible = torch.ones(rows, dtype=torch.bool, device=device)
 
         ready = seen >= self.warmup_steps
         drifted = self._drifted(obs, state[PLAN_STATES], step)
@@ -245,7 +266,9 @@ class MPCPolicy(TensorDictModuleBase):
             feasible[idx] = result.feasible
 
         low, high = self.planner.model.action_low, self.planner.model.action_high
-        random_action = low + (high - low) * torch.rand(rows, self.action_dim)
+        random_action = low + (high - low) * torch.rand(
+            rows, self.action_dim, dtype=low.dtype, device=device
+        )
         at = step.clamp(max=self.horizon - 1)
         planned = ready[:, None]
         action = torch.where(planned, _at_step(state[PLAN], at), random_action)
@@ -263,16 +286,18 @@ class MPCPolicy(TensorDictModuleBase):
         state[OBS_HISTORY] = torch.cat([state[OBS_HISTORY][:, 1:], obs[:, None]], 1)
         state[ACTION_HISTORY] = torch.cat([state[ACTION_HISTORY][:, 1:], action[:, None]], 1)
         for key, value in outputs.items():
-            tensordict.set(key, value.reshape(*batch, *value.shape[1:]))
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(out_device))
         for key in STATE_KEYS:
-            tensordict.set(("next", key), state[key].reshape(*batch, *state[key].shape[1:]))
+            value = state[key].reshape(*batch, *state[key].shape[1:])
+            tensordict.set(("next", key), value.to(out_device))
         return tensordict
 
     def _warm_start(self, plan: torch.Tensor, step: torch.Tensor) -> torch.Tensor | None:
         """The unexecuted rest of each plan, padded with its last action; zeros when a plan ran out."""
         if not self.warm_start:
             return None
-        shift = (step[:, None] + torch.arange(self.horizon)).clamp(max=self.horizon - 1)
+        offsets = torch.arange(self.horizon, device=step.device)
+        shift = (step[:, None] + offsets).clamp(max=self.horizon - 1)
         init = plan.gather(-2, shift[..., None].expand(-1, -1, self.action_dim))
         return torch.where((step >= self.horizon)[:, None, None], torch.zeros_like(init), init)
 

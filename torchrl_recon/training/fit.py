@@ -15,6 +15,8 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import buffer_contents
+from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
@@ -63,7 +65,8 @@ def train_loss_module(
     """Adam on ``loss_module`` with batches sampled from ``buffer``; early stopping on ``val_buffer``.
 
     The learning rate follows a cosine decay from ``lr`` to ``lr / 20`` over ``steps``
-    (``lr_decay=False`` keeps it constant).
+    (``lr_decay=False`` keeps it constant). The buffers may stay on the CPU: each sampled
+    batch is moved to the device of ``loss_module``'s parameters.
     Every ``eval_every`` steps the validation loss (on ``val_batches`` batches drawn once,
     or on training batches when there is no ``val_buffer``) is measured; the best weights
     are kept, saved to ``checkpoint_path`` when given, and restored at the end. Training
@@ -83,10 +86,8 @@ def train_loss_module(
         >>> result.steps
         20
     """
-    if steps < 1 or eval_every < 1 or val_batches < 1:
-        raise ValueError(
-            f"steps, eval_every and val_batches must be >= 1, got {steps}, {eval_every}, {val_batches}."
-        )
+    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
+        check_int(name, value)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
     torch.manual_seed(seed)
@@ -98,7 +99,8 @@ def train_loss_module(
         else None
     )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
-    fixed_val = [val_source.sample() for _ in range(val_batches)]
+    device = module_device(loss_module)  # the buffers' storage may stay on the CPU
+    fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
     bar = tqdm(
@@ -107,7 +109,7 @@ def train_loss_module(
     step = 0
     for step in bar:
         try:
-            loss = _loss_value(loss_module, buffer.sample())
+            loss = _loss_value(loss_module, buffer.sample().to(device))
         except FloatingPointError as err:
             loss_module.load_state_dict(best_state)
             where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""

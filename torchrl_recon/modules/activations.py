@@ -1,4 +1,4 @@
-"""The hidden-layer activations the modules accept by name."""
+"""The hidden-layer activations the modules accept by name, with their in-place and backward forms."""
 
 from __future__ import annotations
 
@@ -6,6 +6,13 @@ import torch
 from torch.nn import functional as F
 
 ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
+"""Name → activation function (``activation=`` of the world model and the estimators).
+
+Examples:
+    >>> ACTIVATIONS["tanh"](torch.zeros(2))
+    tensor([0., 0.])
+"""
+
 INPLACE_ACTIVATIONS = {"relu": torch.relu_, "tanh": torch.tanh_, "elu": F.elu_}
 """The same, in place (the no-grad fast paths)."""
 
@@ -16,17 +23,3 @@ ACTIVATION_BACKWARDS = {
 }
 """``backward(grad, pre, out)`` of each: the kernel autograd's own derivative formula calls, from
 the pre-activation and the output (the hand-written BPTT in ``_lstm_rollout.py``)."""
-
-
-def check_activation(activation: str) -> None:
-    """Raise unless ``activation`` names one of :data:`ACTIVATIONS`.
-
-    Examples:
-        >>> check_activation("relu")
-        >>> check_activation("gelu")
-        Traceback (most recent call last):
-        ...
-        ValueError: activation 'gelu' is not one of ['elu', 'relu', 'tanh'].
-    """
-    if activation not in ACTIVATIONS:
-        raise ValueError(f"activation {activation!r} is not one of {sorted(ACTIVATIONS)}.")

@@ -1,0 +1,85 @@
+"""Argument checks shared by the modules, planners and policies, with errors that name the bad
+value and what was expected."""
+
+from __future__ import annotations
+
+import torch
+
+from torchrl_recon.modules.activations import ACTIVATIONS
+
+__all__ = ["check_activation", "check_features", "check_finite", "check_int", "check_window"]
+
+
+def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -> None:
+    """Raise if ``x`` is not a tensor with last dimension ``dim`` and at least ``min_ndim`` dims.
+
+    Examples:
+        >>> check_features("obs", torch.zeros(4, 3), 2)
+        Traceback (most recent call last):
+        ...
+        ValueError: obs has shape (4, 3); expected at least 1 dims with last dim 2.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}.")
+    if x.ndim < min_ndim or x.shape[-1] != dim:
+        raise ValueError(
+            f"{name} has shape {tuple(x.shape)}; expected at least {min_ndim} dims with last dim {dim}."
+        )
+
+
+def check_finite(name: str, x: torch.Tensor) -> None:
+    """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad).
+
+    Examples:
+        >>> check_finite("obs", torch.tensor([0.0, float("nan")]))
+        Traceback (most recent call last):
+        ...
+        ValueError: obs contains NaN or inf (first at index [1]); expected finite values.
+    """
+    if not torch.isfinite(x).all():
+        bad = (~torch.isfinite(x)).nonzero()[0].tolist()
+        raise ValueError(
+            f"{name} contains NaN or inf (first at index {bad}); expected finite values."
+        )
+
+
+def check_int(name: str, value: object, minimum: int = 1) -> None:
+    """Raise unless ``value`` is an int (not a bool) of at least ``minimum``.
+
+    Examples:
+        >>> check_int("horizon", 0)
+        Traceback (most recent call last):
+        ...
+        ValueError: horizon must be an int >= 1, got 0.
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}.")
+
+
+def check_window(name: str, x: torch.Tensor, window: int) -> None:
+    """Raise if the time dimension (-2) of ``x`` is shorter than ``window``.
+
+    Examples:
+        >>> check_window("context_obs", torch.zeros(3, 6), 10)
+        Traceback (most recent call last):
+        ...
+        ValueError: context_obs has shape (3, 6); expected a time dimension (-2) of at least window=10 steps.
+    """
+    if x.ndim < 2 or x.shape[-2] < window:
+        raise ValueError(
+            f"{name} has shape {tuple(x.shape)}; expected a time dimension (-2) of at least window={window} steps."
+        )
+
+
+def check_activation(activation: str) -> None:
+    """Raise unless ``activation`` names one of :data:`~torchrl_recon.modules.activations.ACTIVATIONS`.
+
+    Examples:
+        >>> check_activation("relu")
+        >>> check_activation("gelu")
+        Traceback (most recent call last):
+        ...
+        ValueError: activation 'gelu' is not one of ['elu', 'relu', 'tanh'].
+    """
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation {activation!r} is not one of {sorted(ACTIVATIONS)}.")

@@ -134,24 +134,6 @@ def _env(name: str, value: str | None) -> Iterator[None]:
             os.environ[name] = saved
 
 
-def _demo(args: argparse.Namespace) -> int:
-    from torchrl_recon.collectors import collect_random
-    from torchrl_recon.envs import ENVS, make_env
-
-    print(f"{'env':<22}{'steps':>7}{'episodes':>10}{'mean reward':>14}  obs dim")
-    for name in ENVS:
-        kwargs = {"self_collision": False} if name == "minitaur" else {}
-        env = make_env(name, seed=args.seed, max_episode_steps=100, **kwargs)
-        data = collect_random(env, frames=args.steps, seed=args.seed)
-        env.close()
-        episodes = int(data["collector", "traj_ids"].unique().numel())
-        reward = float(data["next", "reward"].mean())
-        print(
-            f"{name:<22}{data.numel():>7}{episodes:>10}{reward:>14.3f}  {data['observation'].shape[-1]}"
-        )
-    return 0
-
-
 # ----------------------------------------------------------------------------------------------
 # Hydra
 
@@ -452,7 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     experiments = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
     parser = argparse.ArgumentParser(
         prog="torchrl-recon",
-        description="TorchRL reproduction of Di Palo & Valpola: environments demo, the paper's "
+        description="TorchRL reproduction of Di Palo & Valpola: the paper's "
         "experiments, and their summaries.",
         epilog=f"experiments (paper §3):\n{experiments}\n\n"
         "examples:\n"
@@ -471,12 +453,6 @@ def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    demo = sub.add_parser(
-        "demo", help="collect random data in each environment and print a summary", parents=[common]
-    )
-    demo.add_argument("--steps", type=int, default=200)
-    demo.add_argument("--seed", type=int, default=0)
-    demo.set_defaults(func=_demo)
     for kind, text in EXPERIMENTS.items():
         p = sub.add_parser(
             kind,

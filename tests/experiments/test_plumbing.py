@@ -666,7 +666,7 @@ def test_cli_help_lists_experiments(capsys):
         main(["--help"])
     assert info.value.code == 0
     out = capsys.readouterr().out
-    for word in ("explore", "control", "summarize", "demo", "Table 1", "Fig. 3", "-m seed="):
+    for word in ("explore", "control", "summarize", "Table 1", "Fig. 3", "-m seed="):
         assert word in out
     with pytest.raises(SystemExit):
         main(["explore", "--help"])

@@ -30,10 +30,11 @@ from torchrl_recon.experiments.common import (
     cost_fn,
     fit_module,
     random_data_stage,
+    run_device,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
+from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.training import load_checkpoint, save_checkpoint
 
@@ -62,7 +63,9 @@ def calibration_metrics(
             world, estimator, trajectories, window=window, scale=scale
         )
         above = mse > mse.median()
-        obs, act = ood_windows["observation"], ood_windows["action"]
+        device = module_device(estimator)
+        obs, act = ood_windows["observation"].to(device), ood_windows["action"].to(device)
+        scale, action_high = scale.to(device), action_high.to(device)
         u_in = estimator.score(obs, act)[:, 0]
         u_shift = estimator.score(obs + state_shift * scale, act)[:, 0]
         u_bound = estimator.score(obs, action_high.expand_as(act))[:, 0]
@@ -88,9 +91,10 @@ def _timing(
 ) -> dict[str, Any]:
     """Scoring and CEM planning time per estimator (and CEM without u), per horizon, interleaved."""
     t, window = cfg.timing, cfg.models.window
-    seqs = cut_sequences(data, window + 1)
+    device = module_device(world)
+    seqs = cut_sequences(data, window + 1).to(device)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
-    features = torch.cat([data["observation"], data["action"]], -1)
+    features = torch.cat([data["observation"], data["action"]], -1).to(device)
     loc, spread = features.mean(0), features.std(0)
     cost = cost_fn(cfg)
     out: dict[str, Any] = {"threads": torch.get_num_threads(), "candidates": t.candidates}
@@ -98,7 +102,7 @@ def _timing(
         generator = torch.Generator().manual_seed(horizon)
         x = loc + spread * torch.randn(
             t.candidates, window - 1 + horizon, features.shape[-1], generator=generator
-        )
+        ).to(device)
         cem = dict(num_candidates=t.candidates, iterations=t.iterations, num_elites=t.num_elites)
         plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
         fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
@@ -177,7 +181,8 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
     )
     scale = state_scale(data)
     obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
-    world = build_world_model(cfg, obs_dim, action_dim)
+    device = run_device(cfg)
+    world = build_world_model(cfg, obs_dim, action_dim).to(device)
 
     def fit_stage(name: str, module) -> dict:
         path = stages.path("checkpoints", f"{name}.pt")
@@ -195,7 +200,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
     fits = {"world_model": fit_stage("world_model", world)}
     estimators: dict[str, UncertaintyEstimator] = {}
     for spec in cfg.estimators:
-        est = build_estimator(spec, obs_dim, action_dim, window)
+        est = build_estimator(spec, obs_dim, action_dim, window).to(device)
         fits[spec.name] = fit_stage(f"fit_{spec.name}", est)
         estimators[spec.name] = est.eval()
     world.eval()

@@ -5,11 +5,12 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
-from torchrl.envs import EnvBase
+from torchrl.envs import DeviceCastTransform, EnvBase
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
+from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.experiments.stages import Stages, stage_seed
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
@@ -29,10 +30,24 @@ from torchrl_recon.training import (
 )
 
 
-def build_env(cfg: DictConfig, *, seed: int, episode_steps: int) -> EnvBase:
-    """The recipe's TorchRL env with episodes of ``episode_steps``."""
+def run_device(cfg: DictConfig) -> torch.device:
+    """The device the recipe's networks, planning and fitting run on (``cfg.device``)."""
+    return resolve_device(cfg.device)
+
+
+def build_env(
+    cfg: DictConfig, *, seed: int, episode_steps: int, policy_device: torch.device | None = None
+) -> EnvBase:
+    """The recipe's TorchRL env with episodes of ``episode_steps``, simulated on the CPU.
+
+    With a ``policy_device`` other than the CPU, TorchRL's ``DeviceCastTransform`` hands the
+    policy its data on that device and the env its actions back on the CPU.
+    """
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    return make_env(cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
+    env = make_env(cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
+    if policy_device is not None and torch.device(policy_device).type != "cpu":
+        env.append_transform(DeviceCastTransform(policy_device, env.device))
+    return env
 
 
 def cost_fn(cfg: DictConfig):
@@ -106,10 +121,11 @@ def build_estimator(
 def build_models(
     cfg: DictConfig, obs_dim: int, action_dim: int
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """World model and estimator of the recipe's sizes."""
+    """World model and estimator of the recipe's sizes, on the recipe's device."""
     m = cfg.models
-    world = build_world_model(cfg, obs_dim, action_dim)
-    return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window)
+    device = run_device(cfg)
+    world = build_world_model(cfg, obs_dim, action_dim).to(device)
+    return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
 
 def _buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
@@ -237,5 +253,5 @@ def build_planner(
 def state_scale(data: TensorDictBase) -> torch.Tensor:
     """Per-dimension standard deviation of the observations (1 where constant): the unit of reported MSEs."""
     norm = Normalizer(data["observation"].shape[-1])
-    norm.fit(data["observation"])
+    norm.fit(data["observation"].cpu())
     return norm.scale.clone()

@@ -19,6 +19,7 @@ from torchrl_recon.experiments.common import (
     cost_fn,
     fit_both_stage,
     random_data_stage,
+    run_device,
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
@@ -114,9 +115,10 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
     world, estimator = build_models(cfg, obs_dim, action_dim)
     fit_both_stage(cfg, stages, "models", data, world, estimator, logger=logger)
 
+    device = run_device(cfg)
     with torch.no_grad():
-        seqs = cut_sequences(data, max(cfg.models.window, cfg.training.slice_len))
-        per_window_u = estimator.score(seqs["observation"], seqs["action"]).flatten()
+        seqs = cut_sequences(data, max(cfg.models.window, cfg.training.slice_len)).to(device)
+        per_window_u = estimator.score(seqs["observation"], seqs["action"]).flatten().cpu()
     threshold = (
         float(per_window_u.quantile(cfg.replan.threshold_quantile)) * cfg.replan.threshold_scale
     )
@@ -156,10 +158,15 @@ def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
                     warmup_steps=max(cfg.warmup_random_steps, model.context_length),
                 )
                 episode_seed = stage_seed(cfg.seed, f"{name}_{e}")
-                env = build_env(cfg, seed=episode_seed, episode_steps=cfg.env.episode_steps)
+                env = build_env(
+                    cfg,
+                    seed=episode_seed,
+                    episode_steps=cfg.env.episode_steps,
+                    policy_device=device,
+                )
                 env.append_transform(policy.make_tensordict_primer())
                 torch.manual_seed(episode_seed)
-                td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True)
+                td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True).cpu()
                 env.close()
                 metrics = episode_metrics(td, scale)
                 if logger is not None:

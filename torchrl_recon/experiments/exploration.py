@@ -98,7 +98,12 @@ def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
             model = PlanningModel(world, cost, uncertainty=estimator)
             objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
             policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
-            env = build_env(cfg, seed=stage_seed(cfg.seed, name), episode_steps=episode)
+            env = build_env(
+                cfg,
+                seed=stage_seed(cfg.seed, name),
+                episode_steps=episode,
+                policy_device=policy.device,
+            )
             env.append_transform(policy.make_tensordict_primer())
             data = collect(
                 env,

@@ -239,7 +239,7 @@ class Stages:
         if folder.exists():  # left by a run stopped inside this stage: replaced, not mixed
             shutil.rmtree(folder)
         buffer = make_sequence_buffer(max(len(data), 1), slice_len=1, num_slices=1)
-        buffer.extend(data)
+        buffer.extend(data.cpu())  # on disk device-free, whatever device the data came from
         save_buffer(buffer, folder)
         for path in sorted(folder.rglob("*")):
             if path.is_file():

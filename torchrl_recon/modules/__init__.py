@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from torchrl_recon.modules.baselines import LinearDeltaModel
+from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.ensemble import EnsembleUncertainty
 from torchrl_recon.modules.estimators import ESTIMATORS, make_estimator
 from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
@@ -19,6 +20,8 @@ __all__ = [
     "LSTMWorldModel",
     "make_estimator",
     "MCDropoutUncertainty",
+    "module_device",
+    "module_dtype",
     "Normalizer",
     "ReconstructionUncertainty",
     "RNDUncertainty",

@@ -2,16 +2,35 @@
 
 from __future__ import annotations
 
+import argparse
+
 import torch
 
+from torchrl_recon.devices import check_device, describe_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 
 OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
 
 
-def paper_models(seed: int = 0) -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
-    """World model (LSTM 32, dense 32) and autoencoder (90 → 100 → 90) of the paper's sizes, IB dims."""
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """``--device auto|cpu|cuda|cuda:N`` (auto: CUDA when available)."""
+    parser.add_argument(
+        "--device", default="cpu", type=check_device, help="auto, cpu, cuda or cuda:N"
+    )
+
+
+def describe(device: torch.device) -> str:
+    """The device's name as benchmark output reports it."""
+    info = describe_device(device)
+    return f"{info['device']} ({info['name']})"
+
+
+def paper_models(
+    seed: int = 0, device: torch.device | str = "cpu"
+) -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
+    """World model (LSTM 32, dense 32) and autoencoder (90 → 100 → 90) of the paper's sizes,
+    IB dims, on ``device``."""
     torch.manual_seed(seed)
     world = LSTMWorldModel(OBS_DIM, ACTION_DIM, hidden_size=32, dense_size=32, window=WINDOW)
     estimator = ReconstructionUncertainty(OBS_DIM, ACTION_DIM, window=WINDOW, hidden_size=100)
@@ -20,14 +39,18 @@ def paper_models(seed: int = 0) -> tuple[LSTMWorldModel, ReconstructionUncertain
     estimator.fit_normalization(obs, act)
     for p in (*world.parameters(), *estimator.parameters()):
         p.requires_grad_(False)
-    return world, estimator
+    return world.to(device), estimator.to(device)
 
 
-def context(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def context(
+    seed: int = 0, device: torch.device | str = "cpu"
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A start context (window of observations and actions, current observation) on ``device``."""
     g = torch.Generator().manual_seed(seed)
     obs = torch.rand(WINDOW, OBS_DIM, generator=g) * 100
     act = torch.rand(WINDOW, ACTION_DIM, generator=g) * 2 - 1
-    return obs, act, torch.rand(OBS_DIM, generator=g) * 100
+    now = torch.rand(OBS_DIM, generator=g) * 100
+    return obs.to(device), act.to(device), now.to(device)
 
 
 COST = industrial_benchmark_cost

@@ -26,9 +26,10 @@ import copy
 import time
 
 import torch
-from _common import COST, context, paper_models
+from _common import COST, add_device_argument, context, describe, paper_models
 
 from torchrl_recon._timing import interleaved_median_ms
+from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 
 
@@ -47,15 +48,20 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=1)
+    add_device_argument(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    world, estimator = paper_models()  # frozen weights, as the planner has them
-    ctx = context()
+    device = resolve_device(args.device)
+    print(f"device: {describe(device)}")
+    world, estimator = paper_models(device=device)  # frozen weights, as the planner has them
+    ctx = context(device=device)
     state = world.warmup(ctx[0], ctx[1])
     rows = args.rows
     s0 = ctx[2].expand(rows, -1)
     h, c = (x.expand(rows, -1) for x in state)
-    actions = (torch.rand(rows, args.horizon, world.action_dim) * 2 - 1).requires_grad_(True)
+    actions = (
+        torch.rand(rows, args.horizon, world.action_dim, device=device) * 2 - 1
+    ).requires_grad_(True)
 
     def backward(rollout):
         return lambda: torch.autograd.grad(rollout().square().sum(), actions)
@@ -71,7 +77,7 @@ def main() -> None:
         f"rows={rows}, H={args.horizon}, threads={args.threads}, forward + backward, "
         f"median of {args.repeats} round-robin calls"
     )
-    times = interleaved_median_ms(fns, args.repeats)
+    times = interleaved_median_ms(fns, args.repeats, device=device)
     for name, ms in times.items():
         print(f"  {name:<40}{ms:9.1f} ms")
     planner = GradientPlanner(
@@ -83,6 +89,8 @@ def main() -> None:
     )
     start = time.perf_counter()
     planner.plan(*ctx)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
     print(
         f"one gradient plan (16 restarts x 50 steps, with u): {time.perf_counter() - start:.2f} s"
     )
@@ -91,14 +99,16 @@ def main() -> None:
     weights = list(trainable.parameters())
     train_s0 = s0[:1].expand(32, -1)
     train_state = (h[:1].expand(32, -1), c[:1].expand(32, -1))
-    train_actions = torch.rand(32, 30, world.action_dim) * 2 - 1
+    train_actions = torch.rand(32, 30, world.action_dim, device=device) * 2 - 1
 
     def train(recorded: bool):
         states = trainable.rollout(train_s0, train_actions, train_state, recorded=recorded)
         return torch.autograd.grad(states.square().sum(), weights)
 
     training = interleaved_median_ms(
-        {"recorded": lambda: train(True), "fused": lambda: train(False)}, args.repeats
+        {"recorded": lambda: train(True), "fused": lambda: train(False)},
+        args.repeats,
+        device=device,
     )
     print(
         f"weight gradients, 32 x 30 steps (training): recorded graph {training['recorded']:.1f} ms, "

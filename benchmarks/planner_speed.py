@@ -18,12 +18,13 @@ import argparse
 from functools import partial
 
 import torch
-from _common import COST, context, paper_models
+from _common import COST, add_device_argument, context, describe, paper_models
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
 
 from torchrl_recon._timing import interleaved_median_ms
+from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -75,10 +76,13 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    add_device_argument(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    world, estimator = paper_models()
-    ctx = context()
+    device = resolve_device(args.device)
+    print(f"device: {describe(device)}")
+    world, estimator = paper_models(device=device)
+    ctx = context(device=device)
     plain = PlanningModel(world, COST)
     with_u = PlanningModel(world, COST, uncertainty=estimator)
     env = WorldModelPlanningEnv(world, COST)
@@ -119,7 +123,7 @@ def main() -> None:
         repeats = args.repeats if horizon <= 30 else max(1, args.repeats // 2)
         calls = {name: partial(_plan_no_grad, b, start) for name, b in baselines.items()}
         calls |= {name: partial(planner.plan, *ctx) for name, planner in ours.items()}
-        times = interleaved_median_ms(calls, repeats)
+        times = interleaved_median_ms(calls, repeats, device=device)
         print(f"H={horizon}")
         for name, ms in times.items():
             print(f"  {name:<56}{ms:9.1f} ms")

@@ -9,9 +9,10 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import ACTION_DIM, COST, context, paper_models
+from _common import ACTION_DIM, COST, add_device_argument, context, describe, paper_models
 
 from torchrl_recon._timing import interleaved_median_ms
+from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import PlanningModel
 
 
@@ -21,18 +22,21 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    add_device_argument(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    world, estimator = paper_models()
+    device = resolve_device(args.device)
+    print(f"device: {describe(device)}")
+    world, estimator = paper_models(device=device)
     rollout_only = PlanningModel(world, COST)
     with_u = PlanningModel(world, COST, uncertainty=estimator)
-    ctx = context()
+    ctx = context(device=device)
     print(
         f"K={args.candidates}, threads={args.threads}, median of {args.repeats} round-robin calls"
     )
     ratios = []
     for horizon in args.horizons:
-        actions = torch.rand(args.candidates, horizon, ACTION_DIM) * 2 - 1
+        actions = torch.rand(args.candidates, horizon, ACTION_DIM, device=device) * 2 - 1
         with torch.inference_mode():
             ms = interleaved_median_ms(
                 {
@@ -40,6 +44,7 @@ def main() -> None:
                     "with_u": lambda a=actions: with_u(*ctx, a),
                 },
                 args.repeats,
+                device=device,
             )
         ratios.append(ms["with_u"] / ms["rollout"])
         print(

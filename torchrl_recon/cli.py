@@ -247,19 +247,21 @@ def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
     return flags, rest
 
 
-def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> list[str]:
+def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
     """Validate every job of the command before Hydra starts anything; return the overrides
     to hand to Hydra (a schema key the recipe lacks gets its ``+``).
 
     Each job of a sweep (the product of the command line's sweeps and the recipe's own
     ``hydra.sweeper.params``) is composed by Hydra and checked on its own, and so is its run
-    directory (an existing run there must have the same config). Every job validates its
-    composed config again before doing any work.
+    directory (an existing run there must have the same config). With ``here`` (the jobs run
+    on this machine), each job's ``device`` must exist on it. Every job validates its composed
+    config again before doing any work.
 
     Raises:
         FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
             the file, key or directory.
     """
+    from torchrl_recon.devices import resolve_device
     from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
     from torchrl_recon.experiments.recipe import RecipeError, validate
     from torchrl_recon.experiments.run_dir import check_run_dir
@@ -280,7 +282,13 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str]) -> list[str]:
     for job in sweep_jobs(base, completed):
         swept = [o for o in job if o not in completed]
         source = f"{recipe} with {' '.join(swept)}" if swept else str(recipe)
-        check_run_dir(validate(compose_recipe(recipe, job), source=source))
+        checked = validate(compose_recipe(recipe, job), source=source)
+        if here:
+            try:
+                resolve_device(checked.device)
+            except ValueError as e:
+                raise RecipeError(f"{source}: {e}") from e
+        check_run_dir(checked)
     return completed
 
 
@@ -313,7 +321,8 @@ def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -
 
     flags, plain = _split_overrides(overrides)
     try:
-        plain = precheck(kind, recipe, plain)
+        here = not multirun or not any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
+        plain = precheck(kind, recipe, plain, here=here)
     except (FileNotFoundError, ValueError, RunDirConflict) as e:
         return report(e, EXIT_USER)
     given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
@@ -106,3 +107,35 @@ def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
         assert sub["experiment"] == "explore"
         sub_cfg = yaml.safe_load((out / "outcomes" / "rnd" / "explore" / "config.yaml").read_text())
         assert sub_cfg["models"]["uncertainty"]["kind"] == "rnd"
+
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+
+@CUDA
+@pytest.mark.parametrize(
+    "kind, env",
+    [*SMOKE, *(("calibrate", e) for e in ("industrial_benchmark", "drone", "minitaur"))],
+)
+def test_smoke_recipe_runs_on_cuda(kind, env, tmp_path):
+    """Every smoke recipe end to end with the networks on the GPU (envs on the CPU)."""
+    out = tmp_path / "run"
+    extra = ["outcomes.control_recipe=null", "outcomes.explore_recipe=null"] * (kind == "calibrate")
+    proc = _run(
+        kind, RECIPES / env / f"{kind}_smoke.yaml", f"output_dir={out}", "device=cuda", *extra
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["meta"]["device"]["device"] == "cuda"
+    assert results["meta"]["device"]["name"]
+
+
+def test_device_cuda_without_a_gpu_is_refused_before_any_work(tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    out = tmp_path / "run"
+    recipe = RECIPES / "industrial_benchmark" / "explore_smoke.yaml"
+    proc = _run("explore", recipe, f"output_dir={out}", "device=cuda")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: ")
+    assert "CUDA device" in proc.stderr and not out.exists()

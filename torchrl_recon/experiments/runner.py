@@ -13,6 +13,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_recon.devices import describe_device, resolve_device
+from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import save_figures
 from torchrl_recon.experiments.recipe import validate
@@ -117,7 +118,10 @@ def run(
     from torchrl_recon.experiments.stages import StopRequested
 
     cfg = validate(cfg)
-    device = resolve_device(cfg.device)  # a CUDA device this machine lacks: refused here
+    try:
+        device = resolve_device(cfg.device)
+    except ValueError as e:  # a CUDA device this machine lacks: refused before the run directory
+        raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
     extra_meta = {**dict(extra_meta or {}), "device": describe_device(device)}
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)

@@ -58,7 +58,9 @@ def test_split_by_trajectory_depends_on_the_seed_only():
 
 def test_split_by_trajectory_takes_at_least_one_episode_and_checks_its_input():
     data = _episodes((5, 5, 5))
-    assert len(set(split_by_trajectory(data, 0.01, seed=0)[1]["collector", "traj_ids"].tolist())) == 1
+    assert (
+        len(set(split_by_trajectory(data, 0.01, seed=0)[1]["collector", "traj_ids"].tolist())) == 1
+    )
     for bad in (0.0, 1.0, -0.2, 1.5):
         with pytest.raises(ValueError, match=f"val_fraction must be in \\(0, 1\\), got {bad}"):
             split_by_trajectory(data, bad, seed=0)

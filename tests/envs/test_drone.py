@@ -128,7 +128,6 @@ def test_yaw_sign_of_spin_directions() -> None:
     assert obs[8] > 0.1
 
 
-
 # Spec constants, written out here (not imported) so the test is an independent check of the code.
 SPEC_MASS, SPEC_IXX, SPEC_IYY, SPEC_IZZ = 0.027, 1.4e-5, 1.4e-5, 2.17e-5  # kg, kg m^2
 SPEC_ARM, SPEC_KF, SPEC_KM, SPEC_G = 0.0397, 3.16e-10, 7.94e-12, 9.8  # m, N/RPM^2, N m/RPM^2

@@ -49,7 +49,6 @@ def test_each_optimiser_approaches_the_closed_form_optimum(context):
     assert gaps["cem"] < gaps["shooting"] and gaps["gradient"] < gaps["shooting"]
 
 
-
 def test_cem_converges_near_the_closed_form_optimum(context):
     """With enough iterations CEM's cost is within 20 % of the optimum (mean of 4 seeds; each
     within 30 %). Smoothing that kept 90 % of the old mean or std instead of 10 % stays ~2-10x away."""

@@ -91,7 +91,6 @@ def test_error_threshold_replans_where_the_state_leaves_the_plan():
     assert _replans_and_drift(1e9)[0] == _replans_and_drift(None)[0]
 
 
-
 def test_open_loop_execution_takes_the_plans_current_step():
     """After a plan is made, step k of the episode executes plan[k], with plan[k]'s predictions."""
     policy = _small_drone_policy(replan="every_n", replan_every=PLAN_H)

@@ -68,6 +68,8 @@ def _replans_and_drift(error_threshold: float | None) -> tuple[list[bool], torch
     policy = _small_drone_policy(
         replan="every_n", replan_every=100, error_threshold=error_threshold
     )
+    # drift is measured in obs_norm standard deviations: make them differ from 1
+    policy.planner.model.world_model.obs_norm.scale.copy_(torch.linspace(0.02, 2.0, 12))
     torch.manual_seed(1)
     td = _make_drone(policy).rollout(10, policy)
     scale = policy.planner.model.world_model.obs_norm.scale
@@ -152,6 +154,49 @@ def test_uncertainty_replanning_thresholds_the_step_u_or_the_cumulative_u():
         assert _uncertainty_rollout(low, mode)[0][CONTEXT + 1], mode
 
 
+U_ROWS = torch.tensor([[0.1, 0.2, 0.3, 0.4, 0.5, 0.9], [0.01, 0.01, 0.01, 0.01, 0.01, 0.6]])
+
+
+@pytest.mark.parametrize("threshold_on", ["step", "cumulative"])
+def test_uncertainty_replanning_rule_row_by_row(threshold_on):
+    """Rows at every step 1..H of two plans' u, in one batch: re-plan where the u of the plan's
+    current step (or Σu up to it) exceeds 0.45, or where the plan ran out (step H)."""
+    policy = _small_drone_policy(replan="uncertainty", threshold=0.45, threshold_on=threshold_on)
+    steps = torch.arange(1, PLAN_H + 1).repeat(2)  # [1..H, 1..H]
+    u = U_ROWS.repeat_interleave(PLAN_H, 0)
+    td = _make_drone(policy).reset().expand(len(steps)).clone()
+    td["is_init"] = torch.zeros_like(td["is_init"])
+    td["mpc_steps_seen"] = torch.full_like(td["mpc_steps_seen"], CONTEXT)
+    td["mpc_plan_u"], td["mpc_plan_step"] = u, steps[:, None]
+    replanned = policy(td)["mpc_replanned"]
+    assert replanned.dtype == torch.bool and replanned.shape == (len(steps), 1)
+    score = u.cumsum(-1) if threshold_on == "cumulative" else u
+    index = steps.clamp(max=PLAN_H - 1)[:, None]
+    expected = (score.gather(-1, index).squeeze(-1) > 0.45) | (steps >= PLAN_H)
+    assert replanned.squeeze(-1).tolist() == expected.tolist()
+    assert (
+        expected.tolist()
+        == {  # the same, written out
+            "step": [False] * 3 + [True] * 3 + [False] * 4 + [True] * 2,
+            "cumulative": [False] + [True] * 5 + [False] * 4 + [True] * 2,
+        }[threshold_on]
+    )
+
+
+def test_declared_keys_match_what_the_policy_reads_and_writes():
+    policy = _small_drone_policy(replan="every_n", replan_every=2)
+    env = _make_drone(policy)
+    td = env.reset()
+    assert set(policy.in_keys) <= set(td.keys())  # the env with the primer provides them all
+    spec = policy.state_spec()
+    assert spec["mpc_plan_step"].dtype == spec["mpc_steps_seen"].dtype == torch.int64
+    assert td["mpc_steps_seen"].dtype == torch.int64
+    rollout = env.rollout(CONTEXT + 2, policy)
+    for key in policy.out_keys:
+        assert key in rollout.keys(include_nested=True), key
+    assert rollout["mpc_replanned"].dtype == rollout["mpc_feasible"].dtype == torch.bool
+
+
 def _identity_planner_policy(**kwargs) -> MPCPolicy:
     """A real planner that returns its warm start unchanged: one restart (the warm start, or a
     uniform sequence without one) and one Adam step of 1e-20, below float32 resolution."""
@@ -202,6 +247,7 @@ def test_warmup_steps_take_random_actions_before_the_first_plan():
     assert torch.isfinite(td["mpc_predicted_next_observation"][warmup:]).all()
     random = td["action"][:warmup]
     assert (random.abs() <= 1).all() and random.std() > 0.1  # uniform in the bounds
+    assert (random[:, :-1] != random[:, 1:]).all()  # drawn for each action dimension
     # the first plan's context is the last CONTEXT real (s, a) pairs of the warm-up
     torch.testing.assert_close(
         td["mpc_obs_history"][warmup], td["observation"][warmup - CONTEXT : warmup]
@@ -298,7 +344,7 @@ def test_bad_input_and_missing_primer():
     env = _make_drone(policy)
     td = env.reset()
     td["observation"][0] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match="'observation' given to MPCPolicy.*NaN"):
         policy(td)
     with pytest.raises(ValueError, match="threshold"):
         _small_drone_policy(replan="uncertainty")
@@ -307,6 +353,19 @@ def test_bad_input_and_missing_primer():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="error_threshold"):
             _small_drone_policy(error_threshold=bad)
+    with pytest.raises(ValueError, match="replan_every must be an int >= 1, got 0"):
+        _small_drone_policy(replan="every_n", replan_every=0)
+    with pytest.raises(ValueError, match="threshold_on must be 'step' or 'cumulative'"):
+        _small_drone_policy(threshold_on="total")
+    no_estimator = RandomShootingPlanner(
+        PlanningModel(LSTMWorldModel(12, 4, window=CONTEXT), drone_cost),
+        Objective(),
+        horizon=PLAN_H,
+        num_candidates=4,
+    )
+    with pytest.raises(ValueError, match="needs a planning model with an uncertainty estimator"):
+        MPCPolicy(no_estimator, replan="uncertainty", threshold=1.0)
+    assert MPCPolicy(no_estimator, replan="every_step").replan == "every_step"  # fine without u
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ import zlib
 
 import pytest
 import torch
+from torchrl.record.loggers import CSVLogger
 
 from torchrl_recon.experiments.stages import Stages, StopRequested, stage_seed
 
@@ -27,10 +28,11 @@ def test_run_parts_skips_finished_parts_and_sums_their_wall_time(tmp_path):
             lambda: {"values": [r["value"] for r in stages.run_parts("squares", 4, part)]},
         )
     assert not stages.done("squares") and calls == [0, 1, 2]
-    part_1 = tmp_path / "stages" / "squares" / "part_1.json"
-    record = json.loads(part_1.read_text())
-    record["wall_time_s"] = 100.0  # pretend part 1 took long the first time
-    part_1.write_text(json.dumps(record))
+    for i, seconds in ((0, 100.0), (1, 50.0)):  # pretend parts 0 and 1 took long the first time
+        marker = tmp_path / "stages" / "squares" / f"part_{i}.json"
+        record = json.loads(marker.read_text())
+        record["wall_time_s"] = seconds
+        marker.write_text(json.dumps(record))
 
     stages = Stages(tmp_path, seed=0)
     out = stages.run(
@@ -38,12 +40,12 @@ def test_run_parts_skips_finished_parts_and_sums_their_wall_time(tmp_path):
     )
     assert out["values"] == [0, 1, 4, 9]
     assert calls == [0, 1, 2, 2, 3]  # only the missing parts ran again
-    assert out["wall_time_s"] >= 100.0  # includes the earlier run's parts
+    assert 150.0 <= out["wall_time_s"] < 160.0  # includes the earlier run's parts
 
 
 def test_stop_after_raises_after_the_named_stage(tmp_path):
     stages = Stages(tmp_path, seed=0, stop_after="first")
-    with pytest.raises(StopRequested):
+    with pytest.raises(StopRequested, match="first"):
         stages.run("first", lambda: {"x": 1})
     assert Stages(tmp_path, seed=0).run("first", lambda: {"x": 2})["x"] == 1
 
@@ -102,3 +104,15 @@ def test_run_parts_runs_each_part_once_in_order(tmp_path):
     again = Stages(tmp_path, seed=0).run_parts("episodes", 4, lambda i: {"i": i, "sq": -1})
     assert [r["sq"] for r in again] == [0, 1, 4, -1]  # only the new part 3 ran
     assert Stages(tmp_path, seed=0).run_parts("empty", 0, lambda i: {"i": i}) == []
+
+
+def test_wall_times_are_measured_and_logged(tmp_path):
+    logger = CSVLogger("log", log_dir=str(tmp_path / "logs"))
+    stages = Stages(tmp_path / "new" / "run", seed=0, logger=logger)  # parents are created
+    record = stages.run("quick", lambda: {"x": 1})
+    assert 0.0 <= record["wall_time_s"] < 0.9  # a trivial stage, nothing added to it
+    parts = stages.run_parts("parts", 2, lambda i: {"i": i})
+    assert all(0.0 <= r["wall_time_s"] < 0.9 for r in parts)
+    logged = (tmp_path / "logs" / "log" / "scalars" / "wall_time" / "quick.csv").read_text()
+    step, value = logged.split()[0].split(",")
+    assert int(step) == 0 and float(value) == pytest.approx(record["wall_time_s"])

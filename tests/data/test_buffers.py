@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_recon.data import (
     buffer_contents,
@@ -61,6 +62,8 @@ def test_split_by_trajectory_takes_at_least_one_episode_and_checks_its_input():
     assert (
         len(set(split_by_trajectory(data, 0.01, seed=0)[1]["collector", "traj_ids"].tolist())) == 1
     )
+    train, val = split_by_trajectory(_episodes((4, 6)), 0.5, seed=0)  # two episodes: one each
+    assert {len(train), len(val)} == {4, 6}
     for bad in (0.0, 1.0, -0.2, 1.5):
         with pytest.raises(ValueError, match=f"val_fraction must be in \\(0, 1\\), got {bad}"):
             split_by_trajectory(data, bad, seed=0)
@@ -87,9 +90,24 @@ def test_sampled_windows_never_cross_an_episode_end():
     assert (3, 0) in starts and (3, LENGTHS[3] - slice_len) in starts
 
 
+def test_windows_follow_a_custom_trajectory_key():
+    data = _episodes()
+    data["run_id"] = data["collector", "traj_ids"]
+    del data["collector"]
+    rb = make_sequence_buffer(1000, slice_len=6, num_slices=32, traj_key="run_id")
+    rb.extend(data)
+    torch.manual_seed(0)
+    windows = rb.sample().reshape(32, 6)
+    assert (windows["run_id"] == windows["run_id"][:, :1]).all()
+    assert (windows["t"][:, 1:] - windows["t"][:, :-1] == 1).all()
+
+
 def test_make_sequence_buffer_checks_its_sizes():
     rb = make_sequence_buffer(50, slice_len=4, num_slices=3)
     assert rb.sampler.slice_len == 4 and rb._batch_size == 12
+    rb = make_sequence_buffer(1, slice_len=1, num_slices=1)  # the smallest allowed
+    rb.extend(_episodes((1,)))
+    assert rb.sample().shape == (1,)
     for kwargs in (
         {"max_size": 0, "slice_len": 4, "num_slices": 3},
         {"max_size": 50, "slice_len": 0, "num_slices": 3},
@@ -101,7 +119,7 @@ def test_make_sequence_buffer_checks_its_sizes():
 
 def test_buffer_contents_returns_everything_and_refuses_an_empty_buffer():
     rb = make_sequence_buffer(100, slice_len=2, num_slices=1)
-    with pytest.raises(ValueError, match="replay buffer is empty"):
+    with pytest.raises(ValueError, match="^The replay buffer is empty; collect data"):
         buffer_contents(rb)
     data = _episodes((4, 6))
     rb.extend(data)
@@ -117,6 +135,7 @@ def test_cut_sequences_stays_inside_each_episode():
         [0, 1, 2, 3],
         [4, 5, 6, 7],
     ]
+    assert cut_sequences(data, 1)["t"].shape == (len(data), 1)
     with pytest.raises(ValueError, match="length must be >= 1, got 0"):
         cut_sequences(data, 0)
     with pytest.raises(ValueError, match="No trajectory has 10 steps"):
@@ -131,5 +150,30 @@ def test_saved_buffer_with_a_pickle_is_refused(tmp_path):
     rb.extend(_episodes((4, 6)))
     save_buffer(rb, tmp_path / "rb")
     (tmp_path / "rb" / "prefetch.pkl").write_bytes(b"not loaded")
-    with pytest.raises(ValueError, match="prefetch.pkl is a pickle; refusing to load it"):
+    with pytest.raises(
+        ValueError, match=f"^{tmp_path / 'rb' / 'prefetch.pkl'} is a pickle; refusing"
+    ):
         load_buffer(make_sequence_buffer(100, slice_len=2, num_slices=1), tmp_path / "rb")
+
+
+def test_save_and_load_round_trip_without_a_pickle(tmp_path):
+    rb = make_sequence_buffer(100, slice_len=2, num_slices=1)
+    data = _episodes((4, 6))
+    rb.extend(data)
+    target = tmp_path / "nested" / "rb"  # parents are created
+    save_buffer(rb, target)
+    save_buffer(rb, target)  # saving again over it is fine
+    assert (target / "storage").is_dir() and not (target / "prefetch.pkl").exists()
+    restored = load_buffer(make_sequence_buffer(100, slice_len=2, num_slices=1), target)
+    torch.testing.assert_close(restored[:]["observation"], data["observation"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="No saved replay buffer at .*empty"):
+        load_buffer(make_sequence_buffer(10, slice_len=2, num_slices=1), tmp_path / "empty")
+
+
+def test_buffers_that_prefetch_are_not_saved(tmp_path):
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=2, prefetch=2)
+    rb.extend(_episodes((4, 6)))
+    with pytest.raises(ValueError, match="save_buffer supports buffers without prefetch only"):
+        save_buffer(rb, tmp_path / "rb")
+    assert not (tmp_path / "rb").exists()

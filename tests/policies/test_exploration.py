@@ -78,5 +78,7 @@ def test_exploration_policy_refuses_objectives_that_use_reward_or_penalise_uncer
 
 def test_exploration_policy_needs_an_uncertainty_estimator():
     planner = _planner(Objective(alpha=0.0), model=_model(uncertainty=False))
-    with pytest.raises(ValueError, match="needs a planning model with an uncertainty estimator"):
+    with pytest.raises(
+        ValueError, match="^ExplorationPolicy needs a planning model with an uncertainty estimator"
+    ):
         ExplorationPolicy(planner)

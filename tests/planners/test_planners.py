@@ -279,6 +279,16 @@ def test_cem_argument_checks(kwargs, message):
         CEMPlanner(model, Objective(), **args)
 
 
+def test_defaults_are_the_documented_ones():
+    """docs/planning.md lists these defaults."""
+    model = PlanningModel(integrator_model(), integrator_cost)
+    cem = CEMPlanner(model, Objective(), horizon=3)
+    assert (cem.num_candidates, cem.iterations, cem.num_elites) == (1000, 5, 100)
+    assert (cem.smoothing, cem.min_std, cem.on_infeasible) == (0.1, 0.02, "fallback")
+    shooting = RandomShootingPlanner(model, Objective(), horizon=3)
+    assert (shooting.num_candidates, shooting.on_infeasible) == (1000, "fallback")
+
+
 def test_cem_accepts_the_edges_of_its_ranges(context):
     model = PlanningModel(integrator_model(), integrator_cost)
     for kwargs in (

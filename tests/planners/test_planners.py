@@ -200,10 +200,22 @@ def test_no_feasible_candidate_is_reported_or_raised():
             model, Objective(band=band), horizon=H, num_candidates=50
         ).plan(*ctx)
     assert not result.feasible
-    with pytest.raises(InfeasiblePlanError, match="No candidate"):
+    for raising in (
         RandomShootingPlanner(
             model, Objective(band=band), horizon=H, num_candidates=50, on_infeasible="raise"
-        ).plan(*ctx)
+        ),
+        CEMPlanner(
+            model,
+            Objective(band=band),
+            horizon=H,
+            num_candidates=20,
+            num_elites=4,
+            iterations=2,
+            on_infeasible="raise",
+        ),
+    ):
+        with pytest.raises(InfeasiblePlanError, match="No candidate"):
+            raising.plan(*ctx)
 
 
 def test_cost_threshold_is_respected(context):
@@ -240,7 +252,7 @@ def test_bad_input_is_a_clear_error():
         PlanningModel(model.world_model, integrator_cost, action_low=-float("inf"))
     with pytest.raises(ValueError, match="horizon"):
         RandomShootingPlanner(model, Objective(), horizon=0)
-    with pytest.raises(ValueError, match="num_candidates"):
+    with pytest.raises(ValueError, match="^num_candidates must be an int >= 1, got 0"):
         RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=0)
     with pytest.raises(ValueError, match="no estimator"):
         RandomShootingPlanner(
@@ -259,6 +271,10 @@ def test_bad_input_is_a_clear_error():
         RandomShootingPlanner(model, Objective(), horizon=3, on_infeasible="skip")
     with pytest.raises(ValueError, match=r"init has shape \(2, 2\); expected \(3, 2\)"):
         planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3), init=torch.zeros(2, 2))
+    with pytest.raises(ValueError, match=r"init has shape \(3, 2\); expected \(5, 3, 2\)"):
+        planner.plan(
+            torch.zeros(5, 4, 3), torch.zeros(5, 4, 2), torch.zeros(5, 3), init=torch.zeros(3, 2)
+        )
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,7 @@ from torchrl.collectors import Collector, MultiSyncCollector
 
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.envs.drone import drone_cost
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -195,6 +195,22 @@ def test_declared_keys_match_what_the_policy_reads_and_writes():
     for key in policy.out_keys:
         assert key in rollout.keys(include_nested=True), key
     assert rollout["mpc_replanned"].dtype == rollout["mpc_feasible"].dtype == torch.bool
+
+
+def test_drift_is_measured_in_raw_units_for_a_model_without_obs_norm():
+    """A LinearDeltaModel has no obs_norm: the drift is the plain RMS of observed − predicted."""
+    model = LinearDeltaModel(2, 1, window=2)
+    planner = RandomShootingPlanner(
+        PlanningModel(model, lambda s, a, s2: s2.pow(2).sum(-1)), Objective(), horizon=4
+    )
+    policy = MPCPolicy(planner, replan="every_n", replan_every=100, error_threshold=0.5)
+    replanned = []
+    for observed in ([0.4, -0.4], [0.6, 0.6]):  # RMS 0.4 (on the plan) and 0.6 (off it)
+        td = policy.state_spec().zero()
+        td["observation"], td["is_init"] = torch.tensor(observed), torch.zeros(1, dtype=torch.bool)
+        td["mpc_steps_seen"][:], td["mpc_plan_step"][:] = 2, 1  # one planned step done
+        replanned.append(policy(td)["mpc_replanned"].item())  # predicted state: zeros
+    assert replanned == [False, True]
 
 
 def _identity_planner_policy(**kwargs) -> MPCPolicy:

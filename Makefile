@@ -4,7 +4,7 @@ PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test lint bench
+.PHONY: setup demo test lint bench mutation
 
 setup: $(VENV)/.installed
 
@@ -27,3 +27,20 @@ bench: setup
 	$(PY) benchmarks/uncertainty_overhead.py
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
+
+# Mutation testing (docs/testing.md); not part of `make test`. It runs in a copy of the work
+# tree under MUTATION_DIR. MUTANTS: mutmut mutant-name globs (default: the sample in
+# tests/mutation/sample.txt; MUTANTS='*' for every mutant of the files in tests/mutation/setup.cfg).
+MUTATION_DIR ?= /tmp/torchrl_recon-mutation
+MUTATION_JOBS ?= 2
+MUTANTS ?= $(shell cat tests/mutation/sample.txt)
+
+mutation: setup
+	$(PY) -m pip install --quiet "mutmut>=3.8,<4"
+	rm -rf $(MUTATION_DIR) && mkdir -p $(MUTATION_DIR)
+	git ls-files --cached --others --exclude-standard | while read -r f; do [ -e "$$f" ] && echo "$$f"; done \
+		| tar -cf - -T - | tar -xf - -C $(MUTATION_DIR)
+	cp tests/mutation/setup.cfg $(MUTATION_DIR)/setup.cfg
+	set -f; cd $(MUTATION_DIR) && env -u PYTHONPATH OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		nice -n 19 $(abspath $(PY)) -m mutmut run --max-children $(MUTATION_JOBS) $(MUTANTS)
+	set -f; $(PY) tests/mutation/score.py $(MUTATION_DIR)/mutants $(MUTANTS)

@@ -1,8 +1,13 @@
-"""Shared fixtures: small world models and estimators trained once per session on real env data."""
+"""Shared fixtures: small world models and estimators trained once per session on real env data.
+
+The whole suite runs on one thread (torch here, OpenMP/MKL in any subprocess a test starts):
+timing-sensitive tests slow down 10-60x when torch uses 2 threads on a loaded machine.
+"""
 
 from __future__ import annotations
 
 import logging
+import os
 
 import pytest
 import torch
@@ -14,6 +19,9 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.training import fit_uncertainty, fit_world_model
 
+torch.set_num_threads(1)
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"  # inherited by every subprocess a test starts (collectors, the CLI)
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 WINDOW, HORIZON = 10, 20
 

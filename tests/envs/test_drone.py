@@ -128,6 +128,42 @@ def test_yaw_sign_of_spin_directions() -> None:
     assert obs[8] > 0.1
 
 
+# Spec constants, written out here (not imported) so the test is an independent check of the code.
+SPEC_MASS, SPEC_IXX, SPEC_IYY, SPEC_IZZ = 0.027, 1.4e-5, 1.4e-5, 2.17e-5  # kg, kg m^2
+SPEC_ARM, SPEC_KF, SPEC_KM, SPEC_G = 0.0397, 3.16e-10, 7.94e-12, 9.8  # m, N/RPM^2, N m/RPM^2
+
+
+@pytest.mark.parametrize(
+    "action", [(0, 0, 1, 1), (-1, 1, 1, -1), (1, -1, 1, -1), (0.25, -0.75, 0.125, 0.875)]
+)
+def test_one_physics_step_matches_a_hand_computation_from_the_spec(action) -> None:
+    """From rest, level: one 1/240 s step gives dv = h a and d(omega) = h tau / J (no gyroscopic
+    term at omega = 0), with rotors at (+-L/sqrt2, +-L/sqrt2), F = kf w^2 and Q = km w^2."""
+    h = 1.0 / 240.0
+    hover = math.sqrt(SPEC_MASS * SPEC_G / (4 * SPEC_KF))  # RPM where the 4 thrusts hold the weight
+    w2 = [(hover * (1 + 0.05 * a)) ** 2 for a in action]  # default map: hover (1 + 0.05 a)
+    force = [SPEC_KF * w for w in w2]
+    d = SPEC_ARM / math.sqrt(2.0)
+    rotor_y = (-d, -d, +d, +d)  # front-right, back-right, back-left, front-left
+    rotor_x = (+d, -d, -d, +d)
+    tau_x = sum(y * f for y, f in zip(rotor_y, force, strict=True))  # r x F, F along +z
+    tau_y = -sum(x * f for x, f in zip(rotor_x, force, strict=True))
+    tau_z = SPEC_KM * (-w2[0] + w2[1] - w2[2] + w2[3])
+    expected_rates = (h * tau_x / SPEC_IXX, h * tau_y / SPEC_IYY, h * tau_z / SPEC_IZZ)
+    expected_vz = h * (sum(force) / SPEC_MASS - SPEC_G)
+
+    env = DroneEnv(start_noise=0.0)
+    env.reset(options={"position": (0, 0, 1)})
+    env.step(np.asarray(action, dtype=np.float32))
+    rates = env._state[10:13]
+    assert rates == pytest.approx(expected_rates, rel=1e-9, abs=1e-12)
+    assert env._state[5] == pytest.approx(expected_vz, rel=1e-9, abs=1e-12)
+    assert env._state[3:5] == pytest.approx((0.0, 0.0), abs=1e-12)  # level: thrust along z only
+    # e.g. rotors 2, 3 at +5 %: tau_x = d 2 (m g / 4)(1.05^2 - 1) = 3.81e-4 N m, 27.19 rad/s^2
+    if tuple(action) == (0, 0, 1, 1):
+        assert expected_rates[0] / h == pytest.approx(27.19, abs=0.01)
+
+
 def test_control_frequency_groups_physics_steps() -> None:
     a = np.array([0.3, -0.2, 0.5, 0.1], dtype=np.float32)
     fast, slow = _level_env(), _level_env(control_frequency=30)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -22,7 +23,8 @@ SMOKE = [
 
 def _run(kind: str, recipe: Path, *overrides: str) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "torchrl_recon.cli", kind, str(recipe), *overrides]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}  # one thread, as the suite
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
 
 
 def _finite_numbers(obj) -> bool:

@@ -27,6 +27,55 @@ def test_world_model_loss_flat_and_2d_batches_agree(mode):
     assert loss.world_model.head.weight.grad.abs().sum() > 0
 
 
+def _constant_delta_model(window: int = 4) -> LSTMWorldModel:
+    """A world model whose normalised Δs prediction is the constant ``B`` (head weight 0), with
+    known statistics: obs scale S_OBS, Δs loc L_D and scale S_D."""
+    model = LSTMWorldModel(3, 2, window=window, hidden_size=8, dense_size=8)
+    with torch.no_grad():
+        model.head.weight.zero_()
+        model.head.bias.copy_(B)
+        model.obs_norm.scale.copy_(S_OBS)
+        model.delta_norm.loc.copy_(L_D)
+        model.delta_norm.scale.copy_(S_D)
+    return model
+
+
+B = torch.tensor([0.5, -1.0, 2.0])
+S_OBS = torch.tensor([2.0, 0.5, 1.0])
+L_D = torch.tensor([0.1, 0.0, -0.2])
+S_D = torch.tensor([0.5, 2.0, 1.0])
+
+
+def test_one_step_loss_equals_a_hand_computation():
+    td = _batch()
+    value = WorldModelPredictionLoss(_constant_delta_model(), mode="one_step", slice_len=8)(td)
+    obs, nxt = td["observation"].tolist(), td["next", "observation"].tolist()
+    errors = [
+        (float(B[j]) - ((nxt[i][j] - obs[i][j]) - float(L_D[j])) / float(S_D[j])) ** 2
+        for i in range(len(obs))
+        for j in range(3)
+    ]
+    assert value["loss_world_model"].item() == pytest.approx(sum(errors) / len(errors), rel=1e-5)
+
+
+def test_multi_step_loss_equals_a_hand_computation():
+    """Warm up on steps 0..3 of each sequence of 8, then predict s_5..s_8 from the real s_4 by
+    adding the constant raw Δs = B S_D + L_D each step; squared error in obs-scale units."""
+    window, length = 4, 8
+    td = _batch()
+    value = WorldModelPredictionLoss(_constant_delta_model(window), slice_len=length)(td)
+    obs, nxt = td["observation"].tolist(), td["next", "observation"].tolist()
+    delta = (B * S_D + L_D).tolist()
+    errors = []
+    for start in range(0, len(obs), length):
+        s = obs[start + window]
+        for k in range(length - window):
+            s = [s[j] + delta[j] for j in range(3)]
+            target = nxt[start + window + k]
+            errors += [((s[j] - target[j]) / float(S_OBS[j])) ** 2 for j in range(3)]
+    assert value["loss_world_model"].item() == pytest.approx(sum(errors) / len(errors), rel=1e-5)
+
+
 def test_flat_batch_needs_slice_len():
     with pytest.raises(ValueError, match="slice_len"):
         WorldModelPredictionLoss(LSTMWorldModel(3, 2, window=4))(_batch())

@@ -44,9 +44,28 @@ def test_each_optimiser_approaches_the_closed_form_optimum(context):
     print("optimum", best, "random", random_cost, "gaps", gaps)
     assert all(gap >= -1e-4 for gap in gaps.values())  # nobody beats the closed-form optimum
     assert gaps["gradient"] < 0.005
-    assert gaps["cem"] < 0.02
+    assert gaps["cem"] < 0.01
     assert gaps["shooting"] < 0.25
     assert gaps["cem"] < gaps["shooting"] and gaps["gradient"] < gaps["shooting"]
+
+
+def test_cem_converges_near_the_closed_form_optimum(context):
+    """With enough iterations CEM's cost is within 20 % of the optimum (mean of 4 seeds; each
+    within 30 %). Smoothing that kept 90 % of the old mean or std instead of 10 % stays ~2-10x away."""
+    best = optimal_cost(H)
+    model = PlanningModel(integrator_model(), integrator_cost)
+    ratios = []
+    for seed in range(4):
+        torch.manual_seed(seed)
+        planner = CEMPlanner(
+            model, Objective(), horizon=H, num_candidates=100, num_elites=10, iterations=15
+        )
+        result = planner.plan(*context)
+        ratios.append(float(result.cost.sum()) / best)
+    print("CEM cost / optimum:", ratios)
+    assert all(r >= 1 - 1e-4 for r in ratios)  # nobody beats the closed-form optimum
+    assert all(r <= 1.3 for r in ratios), ratios
+    assert sum(ratios) / len(ratios) <= 1.2, ratios
 
 
 def test_plan_result_is_consistent_with_the_model(context):
@@ -147,19 +166,56 @@ def test_relative_band_with_warm_start_is_resolved_on_uniform_candidates(planner
     assert reference.quantile(0.3) <= result.uncertainty.sum() <= reference.quantile(0.7)
 
 
+@pytest.mark.parametrize("kind", ["absolute", "quantile", "mean_ratio"])
+def test_one_sided_bands_resolve_to_infinite_other_sides(kind):
+    reference = torch.tensor([[1.0, 2.0, 3.0, 6.0], [2.0, 2.0, 2.0, 2.0]])
+    value = {"absolute": 2.5, "quantile": 0.5, "mean_ratio": 1.5}[kind]
+    expected = {
+        "absolute": [[2.5], [2.5]],
+        "quantile": [[2.5], [2.0]],
+        "mean_ratio": [[4.5], [3.0]],
+    }[kind]
+    low, high = UncertaintyBand(low=value, kind=kind).resolve(reference)
+    assert low.tolist() == expected and high.tolist() == [[float("inf")]] * 2
+    low, high = UncertaintyBand(high=value, kind=kind).resolve(reference)
+    assert low.tolist() == [[-float("inf")]] * 2 and high.tolist() == expected
+
+
+def test_quantile_bands_take_bounds_in_zero_one_only():
+    assert UncertaintyBand(low=0.0, high=1.0, kind="quantile").high == 1.0
+    for low, high in ((-0.1, 0.5), (0.5, 1.1)):
+        with pytest.raises(ValueError, match=r"quantile band bounds must lie in \[0, 1\]"):
+            UncertaintyBand(low=low, high=high, kind="quantile")
+    assert UncertaintyBand(low=2.0, high=5.0).high == 5.0  # absolute bands are not limited
+    with pytest.raises(ValueError, match="band kind must be"):
+        UncertaintyBand(low=1.0, kind="ratio")
+
+
 def test_no_feasible_candidate_is_reported_or_raised():
     model = _ae_model()
     ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
     band = UncertaintyBand(low=1e6, high=2e6)
-    with pytest.warns(RuntimeWarning, match="No candidate met the constraints"):
+    with pytest.warns(RuntimeWarning, match=r"No candidate met the constraints.* for 1 of 1 batch"):
         result = RandomShootingPlanner(
             model, Objective(band=band), horizon=H, num_candidates=50
         ).plan(*ctx)
     assert not result.feasible
-    with pytest.raises(InfeasiblePlanError, match="No candidate"):
+    for raising in (
         RandomShootingPlanner(
             model, Objective(band=band), horizon=H, num_candidates=50, on_infeasible="raise"
-        ).plan(*ctx)
+        ),
+        CEMPlanner(
+            model,
+            Objective(band=band),
+            horizon=H,
+            num_candidates=20,
+            num_elites=4,
+            iterations=2,
+            on_infeasible="raise",
+        ),
+    ):
+        with pytest.raises(InfeasiblePlanError, match="No candidate"):
+            raising.plan(*ctx)
 
 
 def test_cost_threshold_is_respected(context):
@@ -196,7 +252,7 @@ def test_bad_input_is_a_clear_error():
         PlanningModel(model.world_model, integrator_cost, action_low=-float("inf"))
     with pytest.raises(ValueError, match="horizon"):
         RandomShootingPlanner(model, Objective(), horizon=0)
-    with pytest.raises(ValueError, match="num_candidates"):
+    with pytest.raises(ValueError, match="^num_candidates must be an int >= 1, got 0"):
         RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=0)
     with pytest.raises(ValueError, match="no estimator"):
         RandomShootingPlanner(
@@ -211,6 +267,56 @@ def test_bad_input_is_a_clear_error():
         UncertaintyBand(low=2.0, high=1.0)
     with pytest.raises(ValueError, match="num_elites"):
         CEMPlanner(model, Objective(), horizon=3, num_candidates=4, num_elites=5)
+    with pytest.raises(ValueError, match="on_infeasible must be 'fallback' or 'raise', got 'skip'"):
+        RandomShootingPlanner(model, Objective(), horizon=3, on_infeasible="skip")
+    with pytest.raises(ValueError, match=r"init has shape \(2, 2\); expected \(3, 2\)"):
+        planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3), init=torch.zeros(2, 2))
+    with pytest.raises(ValueError, match=r"init has shape \(3, 2\); expected \(5, 3, 2\)"):
+        planner.plan(
+            torch.zeros(5, 4, 3), torch.zeros(5, 4, 2), torch.zeros(5, 3), init=torch.zeros(3, 2)
+        )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"num_candidates": 0}, "num_candidates must be an int >= 1, got 0"),
+        ({"iterations": 0}, "iterations must be an int >= 1, got 0"),
+        ({"num_elites": 0}, r"num_elites must be in \[1, num_candidates=8\], got 0"),
+        ({"num_elites": 9}, r"num_elites must be in \[1, num_candidates=8\], got 9"),
+        ({"smoothing": 1.0}, r"smoothing must be in \[0, 1\), got 1.0"),
+        ({"smoothing": -0.1}, r"smoothing must be in \[0, 1\), got -0.1"),
+    ],
+)
+def test_cem_argument_checks(kwargs, message):
+    model = PlanningModel(integrator_model(), integrator_cost)
+    args = {"horizon": 3, "num_candidates": 8, "num_elites": 2, **kwargs}
+    with pytest.raises(ValueError, match=message):
+        CEMPlanner(model, Objective(), **args)
+
+
+def test_defaults_are_the_documented_ones():
+    """docs/planning.md lists these defaults."""
+    model = PlanningModel(integrator_model(), integrator_cost)
+    cem = CEMPlanner(model, Objective(), horizon=3)
+    assert (cem.num_candidates, cem.iterations, cem.num_elites) == (1000, 5, 100)
+    assert (cem.smoothing, cem.min_std, cem.on_infeasible) == (0.1, 0.02, "fallback")
+    shooting = RandomShootingPlanner(model, Objective(), horizon=3)
+    assert (shooting.num_candidates, shooting.on_infeasible) == (1000, "fallback")
+
+
+def test_cem_accepts_the_edges_of_its_ranges(context):
+    model = PlanningModel(integrator_model(), integrator_cost)
+    for kwargs in (
+        {"num_elites": 1},
+        {"num_elites": 8},
+        {"num_elites": 2, "smoothing": 0.0},
+        {"num_elites": 2, "smoothing": 0.99},
+    ):
+        planner = CEMPlanner(
+            model, Objective(), horizon=3, num_candidates=8, iterations=2, **kwargs
+        )
+        assert planner.plan(*context).actions.shape == (3, 1), kwargs
 
 
 if __name__ == "__main__":

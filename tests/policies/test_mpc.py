@@ -6,19 +6,32 @@ from torchrl.collectors import Collector, MultiSyncCollector
 
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.envs.drone import drone_cost
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, RandomShootingPlanner
+from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import (
+    CEMPlanner,
+    GradientPlanner,
+    Objective,
+    PlanningModel,
+    RandomShootingPlanner,
+)
 from torchrl_recon.policies import MPCPolicy
+
+CONTEXT, PLAN_H = 3, 6  # the small policy's context (window) and plan horizon
+
+
+def _small_drone_model() -> PlanningModel:
+    torch.manual_seed(0)
+    return PlanningModel(
+        LSTMWorldModel(12, 4, window=CONTEXT, hidden_size=8, dense_size=8),
+        drone_cost,
+        uncertainty=ReconstructionUncertainty(12, 4, window=CONTEXT, hidden_size=8),
+    )
 
 
 def _small_drone_policy(**kwargs) -> MPCPolicy:
-    torch.manual_seed(0)
-    model = PlanningModel(
-        LSTMWorldModel(12, 4, window=3, hidden_size=8, dense_size=8),
-        drone_cost,
-        uncertainty=ReconstructionUncertainty(12, 4, window=3, hidden_size=8),
+    planner = RandomShootingPlanner(
+        _small_drone_model(), Objective(beta=0.1), horizon=PLAN_H, num_candidates=16
     )
-    planner = RandomShootingPlanner(model, Objective(beta=0.1), horizon=6, num_candidates=16)
     return MPCPolicy(planner, **kwargs)
 
 
@@ -55,6 +68,8 @@ def _replans_and_drift(error_threshold: float | None) -> tuple[list[bool], torch
     policy = _small_drone_policy(
         replan="every_n", replan_every=100, error_threshold=error_threshold
     )
+    # drift is measured in obs_norm standard deviations: make them differ from 1
+    policy.planner.model.world_model.obs_norm.scale.copy_(torch.linspace(0.02, 2.0, 12))
     torch.manual_seed(1)
     td = _make_drone(policy).rollout(10, policy)
     scale = policy.planner.model.world_model.obs_norm.scale
@@ -76,6 +91,189 @@ def test_error_threshold_replans_where_the_state_leaves_the_plan():
     # a tiny threshold re-plans at every step after the first plan; a huge one never adds one
     assert _replans_and_drift(1e-9)[0] == [False] * 3 + [True] * 7
     assert _replans_and_drift(1e9)[0] == _replans_and_drift(None)[0]
+
+
+def test_open_loop_execution_takes_the_plans_current_step():
+    """After a plan is made, step k of the episode executes plan[k], with plan[k]'s predictions."""
+    policy = _small_drone_policy(replan="every_n", replan_every=PLAN_H)
+    td = _make_drone(policy).rollout(CONTEXT + PLAN_H, policy)
+    assert td["mpc_replanned"].squeeze(-1).tolist() == [False] * CONTEXT + [True] + [False] * (
+        PLAN_H - 1
+    )
+    plan = td["next", "mpc_plan"][CONTEXT]  # the plan made at the first planned step
+    assert not torch.equal(plan[0], plan[1])  # so executing plan[0] twice would be seen
+    executed = td["action"][CONTEXT:]
+    torch.testing.assert_close(executed, plan, rtol=0, atol=0)
+    torch.testing.assert_close(
+        td["mpc_predicted_next_observation"][CONTEXT:], td["next", "mpc_plan_states"][CONTEXT]
+    )
+    torch.testing.assert_close(
+        td["mpc_predicted_cost"][CONTEXT:].squeeze(-1), td["next", "mpc_plan_cost"][CONTEXT]
+    )
+    assert td["next", "mpc_plan_step"][CONTEXT:].squeeze(-1).tolist() == list(range(1, PLAN_H + 1))
+
+
+def _uncertainty_rollout(threshold: float, threshold_on: str) -> tuple[list[bool], torch.Tensor]:
+    policy = _small_drone_policy(
+        replan="uncertainty", threshold=threshold, threshold_on=threshold_on
+    )
+    torch.manual_seed(1)
+    td = _make_drone(policy).rollout(CONTEXT + PLAN_H + 1, policy)
+    return td["mpc_replanned"].squeeze(-1).tolist(), td["next", "mpc_plan_u"][CONTEXT]
+
+
+def _expected_replans(u: torch.Tensor, threshold: float, cumulative: bool) -> list[bool]:
+    """By hand: after the plan made at step CONTEXT, the next re-plan is at the first step
+    k >= 1 of the plan whose predicted u (or Σu of plan steps 0..k) exceeds the threshold, or
+    at k = H when the plan runs out. The flags up to and including that re-plan."""
+    score = u.cumsum(0) if cumulative else u
+    k = next((k for k in range(1, PLAN_H) if score[k] > threshold), PLAN_H)
+    return [False] * CONTEXT + [True] + [False] * (k - 1) + [True]
+
+
+def test_uncertainty_replanning_thresholds_the_step_u_or_the_cumulative_u():
+    replanned, u = _uncertainty_rollout(1e9, "cumulative")  # the first plan's u
+    assert replanned == [False] * CONTEXT + [True] + [False] * (PLAN_H - 1) + [True]  # ran out
+    total = u.cumsum(0)
+    assert (u > 0).all()
+    # between Σu of steps 0..1 and 0..2, and above every single step's u
+    threshold = float(max(total[1], u.max()) + total[2]) / 2
+    assert total[1] < threshold < total[2] and (u < threshold).all()
+    expected = {
+        "step": _expected_replans(u, threshold, cumulative=False),
+        "cumulative": _expected_replans(u, threshold, cumulative=True),
+    }
+    assert expected["step"] != expected["cumulative"]
+    for mode, flags in expected.items():
+        replanned, plan_u = _uncertainty_rollout(threshold, mode)
+        torch.testing.assert_close(plan_u, u)  # the same first plan in both modes
+        assert replanned[: len(flags)] == flags, mode
+    # and a threshold below u[1] re-plans one step after the plan in both modes
+    low = float(u[1]) / 2
+    for mode in ("step", "cumulative"):
+        assert _uncertainty_rollout(low, mode)[0][CONTEXT + 1], mode
+
+
+U_ROWS = torch.tensor([[0.1, 0.2, 0.3, 0.4, 0.5, 0.9], [0.01, 0.01, 0.01, 0.01, 0.01, 0.6]])
+
+
+@pytest.mark.parametrize("threshold_on", ["step", "cumulative"])
+def test_uncertainty_replanning_rule_row_by_row(threshold_on):
+    """Rows at every step 1..H of two plans' u, in one batch: re-plan where the u of the plan's
+    current step (or Σu up to it) exceeds 0.45, or where the plan ran out (step H)."""
+    policy = _small_drone_policy(replan="uncertainty", threshold=0.45, threshold_on=threshold_on)
+    steps = torch.arange(1, PLAN_H + 1).repeat(2)  # [1..H, 1..H]
+    u = U_ROWS.repeat_interleave(PLAN_H, 0)
+    td = _make_drone(policy).reset().expand(len(steps)).clone()
+    td["is_init"] = torch.zeros_like(td["is_init"])
+    td["mpc_steps_seen"] = torch.full_like(td["mpc_steps_seen"], CONTEXT)
+    td["mpc_plan_u"], td["mpc_plan_step"] = u, steps[:, None]
+    replanned = policy(td)["mpc_replanned"]
+    assert replanned.dtype == torch.bool and replanned.shape == (len(steps), 1)
+    score = u.cumsum(-1) if threshold_on == "cumulative" else u
+    index = steps.clamp(max=PLAN_H - 1)[:, None]
+    expected = (score.gather(-1, index).squeeze(-1) > 0.45) | (steps >= PLAN_H)
+    assert replanned.squeeze(-1).tolist() == expected.tolist()
+    assert (
+        expected.tolist()
+        == {  # the same, written out
+            "step": [False] * 3 + [True] * 3 + [False] * 4 + [True] * 2,
+            "cumulative": [False] + [True] * 5 + [False] * 4 + [True] * 2,
+        }[threshold_on]
+    )
+
+
+def test_declared_keys_match_what_the_policy_reads_and_writes():
+    policy = _small_drone_policy(replan="every_n", replan_every=2)
+    env = _make_drone(policy)
+    td = env.reset()
+    assert set(policy.in_keys) <= set(td.keys())  # the env with the primer provides them all
+    spec = policy.state_spec()
+    assert spec["mpc_plan_step"].dtype == spec["mpc_steps_seen"].dtype == torch.int64
+    assert td["mpc_steps_seen"].dtype == torch.int64
+    rollout = env.rollout(CONTEXT + 2, policy)
+    for key in policy.out_keys:
+        assert key in rollout.keys(include_nested=True), key
+    assert rollout["mpc_replanned"].dtype == rollout["mpc_feasible"].dtype == torch.bool
+
+
+def test_drift_is_measured_in_raw_units_for_a_model_without_obs_norm():
+    """A LinearDeltaModel has no obs_norm: the drift is the plain RMS of observed − predicted."""
+    model = LinearDeltaModel(2, 1, window=2)
+    planner = RandomShootingPlanner(
+        PlanningModel(model, lambda s, a, s2: s2.pow(2).sum(-1)), Objective(), horizon=4
+    )
+    policy = MPCPolicy(planner, replan="every_n", replan_every=100, error_threshold=0.5)
+    replanned = []
+    for observed in ([0.4, -0.4], [0.6, 0.6]):  # RMS 0.4 (on the plan) and 0.6 (off it)
+        td = policy.state_spec().zero()
+        td["observation"], td["is_init"] = torch.tensor(observed), torch.zeros(1, dtype=torch.bool)
+        td["mpc_steps_seen"][:], td["mpc_plan_step"][:] = 2, 1  # one planned step done
+        replanned.append(policy(td)["mpc_replanned"].item())  # predicted state: zeros
+    assert replanned == [False, True]
+
+
+def _identity_planner_policy(**kwargs) -> MPCPolicy:
+    """A real planner that returns its warm start unchanged: one restart (the warm start, or a
+    uniform sequence without one) and one Adam step of 1e-20, below float32 resolution."""
+    planner = GradientPlanner(
+        _small_drone_model(), Objective(), horizon=PLAN_H, restarts=1, steps=1, lr=1e-20
+    )
+    return MPCPolicy(planner, **kwargs)
+
+
+def _step_from_plan(policy: MPCPolicy, plan: torch.Tensor, step: int):
+    """One policy step from a hand-made state: after the warm-up, ``step`` actions of ``plan`` done."""
+    td = _make_drone(policy).reset()
+    td["is_init"] = torch.zeros_like(td["is_init"])
+    td["mpc_steps_seen"] = torch.full_like(td["mpc_steps_seen"], CONTEXT)
+    td["mpc_plan"] = plan.clone()
+    td["mpc_plan_step"] = torch.full_like(td["mpc_plan_step"], step)
+    return policy(td)
+
+
+def test_warm_start_passes_the_rest_of_the_plan_to_the_planner():
+    plan = torch.linspace(-0.9, 0.9, PLAN_H * 4).reshape(PLAN_H, 4)
+    policy = _identity_planner_policy(replan="every_step")
+    assert policy.warm_start  # on by default
+    for step in (1, 4):
+        td = _step_from_plan(policy, plan, step)
+        assert td["mpc_replanned"].item()
+        # the unexecuted rest of the plan, padded with its last action
+        rest = torch.cat([plan[step:], plan[-1:].expand(step, -1)])
+        torch.testing.assert_close(td["next", "mpc_plan"], rest, rtol=0, atol=0)
+        torch.testing.assert_close(td["action"], plan[step], rtol=0, atol=0)
+    # a plan that ran out warm-starts from zeros (as the first plan of an episode does)
+    td = _step_from_plan(policy, plan, PLAN_H)
+    assert (td["next", "mpc_plan"] == 0).all()
+    # without warm start the planner gets no init: its one restart is uniform
+    td = _step_from_plan(_identity_planner_policy(replan="every_step", warm_start=False), plan, 1)
+    fresh = td["next", "mpc_plan"]
+    assert (fresh != torch.cat([plan[1:], plan[-1:]])).all() and (fresh != 0).all()
+
+
+def test_warmup_steps_take_random_actions_before_the_first_plan():
+    warmup = CONTEXT + 2
+    policy = _small_drone_policy(replan="every_step", warmup_steps=warmup)
+    assert policy.warmup_steps == warmup
+    td = _make_drone(policy).rollout(warmup + 2, policy)
+    assert td["mpc_replanned"].squeeze(-1).tolist() == [False] * warmup + [True] * 2
+    assert torch.isnan(td["mpc_predicted_next_observation"][:warmup]).all()
+    assert torch.isnan(td["mpc_predicted_uncertainty"][:warmup]).all()
+    assert torch.isfinite(td["mpc_predicted_next_observation"][warmup:]).all()
+    random = td["action"][:warmup]
+    assert (random.abs() <= 1).all() and random.std() > 0.1  # uniform in the bounds
+    assert (random[:, :-1] != random[:, 1:]).all()  # drawn for each action dimension
+    # the first plan's context is the last CONTEXT real (s, a) pairs of the warm-up
+    torch.testing.assert_close(
+        td["mpc_obs_history"][warmup], td["observation"][warmup - CONTEXT : warmup]
+    )
+    torch.testing.assert_close(
+        td["mpc_action_history"][warmup], td["action"][warmup - CONTEXT : warmup]
+    )
+    assert _small_drone_policy().warmup_steps == CONTEXT  # default: the context length
+    with pytest.raises(ValueError, match=r"warmup_steps=2 is shorter than the context.*\(3\)"):
+        _small_drone_policy(warmup_steps=CONTEXT - 1)
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +360,7 @@ def test_bad_input_and_missing_primer():
     env = _make_drone(policy)
     td = env.reset()
     td["observation"][0] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match="'observation' given to MPCPolicy.*NaN"):
         policy(td)
     with pytest.raises(ValueError, match="threshold"):
         _small_drone_policy(replan="uncertainty")
@@ -171,6 +369,19 @@ def test_bad_input_and_missing_primer():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="error_threshold"):
             _small_drone_policy(error_threshold=bad)
+    with pytest.raises(ValueError, match="replan_every must be an int >= 1, got 0"):
+        _small_drone_policy(replan="every_n", replan_every=0)
+    with pytest.raises(ValueError, match="threshold_on must be 'step' or 'cumulative'"):
+        _small_drone_policy(threshold_on="total")
+    no_estimator = RandomShootingPlanner(
+        PlanningModel(LSTMWorldModel(12, 4, window=CONTEXT), drone_cost),
+        Objective(),
+        horizon=PLAN_H,
+        num_candidates=4,
+    )
+    with pytest.raises(ValueError, match="needs a planning model with an uncertainty estimator"):
+        MPCPolicy(no_estimator, replan="uncertainty", threshold=1.0)
+    assert MPCPolicy(no_estimator, replan="every_step").replan == "every_step"  # fine without u
 
 
 if __name__ == "__main__":

@@ -1,11 +1,14 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import pytest
 import torch
 from tensordict import TensorDict
+from torch import nn
 from torchrl.collectors import Collector
+from torchrl.objectives import LossModule
 from torchrl.record.loggers import CSVLogger
 from torchrl.trainers import ReplayBufferTrainer, Trainer
 
@@ -88,10 +91,19 @@ def test_fit_uncertainty_logs_and_checkpoints(tmp_path):
         logger=logger,
         checkpoint_path=ckpt,
     )
-    assert result.best_val_loss < result.history[0]["val_loss"] or len(result.history) == 1
-    assert (tmp_path / "fit" / "scalars" / "uncertainty" / "val_loss.csv").exists() or list(
-        tmp_path.rglob("*val_loss*")
+    assert [h["step"] for h in result.history] == [25, 50, 75, 100]
+    val_losses = [h["val_loss"] for h in result.history]
+    assert result.best_val_loss == min(val_losses)
+    assert result.best_val_loss < val_losses[0]
+    rows = (tmp_path / "fit" / "scalars" / "uncertainty" / "val_loss.csv").read_text().split()
+    assert [int(row.split(",")[0]) for row in rows] == [25, 50, 75, 100]
+    logged = [float(row.split(",")[1]) for row in rows]
+    assert logged == pytest.approx(val_losses)
+    best_step = result.history[val_losses.index(min(val_losses))]["step"]
+    extra = load_checkpoint(
+        ckpt, {"uncertainty": ReconstructionUncertainty(3, 2, window=4, hidden_size=16)}
     )
+    assert extra == {"step": best_step, "val_loss": pytest.approx(result.best_val_loss)}
     loaded = load_modules(ckpt)["uncertainty"]
     x = torch.randn(2, 9, 3), torch.randn(2, 9, 2)
     torch.testing.assert_close(loaded.score(*x), ae.score(*x))
@@ -234,6 +246,109 @@ def test_train_loss_module_argument_checks():
         train_loss_module(
             UncertaintyLoss(ReconstructionUncertainty(3, 2, window=4), slice_len=12), rb, steps=0
         )
+
+
+class _LinearLoss(LossModule):
+    """loss = mean(w * x): with x = 1 the gradient is 1 at every step, so each Adam step moves w
+    by exactly lr_t g / (|g| + eps) and the result of training can be computed by hand."""
+
+    def __init__(self, w0: float) -> None:
+        super().__init__()
+        self.w = nn.Parameter(torch.tensor([w0], dtype=torch.float64))
+
+    def forward(self, td: TensorDict) -> TensorDict:
+        x = td["x"].to(torch.float64)
+        value = (self.w * x).sum(-1).mean()
+        # not a loss: a diagnostic that must not be optimised (its gradient would flip the sign)
+        return TensorDict({"loss_linear": value, "diagnostic": -1000.0 * value}, [])
+
+
+def _ones_buffer():
+    rb = make_sequence_buffer(100, slice_len=2, num_slices=2)
+    rb.extend(
+        TensorDict(
+            {"x": torch.ones(20, 1), ("collector", "traj_ids"): torch.arange(20) // 10}, [20]
+        )
+    )
+    return rb
+
+
+ADAM_EPS = 1e-8
+
+
+def _train_linear(w0: float = 1.0, **kwargs) -> tuple[float, float]:
+    loss = _LinearLoss(w0)
+    kwargs = {"eval_every": kwargs.get("steps", 1), "progress": False, **kwargs}
+    result = train_loss_module(loss, _ones_buffer(), **kwargs)
+    return float(loss.w.detach()), result.best_val_loss
+
+
+def test_learning_rate_follows_a_cosine_from_lr_to_lr_over_20():
+    steps, lr = 40, 0.01
+    eta_min = lr / 20
+    rates = [
+        eta_min + (lr - eta_min) * (1 + math.cos(math.pi * t / steps)) / 2 for t in range(steps)
+    ]
+    w, best = _train_linear(steps=steps, lr=lr)
+    expected = 1.0 - sum(rates) / (1 + ADAM_EPS)
+    assert w == pytest.approx(expected, rel=1e-9)
+    assert best == pytest.approx(expected, rel=1e-9)  # the final weights are the best ones
+    w, _ = _train_linear(steps=steps, lr=lr, lr_decay=False)
+    assert w == pytest.approx(1.0 - steps * lr / (1 + ADAM_EPS), rel=1e-9)
+
+
+def test_clip_norm_clips_the_gradient_before_the_adam_step():
+    lr = 0.1
+    # Adam is blind to the gradient's scale except through eps: clipping |g| = 1 to 1e-10
+    # shrinks the first step from lr to lr * 1e-10 / (1e-10 + eps), about lr / 101.
+    w, _ = _train_linear(steps=1, lr=lr, clip_norm=1e-10)
+    clipped = 1e-10 / (1.0 + 1e-6)  # torch's clip coefficient max_norm / (norm + 1e-6)
+    assert w == pytest.approx(1.0 - lr * clipped / (clipped + ADAM_EPS), rel=1e-9)
+    for clip_norm in (None, 10.0):  # no clipping, or a gradient already below the limit
+        w, _ = _train_linear(steps=1, lr=lr, clip_norm=clip_norm)
+        assert w == pytest.approx(1.0 - lr / (1 + ADAM_EPS), rel=1e-9)
+
+
+def test_weight_decay_adds_the_l2_gradient():
+    lr = 0.1
+    # g = 1 + weight_decay * w = 1 + 1.0 * (-2) = -1: the step goes up instead of down
+    w, _ = _train_linear(w0=-2.0, steps=1, lr=lr, weight_decay=1.0)
+    assert w == pytest.approx(-2.0 + lr / (1 + ADAM_EPS), rel=1e-9)
+    w, _ = _train_linear(w0=-2.0, steps=1, lr=lr)
+    assert w == pytest.approx(-2.0 - lr / (1 + ADAM_EPS), rel=1e-9)
+
+
+def test_best_weights_are_restored_at_the_end():
+    """Train on x = 1 and validate on x = -1: every step lowers w and so raises the validation
+    loss -w; the weights of the first evaluation are the best and are restored."""
+    loss = _LinearLoss(1.0)
+    rb = make_sequence_buffer(100, slice_len=2, num_slices=2)
+    val = make_sequence_buffer(100, slice_len=2, num_slices=2)
+    rb.extend(
+        TensorDict(
+            {"x": torch.ones(20, 1), ("collector", "traj_ids"): torch.arange(20) // 10}, [20]
+        )
+    )
+    val.extend(
+        TensorDict(
+            {"x": -torch.ones(20, 1), ("collector", "traj_ids"): torch.arange(20) // 10}, [20]
+        )
+    )
+    result = train_loss_module(
+        loss,
+        rb,
+        val_buffer=val,
+        steps=30,
+        lr=0.1,
+        lr_decay=False,
+        eval_every=10,
+        patience=None,
+        progress=False,
+    )
+    assert [h["step"] for h in result.history] == [10, 20, 30]
+    w_at_10 = 1.0 - 10 * 0.1 / (1 + ADAM_EPS)
+    assert float(loss.w.detach()) == pytest.approx(w_at_10, rel=1e-9)
+    assert result.best_val_loss == pytest.approx(-w_at_10, rel=1e-9)
 
 
 if __name__ == "__main__":

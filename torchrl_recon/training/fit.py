@@ -166,7 +166,16 @@ def fit_world_model(
     """Fit normalisation from ``buffer``'s contents, then train ``model`` (see :func:`train_loss_module`).
 
     Examples:
-        >>> # model = LSTMWorldModel(6, 3); fit_world_model(model, rb, val_buffer=val_rb, steps=2000)
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.data import make_sequence_buffer
+        >>> rb = make_sequence_buffer(100, slice_len=8, num_slices=4)
+        >>> obs = torch.randn(40, 3)
+        >>> _ = rb.extend(TensorDict({"observation": obs, "action": torch.randn(40, 2),
+        ...     ("next", "observation"): 0.9 * obs, ("collector", "traj_ids"): torch.arange(40) // 20}, [40]))
+        >>> model = LSTMWorldModel(3, 2, window=4)
+        >>> result = fit_world_model(model, rb, steps=10, eval_every=5, progress=False)
+        >>> [h["step"] for h in result.history], bool(model.obs_norm.fitted)
+        ([5, 10], True)
     """
     if fit_normalization:
         data = buffer_contents(buffer)
@@ -184,7 +193,19 @@ def fit_uncertainty(
     fit_normalization: bool = True,
     **kwargs,
 ) -> FitResult:
-    """Fit normalisation from ``buffer``'s contents, then train ``estimator`` (see :func:`train_loss_module`)."""
+    """Fit normalisation from ``buffer``'s contents, then train ``estimator`` (see :func:`train_loss_module`).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.data import make_sequence_buffer
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> rb = make_sequence_buffer(100, slice_len=5, num_slices=4)
+        >>> _ = rb.extend(TensorDict({"observation": torch.randn(40, 2), "action": torch.randn(40, 1),
+        ...     ("collector", "traj_ids"): torch.arange(40) // 20}, [40]))
+        >>> fit_uncertainty(ReconstructionUncertainty(2, 1, window=5), rb, steps=4, eval_every=2,
+        ...                 progress=False).steps
+        4
+    """
     if fit_normalization:
         data = buffer_contents(buffer)
         estimator.fit_normalization(data["observation"], data["action"])

@@ -25,7 +25,9 @@ def test_split_by_trajectory_names_the_missing_key(rollout):
 
 
 def test_cut_sequences_names_the_missing_key(rollout):
-    with pytest.raises(ValueError, match=r"cut_sequences needs trajectory ids under \('collector', 'traj_ids'\)"):
+    with pytest.raises(
+        ValueError, match=r"cut_sequences needs trajectory ids under \('collector', 'traj_ids'\)"
+    ):
         cut_sequences(rollout, 5)
     with pytest.raises(ValueError, match=r"under 'episode'"):
         cut_sequences(rollout, 5, traj_key="episode")

@@ -9,8 +9,7 @@ import pytest
 import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
-from torchrl_recon.envs import ENVS, GymEntry, get_entry, make_env, register_env
-from torchrl_recon.envs import registry
+from torchrl_recon.envs import ENVS, GymEntry, get_entry, make_env, register_env, registry
 
 USER_MODULE = '''
 import gymnasium as gym
@@ -93,8 +92,12 @@ def test_register_env_gives_a_name_and_a_cost(monkeypatch):
     )
     assert get_entry("pendulum").cost_fn() is pendulum_cost
     assert make_env("pendulum", seed=0).rollout(2)["observation"].shape == (2, 3)
-    register_env("Pendulum-v1", name="pendulum", cost=f"{__name__}:pendulum_cost",
-                 state_names=("cos", "sin", "omega"))  # the same again: a no-op
+    register_env(
+        "Pendulum-v1",
+        name="pendulum",
+        cost=f"{__name__}:pendulum_cost",
+        state_names=("cos", "sin", "omega"),
+    )  # the same again: a no-op
     with pytest.raises(ValueError, match="already registered"):
         register_env("Pendulum-v1", name="pendulum")
     with pytest.raises(ValueError, match="shipped environment"):
@@ -134,7 +137,10 @@ def test_module_colon_id_in_a_batch_of_envs(user_module):
 @pytest.mark.parametrize(
     "name, match",
     [
-        ("NoSuchEnv-v0", r"Unknown environment 'NoSuchEnv-v0'.*gymnasium\.register\(id='NoSuchEnv-v0'"),
+        (
+            "NoSuchEnv-v0",
+            r"Unknown environment 'NoSuchEnv-v0'.*gymnasium\.register\(id='NoSuchEnv-v0'",
+        ),
         ("pendulum_typo", r"Unknown environment 'pendulum_typo'.*'drone'"),
         ("no_such_module_xyz:Foo-v0", r"cannot import module 'no_such_module_xyz'"),
     ],

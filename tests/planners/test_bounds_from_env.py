@@ -36,7 +36,11 @@ def _policy(model: PlanningModel) -> MPCPolicy:
     "spec, low, high",
     [
         (Bounded(-2.0, 2.0, shape=(1,)), [-2.0], [2.0]),
-        (Bounded(torch.tensor([-1.0, 0.0]), torch.tensor([1.0, 3.0]), shape=(2,)), [-1.0, 0.0], [1.0, 3.0]),
+        (
+            Bounded(torch.tensor([-1.0, 0.0]), torch.tensor([1.0, 3.0]), shape=(2,)),
+            [-1.0, 0.0],
+            [1.0, 3.0],
+        ),
         (Bounded(-0.5, 0.5, shape=(4, 3)), [-0.5] * 3, [0.5] * 3),  # a batch of 4 envs
     ],
 )
@@ -106,7 +110,9 @@ def test_a_policy_with_the_envs_bounds_is_accepted_and_acts_in_the_whole_box(num
 
 def test_check_env_refuses_other_bounds_and_an_exploration_policy_too():
     env = make_env("Pendulum-v1", seed=0)
-    model = PlanningModel(_world(), pendulum_cost, uncertainty=ReconstructionUncertainty(3, 1, window=2))
+    model = PlanningModel(
+        _world(), pendulum_cost, uncertainty=ReconstructionUncertainty(3, 1, window=2)
+    )
     explorer = ExplorationPolicy(
         RandomShootingPlanner(model, exploration_objective(), horizon=3, num_candidates=8)
     )

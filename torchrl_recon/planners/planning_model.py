@@ -174,9 +174,7 @@ class PlanningModel(nn.Module):
                 f"the env's action spec has {low.numel()} dims but the world model's action_dim "
                 f"is {world_model.action_dim}; build the world model for this env's actions."
             )
-        return cls(
-            world_model, cost_fn, uncertainty=uncertainty, action_low=low, action_high=high
-        )
+        return cls(world_model, cost_fn, uncertainty=uncertainty, action_low=low, action_high=high)
 
     @property
     def context_length(self) -> int:

@@ -66,6 +66,19 @@ def make_sequence_buffer(
     )
 
 
+def _trajectory_ids(data: TensorDictBase, traj_key: NestedKey, caller: str) -> torch.Tensor:
+    """The trajectory ids of flat transitions; a clear error when the key is missing."""
+    ids = data.get(traj_key, None)
+    if ids is None:
+        raise ValueError(
+            f"{caller} needs trajectory ids under {traj_key!r}, which the data lacks; a TorchRL "
+            "collector writes them (env.rollout does not): collect with a Collector, or set them "
+            f"yourself with td.set({traj_key!r}, ids) (one int id per step, constant within an "
+            "episode)."
+        )
+    return ids
+
+
 def buffer_contents(buffer: TensorDictReplayBuffer) -> TensorDictBase:
     """Everything stored in ``buffer`` as one TensorDict; raises a clear error when it is empty."""
     if len(buffer) == 0:
@@ -87,7 +100,7 @@ def split_by_trajectory(
     """
     if not 0.0 < val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}.")
-    ids = data.get(traj_key)
+    ids = _trajectory_ids(data, traj_key, "split_by_trajectory")
     unique = torch.unique(ids)
     if len(unique) < 2:
         raise ValueError(f"Need at least 2 trajectories to split, got {len(unique)}.")
@@ -310,7 +323,7 @@ def cut_sequences(
     """
     if length < 1:
         raise ValueError(f"length must be >= 1, got {length}.")
-    ids = data.get(traj_key)
+    ids = _trajectory_ids(data, traj_key, "cut_sequences")
     starts = []
     for traj in torch.unique_consecutive(ids):
         idx = (ids == traj).nonzero().squeeze(-1)

@@ -3,6 +3,23 @@
 from __future__ import annotations
 
 from torchrl_recon.envs.factory import make_env
-from torchrl_recon.envs.registry import ENVS, EnvEntry, get_entry, register_envs
+from torchrl_recon.envs.registry import (
+    ENVS,
+    EnvEntry,
+    GymEntry,
+    get_entry,
+    gym_entry,
+    register_env,
+    register_envs,
+)
 
-__all__ = ["ENVS", "EnvEntry", "get_entry", "make_env", "register_envs"]
+__all__ = [
+    "ENVS",
+    "EnvEntry",
+    "GymEntry",
+    "get_entry",
+    "gym_entry",
+    "make_env",
+    "register_env",
+    "register_envs",
+]

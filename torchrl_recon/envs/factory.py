@@ -46,8 +46,16 @@ def make_env(
     next ones with seeds derived from it by TorchRL's ``seed_generator`` chain.
     Episode truncation comes from the gymnasium registration (``TimeLimit``).
 
+    Any gymnasium environment works: a gymnasium id (``"Pendulum-v1"``) or
+    ``"my_module:MyEnv-v0"``, for which gymnasium imports ``my_module`` (where the env is
+    registered with ``gymnasium.register``) first; see
+    :func:`~torchrl_recon.envs.registry.get_entry`. Such an env has no torch cost unless it is
+    registered with :func:`~torchrl_recon.envs.registry.register_env`; its action bounds come
+    from its action spec (:meth:`~torchrl_recon.planners.PlanningModel.from_env`).
+
     Args:
-        name: short name (``"industrial_benchmark"``, ``"drone"``, ``"minitaur"``) or gymnasium id.
+        name: short name (``"industrial_benchmark"``, ``"drone"``, ``"minitaur"``, or one given
+            to ``register_env``) or gymnasium id (``"Pendulum-v1"``, ``"my_module:MyEnv-v0"``).
 
     Keyword Args:
         seed: seed of the (first) environment.
@@ -64,6 +72,8 @@ def make_env(
         >>> td["next", "observation"].shape, td["next", "observation"].dtype
         (torch.Size([3, 12]), torch.float32)
         >>> env.close()
+        >>> make_env("Pendulum-v1", seed=0).action_spec.space.high.tolist()
+        [2.0]
     """
     register_envs()
     entry = get_entry(name)

@@ -118,15 +118,23 @@ ENVS: dict[str, EnvEntry] = {
 def get_entry(name: str) -> EnvEntry:
     """Look an environment up by short name (``"drone"``) or gymnasium id.
 
+    A shipped env or one added with :func:`register_env` comes back as registered; any other
+    gymnasium id (``"Pendulum-v1"``, or ``"my_module:MyEnv-v0"``, which imports ``my_module``
+    first) as a generic :class:`GymEntry` without a torch cost (see :func:`gym_entry`).
+
+    Raises:
+        ValueError: ``name`` is neither registered here nor a gymnasium id.
+
     Examples:
         >>> get_entry("torchrl_recon/Drone-v0").name
         'drone'
+        >>> get_entry("Pendulum-v1").env_class().__name__
+        'PendulumEnv'
     """
-    for entry in ENVS.values():
+    for entry in (*ENVS.values(), *USER_ENVS.values()):
         if name in (entry.name, entry.gym_id):
             return entry
-    known = sorted(list(ENVS) + [e.gym_id for e in ENVS.values()])
-    raise ValueError(f"Unknown environment {name!r}; expected one of {known}.")
+    return gym_entry(name)
 
 
 def register_envs() -> None:
@@ -138,3 +146,152 @@ def register_envs() -> None:
                 entry_point=entry.entry_point,
                 max_episode_steps=entry.max_episode_steps,
             )
+
+
+# ----------------------------------------------------------------------------------------------
+# Any gymnasium environment: a generic entry, and user registrations with a torch cost
+
+
+USER_ENVS: dict[str, EnvEntry] = {}
+
+
+@dataclass(frozen=True)
+class GymEntry(EnvEntry):
+    """An environment known to gymnasium but not shipped here: no torch cost unless one is given.
+
+    ``gym_id`` is what ``gymnasium.make`` is called with (``"Pendulum-v1"`` or
+    ``"my_module:MyEnv-v0"``); ``cost_fn_path`` is ``"module:function"`` or ``""`` for none;
+    ``max_episode_steps`` is gymnasium's (None for no limit).
+    """
+
+    def cost_fn(self) -> CostFn:
+        """The registered torch cost; a clear error when the env has none."""
+        if not self.cost_fn_path:
+            raise ValueError(
+                f"environment {self.name!r} has no torch cost; write one, cost(obs, action, "
+                "next_obs) -> [...] (batched, in torch), and register it with "
+                f"torchrl_recon.envs.register_env({self.gym_id!r}, cost='my_module:my_cost'), "
+                "or pass it to PlanningModel directly."
+            )
+        return super().cost_fn()
+
+    def env_class(self) -> type:
+        """The class (or factory function) gymnasium builds the environment with."""
+        entry_point = _gym_spec(self.gym_id).entry_point
+        if isinstance(entry_point, str):
+            module, attr = entry_point.split(":")
+            return getattr(importlib.import_module(module), attr)
+        return entry_point
+
+    def keywords(self) -> dict[str, Any] | None:
+        """The constructor keywords of the environment and their defaults (None: any keyword)."""
+        target = self.env_class()
+        params = inspect.signature(target.__init__ if isinstance(target, type) else target)
+        params = params.parameters
+        if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return None
+        return {
+            name: p.default
+            for name, p in params.items()
+            if name != "self" and p.kind is not inspect.Parameter.VAR_POSITIONAL
+        }
+
+
+def _gym_spec(gym_id: str) -> gym.envs.registration.EnvSpec:
+    """gymnasium's spec of ``gym_id``, importing ``module`` first for ``"module:EnvId"``."""
+    module, _, env_id = gym_id.rpartition(":")
+    how = (
+        f"register it with gymnasium.register(id={env_id!r}, entry_point='my_module:MyEnv') in "
+        f"a module and pass 'my_module:{env_id}' (gymnasium imports my_module first)"
+    )
+    if module:
+        try:
+            importlib.import_module(module)
+        except ImportError as e:
+            raise ValueError(
+                f"Unknown environment {gym_id!r}: cannot import module {module!r} ({e}); "
+                f"put it on sys.path, or {how}."
+            ) from None
+    register_envs()
+    try:
+        return gym.spec(env_id)
+    except gym.error.Error as err:
+        known = sorted(list(ENVS) + [e.gym_id for e in ENVS.values()] + list(USER_ENVS))
+        raise ValueError(
+            f"Unknown environment {gym_id!r}: not one of {known} nor a registered gymnasium id "
+            f"({err}); {how}."
+        ) from None
+
+
+def gym_entry(
+    gym_id: str,
+    *,
+    name: str | None = None,
+    cost: str | None = None,
+    state_names: tuple[str, ...] = (),
+) -> GymEntry:
+    """A :class:`GymEntry` for any gymnasium id (checked with gymnasium, not registered here).
+
+    Args:
+        gym_id: a gymnasium id, ``"module:EnvId"`` to import ``module`` (which registers the
+            env) first.
+
+    Keyword Args:
+        name: short name (default: ``gym_id``).
+        cost: ``"module:function"`` of a batched torch cost ``cost(obs, action, next_obs)``.
+        state_names: names of the observation's dims (optional).
+
+    Raises:
+        ValueError: gymnasium does not know ``gym_id`` (the message says how to register it).
+
+    Examples:
+        >>> entry = gym_entry("Pendulum-v1")
+        >>> entry.name, entry.max_episode_steps, entry.cost_fn_path
+        ('Pendulum-v1', 200, '')
+    """
+    spec = _gym_spec(gym_id)
+    entry_point = spec.entry_point
+    if not isinstance(entry_point, str):
+        entry_point = f"{entry_point.__module__}:{entry_point.__qualname__}"
+    if cost is not None and (cost.count(":") != 1 or not all(cost.split(":"))):
+        raise ValueError(f"cost must be 'module:function', got {cost!r}.")
+    return GymEntry(
+        name or gym_id,
+        gym_id,
+        entry_point,
+        cost or "",
+        spec.max_episode_steps,
+        tuple(state_names),
+    )
+
+
+def register_env(
+    gym_id: str,
+    *,
+    name: str | None = None,
+    cost: str | None = None,
+    state_names: tuple[str, ...] = (),
+) -> GymEntry:
+    """Make a gymnasium environment known by ``name`` (default ``gym_id``), with a torch cost.
+
+    Afterwards ``get_entry(name)`` / ``make_env(name, ...)`` find it and
+    ``get_entry(name).cost_fn()`` imports the cost. Registering the same entry again is a no-op.
+
+    Raises:
+        ValueError: ``name`` is a shipped env or already registered differently, or gymnasium
+            does not know ``gym_id``.
+
+    Examples:
+        >>> entry = register_env("Pendulum-v1", name="pendulum_doc", state_names=("cos", "sin", "omega"))
+        >>> get_entry("pendulum_doc").state_names
+        ('cos', 'sin', 'omega')
+    """
+    entry = gym_entry(gym_id, name=name, cost=cost, state_names=state_names)
+    if entry.name in ENVS:
+        raise ValueError(f"{entry.name!r} is a shipped environment; pick another name.")
+    if USER_ENVS.get(entry.name, entry) != entry:
+        raise ValueError(
+            f"{entry.name!r} is already registered as {USER_ENVS[entry.name]}; pick another name."
+        )
+    USER_ENVS[entry.name] = entry
+    return entry

@@ -23,7 +23,7 @@ from torchrl_recon.experiments.common import (
     state_scale,
 )
 from torchrl_recon.experiments.stages import Stages, stage_seed
-from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand
+from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand, cost_to_u_ratio
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
 
@@ -78,25 +78,6 @@ def episode_mean_std(episodes: list[dict]) -> tuple[dict, dict]:
         mean[key] = float(values.mean()) if len(values) else float("nan")
         std[key] = float(values.std()) if len(values) > 1 else 0.0
     return mean, std
-
-
-def cost_to_u_ratio(data: TensorDictBase, per_window_u: torch.Tensor) -> float:
-    """Mean |cost| per step over mean u per window: the unit of a relative β (``beta_relative``).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> data = TensorDict({"next": {"reward": -torch.full((4, 1), 6.0)}}, [4])
-        >>> cost_to_u_ratio(data, torch.tensor([0.5, 1.5]))
-        6.0
-    """
-    cost = float(data["next", "reward"].abs().mean())
-    u = float(per_window_u.mean())
-    if not (math.isfinite(cost) and math.isfinite(u) and cost > 0 and u > 0):
-        raise ValueError(
-            f"a relative beta needs a positive finite mean |cost| and mean u on the random data, "
-            f"got mean |cost| = {cost} and mean u = {u}."
-        )
-    return cost / u
 
 
 def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:

@@ -8,6 +8,8 @@ from torchrl_recon.planners.base import (
     PlannerBase,
     PlanResult,
 )
+from torchrl_recon.planners.beta import cost_to_u_ratio, relative_beta, window_uncertainty
+from torchrl_recon.planners.bounds import bounds_from_spec, check_bounds_match
 from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
@@ -28,4 +30,9 @@ __all__ = [
     "RandomShootingPlanner",
     "UncertaintyBand",
     "WorldModelPlanningEnv",
+    "bounds_from_spec",
+    "check_bounds_match",
+    "cost_to_u_ratio",
+    "relative_beta",
+    "window_uncertainty",
 ]

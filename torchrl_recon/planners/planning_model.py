@@ -7,11 +7,13 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torchrl.envs import EnvBase
 
 from torchrl_recon.modules.checks import check_features, check_finite, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
+from torchrl_recon.planners.bounds import bounds_from_spec
 
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -89,7 +91,9 @@ class PlanningModel(nn.Module):
         uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
         action_low, action_high: action bounds (floats or ``[M]`` tensors); must be finite.
             Stored as buffers on the world model's device and dtype (``.to()`` moves them
-            with the rest); planners draw their candidates there.
+            with the rest); planners draw their candidates there. The defaults (−1, 1) fit
+            the shipped envs only: for any other env use :meth:`from_env`, which reads them
+            from the env's action spec.
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -140,6 +144,37 @@ class PlanningModel(nn.Module):
             )
         self.register_buffer("action_low", low.to(device).clone())
         self.register_buffer("action_high", high.to(device).clone())
+
+    @classmethod
+    def from_env(
+        cls,
+        world_model: LSTMWorldModel,
+        cost_fn: CostFn,
+        env: EnvBase,
+        *,
+        uncertainty: UncertaintyEstimator | None = None,
+    ) -> PlanningModel:
+        """A planning model whose action bounds are the env's (its ``Bounded`` action spec).
+
+        Raises:
+            ValueError: the env's action spec is unbounded or not continuous (pass
+                ``action_low`` / ``action_high`` to the constructor instead), or its size is
+                not the world model's ``action_dim``.
+
+        Examples:
+            >>> from torchrl.envs import GymEnv
+            >>> env = GymEnv("Pendulum-v1")
+            >>> pm = PlanningModel.from_env(LSTMWorldModel(3, 1), lambda s, a, s1: a.pow(2).sum(-1), env)
+            >>> pm.action_low.tolist(), pm.action_high.tolist()
+            ([-2.0], [2.0])
+        """
+        low, high = bounds_from_spec(env.action_spec)
+        if low.numel() != world_model.action_dim:
+            raise ValueError(
+                f"the env's action spec has {low.numel()} dims but the world model's action_dim "
+                f"is {world_model.action_dim}; build the world model for this env's actions."
+            )
+        return cls(world_model, cost_fn, uncertainty=uncertainty, action_low=low, action_high=high)
 
     @property
     def context_length(self) -> int:

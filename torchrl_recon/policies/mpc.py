@@ -9,10 +9,16 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
-from torchrl.envs import TensorDictPrimer
+from torchrl.envs import EnvBase
 
 from torchrl_recon.modules.checks import check_finite, check_int
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
+from torchrl_recon.policies.env_checks import (
+    IS_INIT,
+    MISSING_INIT_TRACKER,
+    PlannerStatePrimer,
+    check_policy_env,
+)
 
 ReplanMode = Literal["every_step", "every_n", "uncertainty"]
 
@@ -43,7 +49,13 @@ class MPCPolicy(TensorDictModuleBase):
     Its state (the last ``C`` real (s, a) pairs and the remaining plan with its predictions)
     travels in the TensorDict under ``mpc_*`` keys: add :meth:`make_tensordict_primer` to the
     env (as with TorchRL's ``LSTMModule``) and keep an ``InitTracker``. Where ``is_init`` is
-    set the state is cleared. The first ``warmup_steps`` (default ``C``) steps of an episode take
+    set the state is cleared; without ``is_init`` the policy raises (it could not tell a new
+    episode from an old one).
+
+    The planner's action bounds must be the env's: the primer refuses, when appended, an env
+    whose action spec has another range, and :meth:`check_env` checks a finished env (bounds,
+    ``InitTracker``, primer). Build the planning model with
+    :meth:`~torchrl_recon.planners.PlanningModel.from_env` to take the bounds from the env. The first ``warmup_steps`` (default ``C``) steps of an episode take
     uniform random actions to fill the context (the paper's "10 random actions after reset").
 
     Re-planning (``replan``):
@@ -149,7 +161,7 @@ class MPCPolicy(TensorDictModuleBase):
             )
         self.warmup_steps = warmup_steps or self.context
         self.obs_key, self.action_key = obs_key, action_key
-        self.in_keys = [obs_key, "is_init", *STATE_KEYS]
+        self.in_keys = [obs_key, IS_INIT, *STATE_KEYS]
         self.out_keys = [
             action_key,
             REPLANNED,
@@ -187,9 +199,50 @@ class MPCPolicy(TensorDictModuleBase):
             device=like.device,
         )
 
-    def make_tensordict_primer(self) -> TensorDictPrimer:
-        """The transform that adds and resets this policy's state in the env (append it to the env)."""
-        return TensorDictPrimer(self.state_spec(), default_value=0, expand_specs=True)
+    def make_tensordict_primer(self) -> PlannerStatePrimer:
+        """The transform that adds and resets this policy's state in the env (append it to the env).
+
+        Appended to an env, it checks that the env's action spec has the planner's bounds
+        (``ValueError`` naming both ranges otherwise).
+        """
+        model = self.planner.model
+        return PlannerStatePrimer(
+            self.state_spec(),
+            action_low=model.action_low,
+            action_high=model.action_high,
+            action_key=self.action_key,
+            owner=f"{type(self).__name__}'s planner",
+            default_value=0,
+            expand_specs=True,
+        )
+
+    def check_env(self, env: EnvBase) -> None:
+        """Check that ``env`` fits this policy: the planner's action bounds are the env's action
+        spec, the env has an ``InitTracker`` and this policy's primer.
+
+        Raises:
+            ValueError: the bounds differ (both ranges are named).
+            KeyError: the ``InitTracker`` or the primer is missing (the message says what to add).
+
+        Examples:
+            >>> from torchrl_recon.envs import make_env
+            >>> from torchrl_recon.envs.drone import drone_cost
+            >>> from torchrl_recon.modules import LSTMWorldModel
+            >>> from torchrl_recon.planners import Objective, PlanningModel, RandomShootingPlanner
+            >>> planner = RandomShootingPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost),
+            ...                                 Objective(), horizon=5, num_candidates=8)
+            >>> policy = MPCPolicy(planner)
+            >>> policy.check_env(make_env("drone", seed=0).append_transform(policy.make_tensordict_primer()))
+        """
+        model = self.planner.model
+        check_policy_env(
+            env,
+            model.action_low,
+            model.action_high,
+            action_key=self.action_key,
+            state_key=PLAN,
+            owner=f"{type(self).__name__}'s planner",
+        )
 
     def _needs_plan(self, step: torch.Tensor, plan_u: torch.Tensor) -> torch.Tensor:
         exhausted = step >= self.horizon
@@ -234,9 +287,9 @@ class MPCPolicy(TensorDictModuleBase):
         state = flat.select(*STATE_KEYS).to(device).clone()
         plan, plan_u = state[PLAN], state[PLAN_U]
         step, seen = state[PLAN_STEP].squeeze(-1), state[SEEN].squeeze(-1)
-        is_init = flat.get("is_init", None)
+        is_init = flat.get(IS_INIT, None)
         if is_init is None:
-            is_init = torch.zeros(rows, dtype=torch.bool, device=device)
+            raise KeyError(MISSING_INIT_TRACKER)
         is_init = is_init.to(device).reshape(rows)
         step.masked_fill_(is_init, self.horizon)
         seen.masked_fill_(is_init, 0)

@@ -1,0 +1,113 @@
+"""β in cost units: scale the uncertainty penalty of J = Σ(α·r − β·u) to the task's cost.
+
+u (reconstruction error of a normalised window) and the cost (whatever the env's units are)
+live on unrelated scales, so an absolute β means nothing across tasks: ``beta=0.1`` changes
+plans on one env and is a no-op on another. A *relative* β is measured in "mean cost per step
+per mean u per window" on data (usually the random data the models were fitted on): with
+``relative_beta(1.0, ...)`` a window of average u costs as much as an average step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+
+from torchrl_recon.data.buffers import TRAJ_KEY, cut_sequences
+from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+
+__all__ = ["cost_to_u_ratio", "relative_beta", "window_uncertainty"]
+
+
+def cost_to_u_ratio(data: TensorDictBase, per_window_u: torch.Tensor) -> float:
+    """Mean |cost| per step over mean u per window: the unit of a relative β (``beta_relative``).
+
+    The cost is read as ``-("next", "reward")`` of ``data``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"next": {"reward": -torch.full((4, 1), 6.0)}}, [4])
+        >>> cost_to_u_ratio(data, torch.tensor([0.5, 1.5]))
+        6.0
+    """
+    cost = float(data["next", "reward"].abs().mean())
+    u = float(per_window_u.mean())
+    if not (math.isfinite(cost) and math.isfinite(u) and cost > 0 and u > 0):
+        raise ValueError(
+            f"a relative beta needs a positive finite mean |cost| and mean u on the random data, "
+            f"got mean |cost| = {cost} and mean u = {u}."
+        )
+    return cost / u
+
+
+@torch.no_grad()
+def window_uncertainty(
+    data: TensorDictBase,
+    estimator: UncertaintyEstimator,
+    *,
+    sequence_length: int | None = None,
+    obs_key: NestedKey = "observation",
+    action_key: NestedKey = "action",
+    traj_key: NestedKey = TRAJ_KEY,
+) -> torch.Tensor:
+    """u of every T-window of ``data``'s trajectories (flat, on the CPU), in one batched call.
+
+    ``data`` is cut into non-overlapping sequences of ``sequence_length`` steps (default: the
+    estimator's window T) inside each trajectory (``traj_key``, written by TorchRL collectors);
+    every T-window of each sequence is scored on the estimator's device.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> est = ReconstructionUncertainty(3, 1, window=4)
+        >>> data = TensorDict({"observation": torch.randn(40, 3), "action": torch.rand(40, 1),
+        ...                    ("collector", "traj_ids"): torch.arange(40) // 20}, [40])
+        >>> window_uncertainty(data, est).shape, window_uncertainty(data, est, sequence_length=10).shape
+        (torch.Size([10]), torch.Size([28]))
+    """
+    length = estimator.window if sequence_length is None else sequence_length
+    if length < estimator.window:
+        raise ValueError(
+            f"sequence_length={length} is shorter than the estimator's window ({estimator.window})."
+        )
+    seqs = cut_sequences(data.select(obs_key, action_key, traj_key), length, traj_key=traj_key)
+    device = module_device(estimator) if isinstance(estimator, torch.nn.Module) else None
+    obs, action = seqs.get(obs_key), seqs.get(action_key)
+    if device is not None:
+        obs, action = obs.to(device), action.to(device)
+    return estimator.score(obs, action).flatten().cpu()
+
+
+def relative_beta(
+    beta: float,
+    data: TensorDictBase,
+    estimator: UncertaintyEstimator,
+    *,
+    sequence_length: int | None = None,
+    traj_key: NestedKey = TRAJ_KEY,
+) -> float:
+    """The absolute β for ``Objective(beta=...)`` of a β given in cost units on ``data``.
+
+    ``beta`` × mean |cost| per step / mean u per window, both measured on ``data`` (flat
+    transitions with ``observation``, ``action``, ``("next", "reward")`` and trajectory ids;
+    usually the random data the models were fitted on): ``relative_beta(1.0, ...)`` makes a
+    window of average u cost as much as an average step. Negative ``beta`` (exploration) keeps
+    its sign.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> est = ReconstructionUncertainty(3, 1, window=4)
+        >>> data = TensorDict({"observation": torch.randn(40, 3), "action": torch.rand(40, 1),
+        ...                    ("next", "reward"): -torch.full((40, 1), 6.0),
+        ...                    ("collector", "traj_ids"): torch.arange(40) // 20}, [40])
+        >>> u = window_uncertainty(data, est)
+        >>> abs(relative_beta(0.5, data, est) - 0.5 * 6.0 / float(u.mean())) < 1e-4
+        True
+    """
+    if not math.isfinite(beta):
+        raise ValueError(f"beta must be a finite number, got {beta!r}.")
+    u = window_uncertainty(data, estimator, sequence_length=sequence_length, traj_key=traj_key)
+    return beta * cost_to_u_ratio(data, u)

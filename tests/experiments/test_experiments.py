@@ -12,8 +12,8 @@ from tensordict import TensorDict
 
 from torchrl_recon._files import with_hash
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
-from torchrl_recon.experiments.control import cost_to_u_ratio, run_control
-from torchrl_recon.experiments.exploration import run_explore
+from torchrl_recon.experiments.control_stages import cost_to_u_ratio, run_control
+from torchrl_recon.experiments.explore_stages import run_explore
 from torchrl_recon.experiments.stages import StopRequested
 
 TRAINING = {

@@ -21,6 +21,7 @@ from torchrl_recon.experiments.config import (
     EstimatorSpec,
     PlannerConfig,
 )
+from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
@@ -67,17 +68,6 @@ def explore_result(seed: int, random: list[float], active: list[float], env: str
         },
         "wall_time_s": {"initial_random": 1.0},
     }
-
-
-METRICS = (
-    "prediction_mse",
-    "cost_error",
-    "real_cost",
-    "predicted_cost",
-    "replans",
-    "mean_u",
-    "feasible_fraction",
-)
 
 
 def episode(mse: float) -> dict:

@@ -79,6 +79,10 @@ class RunContext:
         """The run's seed (``cfg.seed``)."""
         return int(self.cfg.seed)
 
+    def results_header(self) -> dict[str, Any]:
+        """The keys every results dict opens with: ``experiment``, ``env``, ``seed``."""
+        return {"experiment": self.cfg.experiment, "env": self.cfg.env.name, "seed": self.cfg.seed}
+
     def stage_seed(self, name: str) -> int:
         """The seed of stage ``name`` of this run (see :func:`stage_seed`)."""
         return stage_seed(self.cfg.seed, name)

@@ -5,6 +5,7 @@ stages (:mod:`.control_stages`), summary across seeds, tables, figures and headl
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -110,20 +111,21 @@ def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]
     ]
 
 
-EXPERIMENT = ExperimentType(
+def check(cfg, errors, recipes) -> None:
+    """The control recipe's own value checks."""
+    control_errors(cfg, errors)
+
+
+def stage_values(cfg) -> dict:
+    """``{setting}`` of the stage names: the recipe's settings."""
+    return {"setting": [s.name for s in cfg.settings]}
+
+
+EXPERIMENT = ExperimentType.of_module(
+    sys.modules[__name__],
+    control_stages,
     name="control",
     help="uncertainty-aware MPC vs the cost-only baseline: prediction and cost errors (§3.1, Fig. 3)",
     schema=ControlConfig,
-    stages=control_stages.STAGES,
-    run=control_stages.run,
-    check=lambda cfg, errors, recipes: control_errors(cfg, errors),
-    summarize_env=summarize_env,
-    result_table=result_table,
-    summary_table=summary_table,
-    headline=headline,
-    figures=figures,
-    summary_figures=summary_figures,
     list_field=("settings", ControlSetting),
-    stage_values=lambda cfg: {"setting": [s.name for s in cfg.settings]},
-    outcome=outcome,
 )

@@ -238,9 +238,7 @@ def run(ctx: RunContext) -> dict:
         results[setting.name] = record
 
     return {
-        "experiment": "control",
-        "env": cfg.env.name,
-        "seed": cfg.seed,
+        **ctx.results_header(),
         "replan_threshold": threshold,
         **({"beta_unit": beta_unit} if relative else {}),
         "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",

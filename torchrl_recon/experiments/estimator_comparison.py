@@ -5,6 +5,7 @@ numbers. Its command and recipes' ``experiment`` are ``calibrate``."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -100,22 +101,22 @@ def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]
     return out
 
 
-EXPERIMENT = ExperimentType(
+check = calibrate_errors
+
+
+def stage_values(cfg) -> dict:
+    """``{estimator}`` and ``{kind}`` of the stage names."""
+    return {
+        "estimator": [s.name for s in cfg.estimators],
+        "kind": estimator_comparison_stages.OUTCOME_KINDS,
+    }
+
+
+EXPERIMENT = ExperimentType.of_module(
+    sys.modules[__name__],
+    estimator_comparison_stages,
     name="calibrate",
     help="uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
     schema=CalibrateConfig,
-    stages=estimator_comparison_stages.STAGES,
-    run=estimator_comparison_stages.run,
-    check=calibrate_errors,
-    summarize_env=summarize_env,
-    result_table=result_table,
-    summary_table=summary_table,
-    headline=headline,
-    figures=figures,
-    summary_figures=summary_figures,
     list_field=("estimators", EstimatorSpec),
-    stage_values=lambda cfg: {
-        "estimator": [s.name for s in cfg.estimators],
-        "kind": estimator_comparison_stages.OUTCOME_KINDS,
-    },
 )

@@ -266,9 +266,7 @@ def comparison_results(
         row.update(_flat_outcomes(outcomes[spec.name]))
         table[spec.name] = row
     return {
-        "experiment": "calibrate",
-        "env": cfg.env.name,
-        "seed": cfg.seed,
+        **ctx.results_header(),
         "reference_estimator": reference,
         "horizons": list(cfg.timing.horizons),
         "mse_units": "squared multi-step prediction error per state dim divided by its standard "

@@ -7,6 +7,7 @@ import itertools
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import Any
 
 from matplotlib.figure import Figure
@@ -17,6 +18,20 @@ from torchrl_recon.experiments.context import RecipeLoader, RunContext
 Results = Mapping[str, Any]
 Figures = list[tuple[str, Figure]]
 """Figures as (file name, figure) pairs."""
+
+
+MODULE_FUNCTIONS = (
+    "check",
+    "summarize_env",
+    "result_table",
+    "summary_table",
+    "headline",
+    "figures",
+    "summary_figures",
+    "stage_values",
+    "outcome",
+)
+"""The fields :meth:`ExperimentType.of_module` reads from a kind's module by name."""
 
 
 def _no_figures(_: Results) -> Figures:
@@ -63,6 +78,14 @@ class ExperimentType:
         default=lambda cfg: {}
     )
     outcome: Callable[[Results], dict[str, Any]] | None = None
+
+    @classmethod
+    def of_module(cls, module: ModuleType, stages: ModuleType, **fields: Any) -> ExperimentType:
+        """The kind a module defines: ``name``, ``help`` and ``schema`` given, ``run`` and
+        ``STAGES`` from its ``stages`` module, and each of :data:`MODULE_FUNCTIONS` the module
+        defines (``check``, ``summarize_env``, ``result_table``, ...)."""
+        found = {f: getattr(module, f) for f in MODULE_FUNCTIONS if hasattr(module, f)}
+        return cls(run=stages.run, stages=stages.STAGES, **found, **fields)
 
     def stage_list(self, cfg: DictConfig) -> list[str]:
         """The stage names of ``cfg``'s run; a template whose fields the recipe leaves open is

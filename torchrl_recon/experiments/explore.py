@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Mapping
 from typing import Any
@@ -189,19 +190,20 @@ def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]
     return [("table1.png", plot_table1(results))]
 
 
-EXPERIMENT = ExperimentType(
+def check(cfg, errors, recipes) -> None:
+    """The explore recipe's own value checks."""
+    explore_errors(cfg, errors)
+
+
+def stage_values(cfg) -> dict:
+    """``{arm}`` of the stage names: random or active."""
+    return {"arm": explore_stages.ARMS}
+
+
+EXPERIMENT = ExperimentType.of_module(
+    sys.modules[__name__],
+    explore_stages,
     name="explore",
     help="active vs random exploration: validation MSE of models fitted on each (§3.2, Table 1)",
     schema=ExploreConfig,
-    stages=explore_stages.STAGES,
-    run=explore_stages.run,
-    check=lambda cfg, errors, recipes: explore_errors(cfg, errors),
-    summarize_env=summarize_env,
-    result_table=result_table,
-    summary_table=summary_table,
-    headline=headline,
-    figures=figures,
-    summary_figures=summary_figures,
-    stage_values=lambda cfg: {"arm": explore_stages.ARMS},
-    outcome=outcome,
 )

@@ -211,9 +211,7 @@ def explore_results(
         statistic = p_value = float("nan")
     plans = sum(p for _, p in feasible_counts)
     return {
-        "experiment": "explore",
-        "env": cfg.env.name,
-        "seed": cfg.seed,
+        **ctx.results_header(),
         "mse_units": MSE_UNITS,
         "arms": summary,
         "ratio": summary["active"]["mean"] / summary["random"]["mean"],

@@ -22,6 +22,10 @@ test: setup
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
+lint: setup
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
 bench: setup
 	$(PY) benchmarks/env_throughput.py
 	$(PY) benchmarks/uncertainty_overhead.py

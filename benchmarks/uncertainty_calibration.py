@@ -1,5 +1,5 @@
 """Uncertainty estimators side by side: does u rank the real error, flag unfamiliar inputs, and
-at what cost? The autoencoder against an ensemble, MC dropout and RND (issue 7).
+at what cost? The autoencoder against an ensemble, MC dropout and RND.
 
 Run: python benchmarks/uncertainty_calibration.py [--env industrial_benchmark] [--smoke] [key=value ...]
 

@@ -35,11 +35,10 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-EXPERIMENTS = {
-    "explore": "active vs random exploration: validation MSE of models fitted on each (§3.2, Table 1)",
-    "control": "uncertainty-aware MPC vs the cost-only baseline: prediction and cost errors (§3.1, Fig. 3)",
-    "calibrate": "uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
-}
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
+
+EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
+"""Each experiment command and its help line (from the registry)."""
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
 _STATUS_ENV = "TORCHRL_RECON_STATUS"
@@ -383,9 +382,13 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments.plots import plot_calibration, plot_control_errors, plot_table1
     from torchrl_recon.experiments.run_dir import read_results
-    from torchrl_recon.experiments.summary import find_results, format_table, summarize
+    from torchrl_recon.experiments.summary import (
+        find_results,
+        format_table,
+        save_summary,
+        summarize,
+    )
 
     try:
         files = find_results(args.dirs)
@@ -401,34 +404,19 @@ def _summarize(args: argparse.Namespace) -> int:
         r = read_results(f)
         results[f] = r
         by_kind.setdefault(str(r.get("experiment")), []).append(f)
-    out = Path(args.out) if args.out else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+    if args.out is not None:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
     for kind, kind_files in sorted(by_kind.items()):
         summary = summarize(kind_files)
         print(f"{len(kind_files)} {kind} result file(s)")
         print(format_table(summary))
         print()
-        if out is None:
+        if args.out is None:
             continue
-        path = out / f"summary_{kind}.json"
-        path.write_text(json.dumps(summary, indent=1))
+        path, *figures = save_summary(summary, [results[f] for f in kind_files], args.out)
         print(f"summary: {path}")
-        if kind == "explore":
-            fig = plot_table1([results[f] for f in kind_files])
-            fig.savefig(out / "table1.png", dpi=120)
-            print(f"figure: {out / 'table1.png'}")
-        elif kind == "control":
-            for env, s in summary["envs"].items():
-                fig = plot_control_errors({"env": env, **s})
-                fig.savefig(out / f"control_errors_{env}.png", dpi=120)
-                print(f"figure: {out / f'control_errors_{env}.png'}")
-        elif kind == "calibrate":
-            for env, s in summary["envs"].items():
-                rows = {name: e["mean"] for name, e in s["estimators"].items()}
-                fig = plot_calibration({"env": env, "estimators": rows, **s})
-                fig.savefig(out / f"calibration_{env}.png", dpi=120)
-                print(f"figure: {out / f'calibration_{env}.png'}")
+        for figure in figures:
+            print(f"figure: {figure}")
     return 0
 
 

@@ -19,8 +19,8 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
-from torchrl_recon.experiments.control import episode_mean_std
-from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
+from torchrl_recon.experiments.control_stages import episode_mean_std
+from torchrl_recon.experiments.summary import save_figures
 
 
 def settings_so_far(run: Path) -> dict[str, dict]:
@@ -98,9 +98,7 @@ def write_partial(run: Path, settings: dict[str, dict]) -> None:
         "trajectory_example": example,
     }
     (run / "results_partial.json").write_text(json.dumps(results, indent=1))
-    plot_control_errors(results).savefig(run / "control_errors.png", dpi=120)
-    if example:
-        plot_trajectory(example).savefig(run / "trajectory.png", dpi=120)
+    save_figures(results, run)  # control_errors.png, trajectory.png: as a finished run draws them
 
 
 def main() -> None:

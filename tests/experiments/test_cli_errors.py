@@ -92,7 +92,7 @@ def test_sigint_mid_run_exits_130_and_the_same_command_resumes(tmp_path):
 
 def _failing_experiment(monkeypatch, error: Exception) -> None:
     def fn(kind):
-        def run(cfg, run_dir, logger):
+        def run(ctx):
             raise error
 
         return run

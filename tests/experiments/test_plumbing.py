@@ -21,13 +21,9 @@ from torchrl_recon.experiments.config import (
     EstimatorSpec,
     PlannerConfig,
 )
+from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
-from torchrl_recon.experiments.plots import (
-    plot_control_errors,
-    plot_table1,
-    plot_trajectory,
-    save_figures,
-)
+from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
 from torchrl_recon.experiments.run_dir import (
     RunDirConflict,
@@ -37,7 +33,7 @@ from torchrl_recon.experiments.run_dir import (
     write_results,
 )
 from torchrl_recon.experiments.stages import StopRequested
-from torchrl_recon.experiments.summary import format_table, summarize
+from torchrl_recon.experiments.summary import format_table, save_figures, summarize
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 ENVS = ("industrial_benchmark", "drone", "minitaur")
@@ -72,17 +68,6 @@ def explore_result(seed: int, random: list[float], active: list[float], env: str
         },
         "wall_time_s": {"initial_random": 1.0},
     }
-
-
-METRICS = (
-    "prediction_mse",
-    "cost_error",
-    "real_cost",
-    "predicted_cost",
-    "replans",
-    "mean_u",
-    "feasible_fraction",
-)
 
 
 def episode(mse: float) -> dict:
@@ -603,11 +588,11 @@ def test_format_table_of_single_results():
 
 def _fake_experiments(monkeypatch, stop=False):
     def fake(kind):
-        def fn(cfg, run_dir, logger):
+        def fn(ctx):
             if stop:
                 raise StopRequested("validation")
-            assert (run_dir / "config.yaml").is_file()
-            return explore_result(cfg.seed, [10.0, 12.0], [7.0, 8.0], env=cfg.env.name)
+            assert (ctx.run_dir / "config.yaml").is_file()
+            return explore_result(ctx.seed, [10.0, 12.0], [7.0, 8.0], env=ctx.cfg.env.name)
 
         return fn
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
 from collections.abc import Callable, Mapping
@@ -29,6 +30,22 @@ class EnvEntry:
         """Import and return the batched torch cost ``cost(obs, action, next_obs) -> [...]``."""
         module, attr = self.cost_fn_path.split(":")
         return getattr(importlib.import_module(module), attr)
+
+    def cost_fn_with(self, env_kwargs: Mapping[str, Any]) -> CostFn:
+        """The cost with the env keywords (a recipe's ``env.kwargs``) that the cost also takes.
+
+        Examples:
+            >>> get_entry("minitaur").cost_fn_with({"cost": "forward", "motor_kp": 1.0}).keywords
+            {'cost': 'forward'}
+        """
+        fn = self.cost_fn()
+        params = inspect.signature(fn).parameters
+        shared = {
+            k: v
+            for k, v in env_kwargs.items()
+            if k in params and params[k].kind is inspect.Parameter.KEYWORD_ONLY
+        }
+        return functools.partial(fn, **shared) if shared else fn
 
     def env_class(self) -> type:
         """Import and return the gymnasium environment class."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
@@ -12,7 +14,8 @@ from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import get_entry, make_env
-from torchrl_recon.experiments.stages import Stages, stage_seed
+from torchrl_recon.envs.registry import CostFn
+from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -30,11 +33,6 @@ from torchrl_recon.training import (
 )
 
 
-def run_device(cfg: DictConfig) -> torch.device:
-    """The device the recipe's networks, planning and fitting run on (``cfg.device``)."""
-    return resolve_device(cfg.device)
-
-
 def build_env(
     cfg: DictConfig, *, seed: int, episode_steps: int, policy_device: torch.device | None = None
 ) -> EnvBase:
@@ -50,21 +48,14 @@ def build_env(
     return env
 
 
-def cost_fn(cfg: DictConfig):
+def cost_fn(cfg: DictConfig) -> CostFn:
     """The env's batched torch cost, with the recipe's env keywords where the cost takes them."""
-    fn = get_entry(cfg.env.name).cost_fn()
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    if cfg.env.name == "minitaur" and "cost" in kwargs:
-        return lambda s, a, s2: fn(s, a, s2, cost=kwargs["cost"])
-    if cfg.env.name == "drone" and "goal" in kwargs:
-        goal = kwargs["goal"]
-        return lambda s, a, s2: fn(s, a, s2, goal=goal)
-    return fn
+    return get_entry(cfg.env.name).cost_fn_with(kwargs)
 
 
 def random_data_stage(
-    cfg: DictConfig,
-    stages: Stages,
+    ctx: RunContext,
     name: str,
     *,
     frames: int,
@@ -76,15 +67,15 @@ def random_data_stage(
     the stored data."""
 
     def run() -> dict:
-        seed = stage_seed(cfg.seed, name)
-        env = build_env(cfg, seed=seed, episode_steps=episode_steps)
-        data = collect_random(env, frames=frames, seed=seed, progress=cfg.progress)
+        seed = ctx.stage_seed(name)
+        env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps)
+        data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
         env.close()
-        stages.save_data(name, data if keys is None else data.select(*keys))
+        ctx.stages.save_data(name, data if keys is None else data.select(*keys))
         return {"steps": data.numel()}
 
-    stages.run(name, run)
-    return stages.load_data(name)
+    ctx.stages.run(name, run)
+    return ctx.stages.load_data(name)
 
 
 def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWorldModel:
@@ -119,11 +110,12 @@ def build_estimator(
 
 
 def build_models(
-    cfg: DictConfig, obs_dim: int, action_dim: int
+    cfg: DictConfig, obs_dim: int, action_dim: int, device: torch.device | None = None
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """World model and estimator of the recipe's sizes, on the recipe's device."""
+    """World model and estimator of the recipe's sizes, on ``device`` (the run context's; by
+    default the recipe's ``device``)."""
     m = cfg.models
-    device = run_device(cfg)
+    device = resolve_device(cfg.device) if device is None else device
     world = build_world_model(cfg, obs_dim, action_dim).to(device)
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
@@ -154,12 +146,11 @@ def _fit_kwargs(
 
 
 def fit_module(
-    cfg: DictConfig,
+    ctx: RunContext,
     module: LSTMWorldModel | UncertaintyEstimator,
     data: TensorDictBase,
     *,
     seed: int,
-    logger: Logger | None,
     prefix: str,
     fit_normalization: bool = True,
 ) -> float:
@@ -167,6 +158,7 @@ def fit_module(
 
     Returns the best validation loss.
     """
+    cfg = ctx.cfg
     rb, val_rb = _buffers(cfg, data, seed)
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
     if isinstance(module, LSTMWorldModel):
@@ -174,49 +166,47 @@ def fit_module(
         fit = fit_world_model
     else:
         fit_cfg, extra, fit = cfg.training.uncertainty, {}, fit_uncertainty
-    kwargs = _fit_kwargs(fit_cfg, seed=seed, progress=cfg.progress, logger=logger, prefix=prefix)
+    kwargs = _fit_kwargs(
+        fit_cfg, seed=seed, progress=cfg.progress, logger=ctx.logger, prefix=prefix
+    )
     return fit(module, rb, **common, **extra, **kwargs).best_val_loss
 
 
-def fit_both_stage(
-    cfg: DictConfig,
-    stages: Stages,
+def fit_stage(
+    ctx: RunContext,
     name: str,
     data: TensorDictBase,
-    world: LSTMWorldModel,
-    estimator: UncertaintyEstimator,
+    modules: Mapping[str, LSTMWorldModel | UncertaintyEstimator],
     *,
-    logger: Logger | None,
     fit_normalization: bool = True,
 ) -> dict:
-    """A resumable stage that fits both networks and checkpoints them as ``checkpoints/<name>.pt``."""
-    path = stages.path("checkpoints", f"{name}.pt")
+    """A resumable stage that fits ``modules`` on ``data`` (one seed for all, in order) and
+    checkpoints them together as ``checkpoints/<name>.pt`` under their keys.
+
+    The record holds ``val_loss`` for one module, else ``<key>_val_loss`` for each (logged
+    under ``<name>/`` or ``<name>/<key>/``). On resume the checkpoint is loaded back.
+    """
+    path = ctx.stages.path("checkpoints", f"{name}.pt")
+    single = len(modules) == 1
 
     def run() -> dict:
         seed = torch.initial_seed() % (2**31)
-        wm_loss = fit_module(
-            cfg,
-            world,
-            data,
-            seed=seed,
-            logger=logger,
-            prefix=f"{name}/world_model/",
-            fit_normalization=fit_normalization,
-        )
-        u_loss = fit_module(
-            cfg,
-            estimator,
-            data,
-            seed=seed,
-            logger=logger,
-            prefix=f"{name}/uncertainty/",
-            fit_normalization=fit_normalization,
-        )
-        save_checkpoint(path, {"world_model": world, "uncertainty": estimator})
-        return {"world_model_val_loss": wm_loss, "uncertainty_val_loss": u_loss}
+        record = {}
+        for key, module in modules.items():
+            loss = fit_module(
+                ctx,
+                module,
+                data,
+                seed=seed,
+                prefix=f"{name}/" if single else f"{name}/{key}/",
+                fit_normalization=fit_normalization,
+            )
+            record["val_loss" if single else f"{key}_val_loss"] = loss
+        save_checkpoint(path, dict(modules))
+        return record
 
-    record = stages.run(name, run)
-    load_checkpoint(path, {"world_model": world, "uncertainty": estimator})
+    record = ctx.stages.run(name, run)
+    load_checkpoint(path, dict(modules))
     return record
 
 

@@ -251,7 +251,7 @@ class OutcomesConfig:
 
 @dataclass
 class CalibrateConfig(RunConfig):
-    """Uncertainty estimators side by side (issue 7): fitted on the same random data, judged on
+    """Uncertainty estimators side by side: fitted on the same random data, judged on
     the same imagined trajectories, timed in the same run. ``models.uncertainty`` is unused:
     the estimators are listed in ``estimators``."""
 

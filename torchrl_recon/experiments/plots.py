@@ -12,10 +12,8 @@
 from __future__ import annotations
 
 import math
-import os
 import textwrap
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -236,32 +234,3 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
         fontsize=10,
     )
     return fig
-
-
-def _save(fig: Figure, path: Path) -> Path:
-    fig.savefig(path, dpi=120)
-    return path
-
-
-def save_figures(results: Mapping[str, Any], run_dir: str | os.PathLike[str]) -> list[Path]:
-    """Write the figures of one results dict into ``run_dir``; return their paths.
-
-    explore: ``table1.png``; control: ``control_errors.png`` and, when the results hold a
-    trajectory example, ``trajectory.png``; calibrate: ``calibration.png``.
-    """
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    kind = results.get("experiment")
-    paths: list[Path] = []
-    if kind == "explore":
-        paths.append(_save(plot_table1([results]), run_dir / "table1.png"))
-    elif kind == "calibrate":
-        paths.append(_save(plot_calibration(results), run_dir / "calibration.png"))
-    elif kind == "control":
-        paths.append(_save(plot_control_errors(results), run_dir / "control_errors.png"))
-        example = results.get("trajectory_example")
-        if example and len(example.get("real", [])) > 0:
-            paths.append(_save(plot_trajectory(example), run_dir / "trajectory.png"))
-    else:
-        raise ValueError(f"save_figures: unknown experiment {kind!r}.")
-    return paths

@@ -19,11 +19,9 @@ from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationE
 
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
-from torchrl_recon.experiments.config import SCHEMAS, ControlSetting, EstimatorSpec
+from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.recipe_checks import recipe_errors
-
-LIST_FIELDS = {"control": ("settings", ControlSetting), "calibrate": ("estimators", EstimatorSpec)}
-"""List fields whose items are checked against their own schema (OmegaConf merges lists whole)."""
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
 
 def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> DictConfig:
@@ -94,7 +92,7 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     """Check a recipe against its schema and its values; return the typed, resolved config.
 
     Works on a config loaded by :func:`load_recipe` or composed by Hydra (its ``hydra`` node,
-    if any, is dropped). Checks: ``experiment`` is one of :data:`SCHEMAS`; no unknown key and no
+    if any, is dropped). Checks: ``experiment`` is a kind of the registry; no unknown key and no
     wrong type (schema merge); no missing value; then every value
     (:func:`~torchrl_recon.experiments.recipe_checks.recipe_errors`): no NaN or infinite number
     at any depth; counts, sizes, rates and ratios in their ranges (e.g. ``guided.ratio`` above
@@ -125,13 +123,15 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     container.pop("hydra", None)
     container.pop("defaults", None)
     experiment = container.get("experiment")
-    if experiment not in SCHEMAS:
+    if experiment not in EXPERIMENT_TYPES:
         raise RecipeError(
-            f"{source}: 'experiment' must be one of {sorted(SCHEMAS)}, got {experiment!r}."
+            f"{source}: 'experiment' must be one of {sorted(EXPERIMENT_TYPES)}, got {experiment!r}."
         )
-    list_key, item_schema = LIST_FIELDS.get(experiment, (None, None))
+    kind = EXPERIMENT_TYPES[experiment]
+    # a list field's items are checked against their own schema (OmegaConf merges lists whole)
+    list_key, item_schema = kind.list_field or (None, None)
     items = container.pop(list_key, None) if list_key else None
-    merged = _merge_checked(SCHEMAS[experiment], container, prefix="", source=source)
+    merged = _merge_checked(kind.schema, container, prefix="", source=source)
     if list_key and items is not None:
         if not isinstance(items, list):
             raise RecipeError(f"{source}: '{list_key}' must be a list, got {type(items).__name__}.")
@@ -152,7 +152,7 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     missing = sorted(OmegaConf.missing_keys(merged))
     if missing:
         raise RecipeError(f"{source}: no value given for {', '.join(repr(k) for k in missing)}.")
-    errors = recipe_errors(merged)
+    errors = recipe_errors(merged, kind, RecipeLoader(resolve_recipe_path, load_recipe))
     if errors:
         raise RecipeError(f"{source}: " + "; ".join(errors))
     return merged

@@ -11,11 +11,16 @@ from __future__ import annotations
 import inspect
 import math
 import re
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.devices import check_device
+from torchrl_recon.errors import RecipeError
+from torchrl_recon.experiments.context import RecipeLoader
+
+if TYPE_CHECKING:
+    from torchrl_recon.experiments.experiment_type import ExperimentType
 
 PLANNER_KINDS = ("shooting", "cem", "gradient")
 BAND_KINDS = ("absolute", "quantile", "mean_ratio")
@@ -27,28 +32,6 @@ VALIDATION_POLICIES = ("random", "offset_noise")
 WORLD_MODEL_MODES = ("multi_step", "one_step")
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 """Setting and estimator names: they name stage records and folders of the run directory."""
-
-STAGE_PATTERNS = {
-    "explore": (
-        r"initial_random",
-        r"initial_models",
-        r"validation",
-        r"guided_data_\d+",
-        r"guided_refit_\d+",
-        r"random_arm",
-        r"retrain_(random|active)_\d+",
-    ),
-    "control": (r"random_data", r"models", r"setting_.+"),
-    "calibrate": (
-        r"random_data",
-        r"world_model",
-        r"fit_.+",
-        r"evaluation",
-        r"timing",
-        r"outcome_.+",
-    ),
-}
-"""Stage names of ``run_explore`` / ``run_control`` / ``run_calibration`` (a ``stop_after`` must match one)."""
 
 
 class _Errors(list):
@@ -70,34 +53,33 @@ class _Errors(list):
         self.need(key, value, value in choices, f"one of {list(choices)}")
 
 
-def recipe_errors(cfg: DictConfig) -> list[str]:
-    """Every problem of a merged, resolved recipe, one message each (empty when it is valid).
+def recipe_errors(
+    cfg: DictConfig, experiment: ExperimentType, recipes: RecipeLoader | None = None
+) -> list[str]:
+    """Every problem of a merged, resolved recipe of ``experiment``, one message each (empty
+    when it is valid). ``recipes`` loads the recipes a kind runs (checked only when given).
 
     Examples:
         >>> from torchrl_recon.experiments.config import ExploreConfig
+        >>> from torchrl_recon.experiments.registry import get_type
         >>> cfg = OmegaConf.structured(ExploreConfig(output_dir="out"))
         >>> cfg.env.name = "drone"
-        >>> recipe_errors(cfg)
+        >>> recipe_errors(cfg, get_type("explore"))
         []
         >>> cfg.guided.ratio = float("nan")
         >>> cfg.training.val_fraction = 1.0
-        >>> recipe_errors(cfg)
+        >>> recipe_errors(cfg, get_type("explore"))
         ["'guided.ratio' must be a finite number, got nan", "'training.val_fraction' must be in (0, 1), got 1.0"]
     """
     errors = _Errors()
     env_defaults = _env_errors(cfg, errors)
     _finite_errors(OmegaConf.to_container(cfg, resolve=True), "", errors, env_defaults)
     _run_errors(cfg, errors)
-    if cfg.experiment == "calibrate":
-        _calibrate_errors(cfg, errors)
-    elif cfg.experiment == "explore":
-        _explore_errors(cfg, errors)
-    else:
-        _control_errors(cfg, errors)
-    if cfg.stop_after is not None and not is_stage(cfg):
+    experiment.check(cfg, errors, recipes)
+    if cfg.stop_after is not None and not experiment.is_stage(cfg, cfg.stop_after):
         errors.append(
             f"'stop_after': {cfg.stop_after!r} is not a stage of {cfg.experiment}; stages: "
-            + ", ".join(stage_list(cfg))
+            + ", ".join(experiment.stage_list(cfg))
         )
     return list(errors)
 
@@ -313,7 +295,8 @@ def _data_errors(
 # Per experiment
 
 
-def _explore_errors(cfg: DictConfig, errors: _Errors) -> None:
+def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
+    """The explore recipe's own checks."""
     errors.at_least(cfg, ("random_steps", "retrainings"), 1)
     errors.at_least(cfg, ("validation.trajectories", "validation.steps"), 1)
     errors.one_of(cfg, "validation.policy", VALIDATION_POLICIES)
@@ -336,7 +319,8 @@ def _explore_errors(cfg: DictConfig, errors: _Errors) -> None:
     _planner_errors(g.planner, "guided.planner", errors)
 
 
-def _control_errors(cfg: DictConfig, errors: _Errors) -> None:
+def control_errors(cfg: DictConfig, errors: _Errors) -> None:
+    """The control recipe's own checks."""
     errors.at_least(cfg, ("random_episode_steps", "episodes", "replan.every"), 1)
     errors.at_least(cfg, ("random_episodes",), 2)
     errors.at_least(cfg, ("warmup_random_steps",), 0)
@@ -394,9 +378,9 @@ def _band_errors(band: DictConfig, key: str, errors: _Errors) -> None:
         errors.append(f"'{key}': {e}")
 
 
-def _calibrate_errors(cfg: DictConfig, errors: _Errors) -> None:
-    from torchrl_recon.experiments.recipe import RecipeError, load_recipe, resolve_recipe_path
-
+def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | None) -> None:
+    """The estimator comparison recipe's own checks; its outcome recipes are loaded (and so
+    checked) with ``recipes`` when given."""
     if not cfg.estimators:
         errors.append("'estimators' is empty: a calibrate recipe needs at least one estimator")
     _name_errors([s.name for s in cfg.estimators], "estimators", "estimator", errors)
@@ -435,51 +419,20 @@ def _calibrate_errors(cfg: DictConfig, errors: _Errors) -> None:
     )
     for kind in ("explore", "control"):
         recipe = cfg.outcomes[f"{kind}_recipe"]
-        if recipe is None:
+        if recipe is None or recipes is None:
             continue
         key = f"outcomes.{kind}_recipe"
         try:
-            path = resolve_recipe_path(recipe)
+            path = recipes.resolve(recipe)
         except FileNotFoundError as e:
             errors.append(f"'{key}': {e}")
             continue
         # The outcome run uses this recipe's window (and estimator, checked above).
         overrides = list(cfg.outcomes[f"{kind}_overrides"])
         try:
-            load_recipe(path, [*overrides, f"models.window={cfg.models.window}"])
+            recipes.load(path, [*overrides, f"models.window={cfg.models.window}"])
         except (RecipeError, FileNotFoundError) as e:
             errors.append(
                 f"'{key}' (with outcomes.{kind}_overrides {overrides} and this recipe's "
                 f"models.window = {cfg.models.window}): {e}"
             )
-
-
-# ----------------------------------------------------------------------------------------------
-# Stages
-
-
-def stage_list(cfg: DictConfig) -> list[str]:
-    """The stage names of ``cfg``'s experiment (explore: patterns with ``<n>`` / ``<arm>``)."""
-    if cfg.experiment == "control":
-        return ["random_data", "models", *(f"setting_{s.name}" for s in cfg.settings)]
-    if cfg.experiment == "calibrate":
-        names = [s.name for s in cfg.estimators]
-        return [
-            "random_data",
-            "world_model",
-            *(f"fit_{n}" for n in names),
-            "evaluation",
-            "timing",
-            *(f"outcome_{n}_{k}" for n in names for k in ("explore", "control")),
-        ]
-    return [
-        p.replace("\\d+", "<n>").replace("(random|active)", "<arm>")
-        for p in STAGE_PATTERNS["explore"]
-    ]
-
-
-def is_stage(cfg: DictConfig) -> bool:
-    """Whether ``cfg.stop_after`` names a stage of its experiment."""
-    if cfg.experiment in ("control", "calibrate"):
-        return cfg.stop_after in stage_list(cfg)
-    return any(re.fullmatch(p, cfg.stop_after) for p in STAGE_PATTERNS["explore"])

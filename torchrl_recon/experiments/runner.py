@@ -1,11 +1,12 @@
-"""Run one experiment from a config: the plumbing around ``run_explore`` / ``run_control`` /
-``run_calibration``."""
+"""Run one experiment from a config: validate it, prepare its run directory and logger, build
+its :class:`~torchrl_recon.experiments.context.RunContext`, run its kind (looked up in the
+registry) and store the results, figures and table."""
 
 from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,27 +15,29 @@ from omegaconf import DictConfig
 
 from torchrl_recon.devices import describe_device, resolve_device
 from torchrl_recon.errors import RecipeError
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
-from torchrl_recon.experiments.plots import save_figures
-from torchrl_recon.experiments.recipe import validate
+from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, validate
+from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
-from torchrl_recon.experiments.summary import format_table
+from torchrl_recon.experiments.stages import StopRequested
+from torchrl_recon.experiments.summary import format_table, save_figures
 
 
-def _experiment_fn(kind: str):
-    if kind == "explore":
-        from torchrl_recon.experiments.exploration import run_explore
+def _experiment_fn(kind: str) -> Callable[[RunContext], dict[str, Any]]:
+    """The run function of experiment ``kind`` (from the registry)."""
+    return get_type(kind).run
 
-        return run_explore
-    if kind == "control":
-        from torchrl_recon.experiments.control import run_control
 
-        return run_control
-    if kind == "calibrate":
-        from torchrl_recon.experiments.calibration import run_calibration
-
-        return run_calibration
-    raise ValueError(f"Unknown experiment {kind!r}.")
+def _run_child(cfg: DictConfig) -> dict[str, Any] | None:
+    """Run a child experiment (the estimator comparison's outcomes); its headline numbers."""
+    results = run(cfg)
+    if results is None:
+        return None
+    outcome = get_type(cfg.experiment).outcome
+    if outcome is None:
+        raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
+    return outcome(results)
 
 
 def last_finished_stage(run_dir: str | os.PathLike[str]) -> str | None:
@@ -74,26 +77,9 @@ def _log_results(logger, results: Mapping[str, Any]) -> None:
     """Log the headline numbers of a results dict as scalars under ``results/``."""
     if logger is None:
         return
-    scalars: dict[str, float] = {}
-    if results.get("experiment") == "explore":
-        for arm, stats in results.get("arms", {}).items():
-            scalars[f"results/{arm}_mse_mean"] = stats["mean"]
-            scalars[f"results/{arm}_mse_std"] = stats["std"]
-        scalars["results/ratio"] = results.get("ratio", float("nan"))
-        if results.get("test"):
-            scalars["results/p_value"] = results["test"].get("p_value", float("nan"))
-    elif results.get("experiment") == "control":
-        for name, s in results.get("settings", {}).items():
-            for key, value in s.get("mean", {}).items():
-                scalars[f"results/{name}/{key}"] = value
-    elif results.get("experiment") == "calibrate":
-        for name, row in results.get("estimators", {}).items():
-            for key, value in row.items():
-                if isinstance(value, (int, float)):
-                    scalars[f"results/{name}/{key}"] = value
-    for name, value in scalars.items():
+    for name, value in get_type(results.get("experiment")).headline(results).items():
         try:
-            logger.log_scalar(name, float(value), step=0)
+            logger.log_scalar(f"results/{name}", float(value), step=0)
         except (TypeError, ValueError):
             continue
 
@@ -108,15 +94,14 @@ def run(
     Steps: :func:`validate` (before any work) → the device (``cfg.device``; ``meta.json``
     records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` →
     :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
-    :func:`make_logger` → ``run_explore`` / ``run_control`` → ``results.json`` → figures →
+    :func:`make_logger` → the kind's ``run`` with the run's :class:`RunContext` →
+    ``results.json`` → figures →
     the results table on stdout → logger shutdown.
 
     Returns:
         The results dict, or None when the experiment stopped after ``cfg.stop_after``
         (re-running the same command resumes from the stages already done).
     """
-    from torchrl_recon.experiments.stages import StopRequested
-
     cfg = validate(cfg)
     try:
         device = resolve_device(cfg.device)
@@ -131,7 +116,9 @@ def run(
         fn = _experiment_fn(cfg.experiment)
         logger = make_logger(cfg, run_dir)
         try:
-            results = fn(cfg, run_dir, logger)
+            recipes = RecipeLoader(resolve_recipe_path, load_recipe)
+            ctx = RunContext.create(cfg, run_dir, logger, run_child=_run_child, recipes=recipes)
+            results = fn(ctx)
         except StopRequested as stop:
             stage = stop.args[0] if stop.args else cfg.stop_after
             print(

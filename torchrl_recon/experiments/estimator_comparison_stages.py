@@ -1,23 +1,22 @@
-"""Uncertainty estimators side by side (issue 7): calibration, out-of-distribution detection,
-cost, and the outcome of the two experiments with each.
+"""The stages of the estimator comparison: uncertainty estimators side by side on calibration,
+out-of-distribution detection, cost, and the outcome of the two experiments with each.
 
 Stages (each resumable): ``random_data`` → ``world_model`` → ``fit_<estimator>`` for each →
 ``evaluation`` (rank correlation with the world model's real error on imagined held-out
 trajectories, AUROC for "error above its median", OOD AUROC) → ``timing`` (scoring K × H
 windows and one CEM call, as ratios to the first ``reconstruction`` estimator) →
 ``outcome_<estimator>_{explore,control}`` (the two experiments at a reduced scale, each in its
-own run directory under ``outcomes/``).
+own run directory under ``outcomes/``, run through the context's ``run_child``). Each stage
+takes the :class:`~torchrl_recon.experiments.context.RunContext`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torchrl.record.loggers import Logger
 
 from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.collectors import collect_random, validation_trajectories
@@ -28,15 +27,13 @@ from torchrl_recon.experiments.common import (
     build_estimator,
     build_world_model,
     cost_fn,
-    fit_module,
+    fit_stage,
     random_data_stage,
-    run_device,
     state_scale,
 )
-from torchrl_recon.experiments.stages import Stages, stage_seed
+from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-from torchrl_recon.training import load_checkpoint, save_checkpoint
 
 
 def calibration_metrics(
@@ -123,37 +120,34 @@ def _timing(
     return out
 
 
-def _outcome(
-    cfg: DictConfig, spec: DictConfig, kind: str, run_dir: Path, seed: int
-) -> dict[str, Any] | None:
-    """Run the ``kind`` experiment of ``outcomes`` with ``spec`` as its estimator; its headline numbers."""
-    from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path
-    from torchrl_recon.experiments.runner import run
+STAGES = (
+    "random_data",
+    "world_model",
+    "fit_{estimator}",
+    "evaluation",
+    "timing",
+    "outcome_{estimator}_{kind}",
+)
+"""Stage name templates, in run order (``{estimator}`` an estimator's name, ``{kind}`` explore
+or control)."""
+OUTCOME_KINDS = ("explore", "control")
 
-    recipe = resolve_recipe_path(cfg.outcomes[f"{kind}_recipe"])
-    sub = load_recipe(recipe, list(cfg.outcomes[f"{kind}_overrides"]))
-    sub.seed, sub.threads, sub.progress = seed, cfg.threads, False
-    sub.output_dir = str(run_dir / "outcomes" / spec.name / kind)
+
+def outcome_config(ctx: RunContext, spec: DictConfig, kind: str) -> DictConfig:
+    """The ``kind`` recipe of ``outcomes`` with ``spec`` as its estimator, this run's seed,
+    threads and window, its run directory ``outcomes/<estimator>/<kind>``."""
+    cfg = ctx.cfg
+    sub = ctx.recipes.load(
+        ctx.recipes.resolve(cfg.outcomes[f"{kind}_recipe"]), list(cfg.outcomes[f"{kind}_overrides"])
+    )
+    sub.seed, sub.threads, sub.progress = cfg.seed, cfg.threads, False
+    sub.output_dir = str(ctx.run_dir / "outcomes" / spec.name / kind)
     sub.logger.backend = "none"
     sub.models.window = cfg.models.window
     for key in ("kind", "hidden_size", "activation"):
         sub.models.uncertainty[key] = spec[key]
     sub.models.uncertainty.kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
-    results = run(sub)
-    if results is None:
-        return None
-    if kind == "explore":
-        return {
-            "random_mse": results["arms"]["random"]["mean"],
-            "active_mse": results["arms"]["active"]["mean"],
-            "ratio": results["ratio"],
-            "p_value": (results.get("test") or {}).get("p_value"),
-            "active_feasible_fraction": results.get("active_feasible_fraction"),
-        }
-    return {
-        name: {k: s["mean"][k] for k in ("prediction_mse", "cost_error", "real_cost", "replans")}
-        for name, s in results["settings"].items()
-    }
+    return sub
 
 
 def _flat_outcomes(outcomes: dict[str, Any]) -> dict[str, float]:
@@ -167,46 +161,35 @@ def _flat_outcomes(outcomes: dict[str, Any]) -> dict[str, float]:
     return flat
 
 
-def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict[str, Any]:
-    """Run (or resume) the estimator comparison in ``run_dir``; return its results."""
-    stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
-    window, ev = cfg.models.window, cfg.evaluation
-
-    data = random_data_stage(
-        cfg,
-        stages,
-        "random_data",
-        frames=cfg.random_steps,
-        episode_steps=cfg.random_episode_steps,
-    )
-    scale = state_scale(data)
+def fit_stages(
+    ctx: RunContext, data
+) -> tuple[LSTMWorldModel, dict[str, UncertaintyEstimator], dict[str, dict]]:
+    """Fit the world model (stage ``world_model``) and each estimator (``fit_<name>``) on
+    ``data``; returns them (in eval mode) and their stage records."""
+    cfg = ctx.cfg
     obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
-    device = run_device(cfg)
-    world = build_world_model(cfg, obs_dim, action_dim).to(device)
-
-    def fit_stage(name: str, module) -> dict:
-        path = stages.path("checkpoints", f"{name}.pt")
-
-        def fit() -> dict:
-            seed = torch.initial_seed() % (2**31)
-            loss = fit_module(cfg, module, data, seed=seed, logger=logger, prefix=f"{name}/")
-            save_checkpoint(path, {name: module})
-            return {"val_loss": loss}
-
-        record = stages.run(name, fit)
-        load_checkpoint(path, {name: module})
-        return record
-
-    fits = {"world_model": fit_stage("world_model", world)}
+    world = build_world_model(cfg, obs_dim, action_dim).to(ctx.device)
+    fits = {"world_model": fit_stage(ctx, "world_model", data, {"world_model": world})}
     estimators: dict[str, UncertaintyEstimator] = {}
     for spec in cfg.estimators:
-        est = build_estimator(spec, obs_dim, action_dim, window).to(device)
-        fits[spec.name] = fit_stage(f"fit_{spec.name}", est)
+        est = build_estimator(spec, obs_dim, action_dim, cfg.models.window).to(ctx.device)
+        name = f"fit_{spec.name}"
+        fits[spec.name] = fit_stage(ctx, name, data, {name: est})
         estimators[spec.name] = est.eval()
     world.eval()
+    return world, estimators, fits
 
-    def evaluation_stage() -> dict:
-        seed = stage_seed(cfg.seed, "evaluation")
+
+def evaluation_stage(
+    ctx: RunContext, world: LSTMWorldModel, estimators: dict[str, UncertaintyEstimator], scale
+) -> dict:
+    """:func:`calibration_metrics` of each estimator on held-out trajectories and windows
+    (stage ``evaluation``)."""
+    cfg, ev = ctx.cfg, ctx.cfg.evaluation
+    window = cfg.models.window
+
+    def run() -> dict:
+        seed = ctx.stage_seed("evaluation")
         env = build_env(cfg, seed=seed, episode_steps=window + ev.horizon)
         trajectories = validation_trajectories(
             env, count=ev.trajectories, length=window + ev.horizon, seed=seed, policy=ev.policy
@@ -230,24 +213,39 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
             )
         return {"estimators": out, "trajectories": ev.trajectories, "ood_windows": len(windows)}
 
-    evaluation = stages.run("evaluation", evaluation_stage)
-    timing = stages.run("timing", lambda: _timing(cfg, world, estimators, data))
+    return ctx.stages.run("evaluation", run)
 
+
+def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
+    """The two experiments with each estimator (stages ``outcome_<estimator>_<kind>``), run
+    through ``ctx.run_child``; their headline numbers."""
+    cfg = ctx.cfg
     outcomes: dict[str, dict[str, Any]] = {}
     for spec in cfg.estimators:
         outcomes[spec.name] = {}
-        for kind in ("explore", "control"):
+        for kind in OUTCOME_KINDS:
             if cfg.outcomes[f"{kind}_recipe"] is None:
                 continue
-            name = f"outcome_{spec.name}_{kind}"
-            record = stages.run(
-                name,
+            if ctx.run_child is None or ctx.recipes is None:
+                raise ValueError(
+                    "the estimator comparison's outcomes run other recipes: run it through "
+                    "torchrl_recon.experiments.runner.run (or set outcomes.*_recipe to null)."
+                )
+            record = ctx.stages.run(
+                f"outcome_{spec.name}_{kind}",
                 lambda spec=spec, kind=kind: {
-                    "result": _outcome(cfg, spec, kind, Path(run_dir), cfg.seed)
+                    "result": ctx.run_child(outcome_config(ctx, spec, kind))
                 },
             )
             outcomes[spec.name][kind] = record["result"]
+    return outcomes
 
+
+def comparison_results(
+    ctx: RunContext, fits: dict, evaluation: dict, timing: dict, outcomes: dict
+) -> dict[str, Any]:
+    """The results dict: one row per estimator, times as ratios to the reference estimator."""
+    cfg = ctx.cfg
     reference = next(
         (s.name for s in cfg.estimators if s.kind == "reconstruction"), cfg.estimators[0].name
     )
@@ -268,9 +266,7 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
         row.update(_flat_outcomes(outcomes[spec.name]))
         table[spec.name] = row
     return {
-        "experiment": "calibrate",
-        "env": cfg.env.name,
-        "seed": cfg.seed,
+        **ctx.results_header(),
         "reference_estimator": reference,
         "horizons": list(cfg.timing.horizons),
         "mse_units": "squared multi-step prediction error per state dim divided by its standard "
@@ -278,5 +274,19 @@ def run_calibration(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> di
         "estimators": table,
         "world_model_val_loss": fits["world_model"]["val_loss"],
         "timing": timing,
-        "wall_time_s": dict(stages.wall_time_s),
+        "wall_time_s": dict(ctx.stages.wall_time_s),
     }
+
+
+def run(ctx: RunContext) -> dict[str, Any]:
+    """Run (or resume) the estimator comparison; return its results."""
+    cfg = ctx.cfg
+    data = random_data_stage(
+        ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.random_episode_steps
+    )
+    scale = state_scale(data)
+    world, estimators, fits = fit_stages(ctx, data)
+    evaluation = evaluation_stage(ctx, world, estimators, scale)
+    timing = ctx.stages.run("timing", lambda: _timing(cfg, world, estimators, data))
+    outcomes = outcome_stages(ctx)
+    return comparison_results(ctx, fits, evaluation, timing, outcomes)

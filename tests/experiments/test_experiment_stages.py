@@ -1,0 +1,185 @@
+"""Each stage of the three experiment kinds on its own (tiny configs from the smoke recipes),
+the registry's stage names, the one mean ± std rule, and no import cycle in experiments/."""
+
+from __future__ import annotations
+
+import ast
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchrl_recon
+from torchrl_recon.experiments import control_stages, estimator_comparison_stages, explore_stages
+from torchrl_recon.experiments.common import fit_stage
+from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
+from torchrl_recon.experiments.stats import mean_std
+
+PACKAGE = Path(torchrl_recon.__file__).parent
+RECIPES = PACKAGE.parent / "recipes" / "industrial_benchmark"
+TINY = [
+    "models.window=3",
+    "models.world_model.hidden_size=4",
+    "models.world_model.dense_size=4",
+    "models.uncertainty.hidden_size=4",
+    "training.slice_len=6",
+    "training.num_slices=2",
+    "training.world_model.steps=2",
+    "training.world_model.eval_every=1",
+    "training.uncertainty.steps=2",
+    "training.uncertainty.eval_every=1",
+    "logger.backend=none",
+]
+
+
+def _ctx(tmp_path: Path, kind: str, *overrides: str) -> RunContext:
+    cfg = load_recipe(RECIPES / f"{kind}_smoke.yaml", [*TINY, *overrides])
+    return RunContext.create(cfg, tmp_path)
+
+
+def test_explore_stages_one_by_one(tmp_path):
+    ctx = _ctx(
+        tmp_path,
+        "explore",
+        "env.episode_steps=10",
+        "initial_random_steps=30",
+        "validation.trajectories=2",
+        "validation.steps=4",
+        "guided.planner.horizon=3",
+        "guided.planner.num_candidates=8",
+    )
+    initial = explore_stages.random_steps_stage(ctx, "initial_random", 30)
+    assert initial.numel() == 30 and ctx.stages.done("initial_random")
+    world, estimator = explore_stages.models_stage(ctx, initial)
+    assert (tmp_path / "checkpoints" / "initial_models.pt").is_file()
+    validation = explore_stages.validation_stage(ctx)
+    assert validation.shape == (2, 3 + 4)
+    record, data = explore_stages.guided_round_stage(ctx, world, estimator, 0, 1, 10)
+    assert data.numel() == record["steps"] == 10 and record["plans"] >= record["feasible_plans"]
+    scale = torch.ones(initial["observation"].shape[-1])
+    mse = explore_stages.retrain_stage(ctx, "active", 0, initial, validation, scale)
+    assert math.isfinite(mse) and ctx.stages.done("retrain_active_0")
+
+
+def test_control_stages_one_by_one(tmp_path):
+    ctx = _ctx(
+        tmp_path,
+        "control",
+        "random_episodes=2",
+        "random_episode_steps=12",
+        "env.episode_steps=8",
+        "episodes=1",
+    )
+    data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimator = control_stages.models_stage(ctx, data)
+    u = control_stages.window_uncertainty(ctx, data, estimator)
+    threshold = control_stages.replan_threshold(ctx.cfg, u)
+    assert threshold > 0 and u.device.type == "cpu"
+    setting = ctx.cfg.settings[0]
+    setting.planner.horizon, setting.planner.num_candidates = 3, 8
+    model = control_stages.PlanningModel(
+        world, control_stages.cost_fn(ctx.cfg), uncertainty=estimator
+    )
+    controller = control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
+    record = control_stages.setting_stage(ctx, setting, controller)
+    assert len(record["episodes"]) == 1
+    assert math.isnan(record["std"]["real_cost"])  # one episode: no spread to measure
+
+
+def test_estimator_comparison_stages_one_by_one(tmp_path):
+    ctx = _ctx(
+        tmp_path,
+        "calibrate",
+        "random_steps=24",
+        "random_episode_steps=12",
+        "evaluation.trajectories=3",
+        "evaluation.horizon=3",
+        "evaluation.ood_windows=4",
+    )
+    data = estimator_comparison_stages.random_data_stage(
+        ctx, "random_data", frames=24, episode_steps=12
+    )
+    world, estimators, fits = estimator_comparison_stages.fit_stages(ctx, data)
+    assert set(fits) == {"world_model", *estimators}
+    assert all("val_loss" in record for record in fits.values())
+    scale = torch.ones(data["observation"].shape[-1])
+    evaluation = estimator_comparison_stages.evaluation_stage(ctx, world, estimators, scale)
+    assert set(evaluation["estimators"]) == set(estimators)
+    if any(ctx.cfg.outcomes[f"{k}_recipe"] for k in ("explore", "control")):
+        with pytest.raises(ValueError, match="outcomes run other recipes"):
+            estimator_comparison_stages.outcome_stages(ctx)  # a context without a runner
+
+
+def test_fit_stage_resumes_from_its_checkpoint(tmp_path):
+    ctx = _ctx(tmp_path, "control", "random_episodes=2", "random_episode_steps=12")
+    data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimator = control_stages.build_models(
+        ctx.cfg, data["observation"].shape[-1], data["action"].shape[-1], ctx.device
+    )
+    first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
+    assert set(first) >= {"world_model_val_loss", "uncertainty_val_loss"}
+    fresh, fresh_u = control_stages.build_models(
+        ctx.cfg, data["observation"].shape[-1], data["action"].shape[-1], ctx.device
+    )
+    again = fit_stage(ctx, "models", data, {"world_model": fresh, "uncertainty": fresh_u})
+    assert again == first  # read back, not refitted
+    for a, b in zip(world.parameters(), fresh.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_stage_names_of_the_registry():
+    assert list(EXPERIMENT_TYPES) == ["explore", "control", "calibrate"]
+    cfg = load_recipe(RECIPES / "control_smoke.yaml")
+    control = get_type("control")
+    names = control.stage_list(cfg)
+    assert names[:2] == ["random_data", "models"] and names[2] == "setting_baseline"
+    assert control.is_stage(cfg, "setting_baseline") and not control.is_stage(cfg, "setting_x")
+    explore = get_type("explore")
+    assert explore.is_stage(None, "retrain_active_3") and explore.is_stage(None, "guided_data_0")
+    assert not explore.is_stage(None, "retrain_other_3")
+    assert "retrain_<arm>_<n>" in explore.stage_list(None)
+
+
+def test_one_mean_std_rule():
+    assert mean_std([]) == pytest.approx((math.nan, math.nan), nan_ok=True)
+    mean, std = mean_std([4.0])
+    assert mean == 4.0 and math.isnan(std)
+    assert mean_std([1.0, 3.0]) == pytest.approx((2.0, math.sqrt(2.0)))
+
+
+def _imports(path: Path) -> set[str]:
+    """Modules of torchrl_recon a file imports, at any depth (functions included)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+    return {m for m in found if m.startswith("torchrl_recon.")}
+
+
+def test_experiments_have_no_import_cycle():
+    files = {
+        f"torchrl_recon.experiments.{p.stem}": p for p in (PACKAGE / "experiments").glob("*.py")
+    }
+    files["torchrl_recon.cli"] = PACKAGE / "cli.py"
+    files.pop("torchrl_recon.experiments.__init__")
+    graph = {name: {m for m in _imports(path) if m in files} for name, path in files.items()}
+    state: dict[str, int] = {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = 1
+        for nxt in graph[node]:
+            if state.get(nxt) == 1:
+                raise AssertionError("import cycle: " + " → ".join([*trail, node, nxt]))
+            if nxt not in state:
+                visit(nxt, [*trail, node])
+        state[node] = 2
+
+    for name in graph:
+        if name not in state:
+            visit(name, [])

@@ -1,0 +1,88 @@
+"""One run context: what every stage and builder of an experiment is handed."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from omegaconf import DictConfig
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.devices import resolve_device
+from torchrl_recon.experiments.stages import Stages, stage_seed
+
+
+class RecipeLoader(NamedTuple):
+    """How a kind that runs other recipes finds and loads them (the recipe module's functions)."""
+
+    resolve: Callable[[str], Path]
+    load: Callable[[Path, Sequence[str]], DictConfig]
+
+
+ChildRunner = Callable[[DictConfig], "Mapping[str, Any] | None"]
+"""Runs a child experiment's config; returns its headline numbers (None when it stopped)."""
+
+
+@dataclass
+class RunContext:
+    """The run an experiment's stages work for: its config, directory, stage records, logger
+    and device, built once by the runner.
+
+    Attributes:
+        cfg: the validated recipe.
+        run_dir: the run directory.
+        stages: the run's resumable stage records.
+        logger: a TorchRL logger, or None.
+        device: where the networks, planning and fitting run (``cfg.device``).
+        run_child: runs another experiment's config (the estimator comparison's outcomes);
+            None where the caller gives none.
+        recipes: finds and loads the recipes a child run is made from.
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_recon.experiments.config import ExploreConfig
+        >>> cfg = OmegaConf.structured(ExploreConfig(output_dir="out", seed=3))
+        >>> ctx = RunContext.create(cfg, Path(tempfile.mkdtemp()))
+        >>> ctx.seed, ctx.device.type
+        (3, 'cpu')
+    """
+
+    cfg: DictConfig
+    run_dir: Path
+    stages: Stages
+    logger: Logger | None
+    device: torch.device
+    run_child: ChildRunner | None = None
+    recipes: RecipeLoader | None = None
+
+    @classmethod
+    def create(
+        cls,
+        cfg: DictConfig,
+        run_dir: Path,
+        logger: Logger | None = None,
+        run_child: ChildRunner | None = None,
+        recipes: RecipeLoader | None = None,
+    ) -> RunContext:
+        """The context of ``cfg`` run in ``run_dir`` (its stages stop after ``cfg.stop_after``)."""
+        run_dir = Path(run_dir)
+        stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
+        device = resolve_device(cfg.device)
+        return cls(cfg, run_dir, stages, logger, device, run_child, recipes)
+
+    @property
+    def seed(self) -> int:
+        """The run's seed (``cfg.seed``)."""
+        return int(self.cfg.seed)
+
+    def results_header(self) -> dict[str, Any]:
+        """The keys every results dict opens with: ``experiment``, ``env``, ``seed``."""
+        return {"experiment": self.cfg.experiment, "env": self.cfg.env.name, "seed": self.cfg.seed}
+
+    def stage_seed(self, name: str) -> int:
+        """The seed of stage ``name`` of this run (see :func:`stage_seed`)."""
+        return stage_seed(self.cfg.seed, name)

@@ -1,0 +1,248 @@
+"""The stages of the uncertainty-aware control experiment (the paper's §3.1 and Fig. 3).
+
+``random_data`` → ``models`` → ``setting_<name>`` for each setting (one record per episode);
+each stage takes the :class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.data import cut_sequences
+from torchrl_recon.envs import get_entry
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_models,
+    build_planner,
+    cost_fn,
+    fit_stage,
+    random_data_stage,
+    state_scale,
+)
+from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand, cost_to_u_ratio
+from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
+
+METRICS = (
+    "prediction_mse",
+    "cost_error",
+    "real_cost",
+    "predicted_cost",
+    "replans",
+    "mean_u",
+    "feasible_fraction",
+)
+
+
+def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]:
+    """Predicted-vs-real metrics of one MPC episode (steps taken from a plan only).
+
+    ``prediction_mse`` is in units of ``scale`` per state dim; costs are summed over planned steps.
+    """
+    planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
+    replanned = td[REPLANNED].squeeze(-1)
+    if not planned.any():
+        return {k: float("nan") for k in METRICS} | {"replans": 0, "steps": int(td.shape[0])}
+    err = (td[PRED_NEXT][planned] - td["next", "observation"][planned]) / scale
+    predicted_cost = float(td[PRED_COST].squeeze(-1)[planned].sum())
+    real_cost = float(-td["next", "reward"].squeeze(-1)[planned].sum())
+    feasible = td[FEASIBLE].squeeze(-1)[replanned]
+    return {
+        "prediction_mse": float(err.pow(2).mean()),
+        "cost_error": abs(predicted_cost - real_cost),
+        "real_cost": real_cost,
+        "predicted_cost": predicted_cost,
+        "replans": int(replanned.sum()),
+        "mean_u": float(td[PRED_U].squeeze(-1)[planned].mean()),
+        "feasible_fraction": float(feasible.float().mean()) if feasible.numel() else float("nan"),
+        "steps": int(td.shape[0]),
+    }
+
+
+def episode_mean_std(episodes: list[dict]) -> tuple[dict, dict]:
+    """Mean and std over episodes of each metric in :data:`METRICS` (NaN episodes skipped;
+    :func:`~torchrl_recon.experiments.stats.mean_std`'s rule for one episode).
+
+    Examples:
+        >>> mean, std = episode_mean_std([{k: 1.0 for k in METRICS}, {k: 3.0 for k in METRICS}])
+        >>> mean["prediction_mse"], round(std["prediction_mse"], 3)
+        (2.0, 1.414)
+    """
+    mean, std = {}, {}
+    for key in METRICS:
+        values = [float(e[key]) for e in episodes if key in e]
+        mean[key], std[key] = mean_std(v for v in values if not math.isnan(v))
+    return mean, std
+
+
+STAGES = ("random_data", "models", "setting_{setting}")
+"""Stage name templates, in run order (``{setting}`` a setting's name)."""
+
+
+def models_stage(ctx: RunContext, data: TensorDictBase):
+    """Build the world model and the estimator and fit both on ``data`` (stage ``models``)."""
+    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+    world, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
+    fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
+    return world, estimator
+
+
+def window_uncertainty(ctx: RunContext, data: TensorDictBase, estimator) -> torch.Tensor:
+    """The estimator's u of every window of the random data (on the CPU)."""
+    cfg = ctx.cfg
+    with torch.no_grad():
+        seqs = cut_sequences(data, max(cfg.models.window, cfg.training.slice_len)).to(ctx.device)
+        return estimator.score(seqs["observation"], seqs["action"]).flatten().cpu()
+
+
+def replan_threshold(cfg: DictConfig, per_window_u: torch.Tensor) -> float:
+    """The re-planning threshold on u: a quantile of the windows' u, scaled (× ``every`` when
+    it bounds Σu over the steps between plans)."""
+    r = cfg.replan
+    threshold = float(per_window_u.quantile(r.threshold_quantile)) * r.threshold_scale
+    if r.threshold_on == "cumulative":
+        threshold *= r.every  # Σu over `every` steps at the same per-step level
+    return threshold
+
+
+@dataclass
+class Controller:
+    """What every setting's episodes share: the planning model, the threshold, the β unit
+    and the state scale of the reported MSE."""
+
+    model: PlanningModel
+    threshold: float
+    beta_unit: float
+    scale: torch.Tensor
+
+
+def setting_objective(setting: DictConfig, beta_unit: float) -> tuple[Objective, float]:
+    """The setting's objective and its β (× ``beta_unit`` when relative)."""
+    band = (
+        None
+        if setting.band is None
+        else UncertaintyBand(setting.band.low, setting.band.high, setting.band.kind)
+    )
+    beta = setting.beta * beta_unit if setting.beta_relative else setting.beta
+    objective = Objective(
+        alpha=setting.alpha, beta=beta, band=band, cost_threshold=setting.cost_threshold
+    )
+    return objective, beta
+
+
+def episode(ctx: RunContext, setting: DictConfig, planner, controller: Controller, e: int) -> dict:
+    """Episode ``e`` of ``setting``: one MPC rollout; its metrics and (episode 0) trajectory."""
+    cfg, name = ctx.cfg, f"setting_{setting.name}"
+    policy = MPCPolicy(
+        planner,
+        replan=cfg.replan.mode,
+        replan_every=cfg.replan.every,
+        threshold=controller.threshold if cfg.replan.mode == "uncertainty" else None,
+        threshold_on=cfg.replan.threshold_on,
+        error_threshold=cfg.replan.error_threshold,
+        warmup_steps=max(cfg.warmup_random_steps, controller.model.context_length),
+    )
+    episode_seed = ctx.stage_seed(f"{name}_{e}")
+    env = build_env(
+        cfg, seed=episode_seed, episode_steps=cfg.env.episode_steps, policy_device=ctx.device
+    )
+    env.append_transform(policy.make_tensordict_primer())
+    torch.manual_seed(episode_seed)
+    td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True).cpu()
+    env.close()
+    metrics = episode_metrics(td, controller.scale)
+    if ctx.logger is not None:
+        for key, value in metrics.items():
+            if not (isinstance(value, float) and math.isnan(value)):
+                ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
+    state_names = get_entry(cfg.env.name).state_names
+    example = _trajectory(td, setting.name, state_names) if e == 0 else None
+    return {"metrics": metrics, "trajectory_example": example}
+
+
+def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) -> dict:
+    """All episodes of ``setting`` (stage ``setting_<name>``, one record per episode)."""
+    name = f"setting_{setting.name}"
+
+    def run():
+        objective, beta = setting_objective(setting, controller.beta_unit)
+        planner = build_planner(setting.planner, controller.model, objective)
+        # one record per episode: a setting stopped half way resumes at its next episode
+        parts = ctx.stages.run_parts(
+            name,
+            ctx.cfg.episodes,
+            lambda e: episode(ctx, setting, planner, controller, e),
+            show_progress=ctx.cfg.progress,
+        )
+        episodes = [part["metrics"] for part in parts]
+        first = parts[0]["trajectory_example"] if parts else None
+        mean, std = episode_mean_std(episodes)
+        record = {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+        return record | ({"beta_effective": beta} if setting.beta_relative else {})
+
+    return ctx.stages.run(name, run)
+
+
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) the control experiment; return its results."""
+    cfg = ctx.cfg
+    data = random_data_stage(
+        ctx,
+        "random_data",
+        frames=cfg.random_episodes * cfg.random_episode_steps,
+        episode_steps=cfg.random_episode_steps,
+    )
+    scale = state_scale(data)
+    world, estimator = models_stage(ctx, data)
+    per_window_u = window_uncertainty(ctx, data, estimator)
+    threshold = replan_threshold(cfg, per_window_u)
+    relative = any(s.beta_relative for s in cfg.settings)
+    beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
+    model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
+    controller = Controller(model, threshold, beta_unit, scale)
+
+    results, example = {}, None
+    for setting in cfg.settings:
+        record = setting_stage(ctx, setting, controller)
+        first = record.pop("trajectory_example", None)  # kept once, for the first setting
+        example = example or first
+        record.pop("wall_time_s", None)
+        results[setting.name] = record
+
+    return {
+        **ctx.results_header(),
+        "replan_threshold": threshold,
+        **({"beta_unit": beta_unit} if relative else {}),
+        "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
+        "settings": results,
+        "trajectory_example": example,
+        "wall_time_s": dict(ctx.stages.wall_time_s),
+    }
+
+
+def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
+    """Run (or resume) the control experiment in ``run_dir``; return its results."""
+    return run(RunContext.create(cfg, run_dir, logger))
+
+
+def _trajectory(td: TensorDictBase, setting: str, state_names: tuple[str, ...] = ()) -> dict:
+    """Real and predicted next states, u and re-plans of one episode (planned steps), for a Fig. 2 plot."""
+    planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
+    real = td["next", "observation"][planned]
+    return {
+        "setting": setting,
+        "real": real.tolist(),
+        "predicted": td[PRED_NEXT][planned].tolist(),
+        "uncertainty": td[PRED_U].squeeze(-1)[planned].tolist(),
+        "replanned": td[REPLANNED].squeeze(-1)[planned].tolist(),
+        "state_names": list(state_names) or [f"s{i}" for i in range(real.shape[-1])],
+    }

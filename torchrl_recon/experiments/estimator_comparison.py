@@ -1,0 +1,122 @@
+"""The estimator comparison (uncertainty estimators side by side) as an
+:class:`~torchrl_recon.experiments.experiment_type.ExperimentType`: its stages
+(:mod:`.estimator_comparison_stages`), summary across seeds, tables, figures and headline
+numbers. Its command and recipes' ``experiment`` are ``calibrate``."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping
+from typing import Any
+
+from torchrl_recon.experiments import estimator_comparison_stages
+from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
+from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
+from torchrl_recon.experiments.plots import plot_calibration
+from torchrl_recon.experiments.recipe_checks import calibrate_errors
+from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.experiments.tables import fmt, render
+
+CALIBRATION_COLUMNS = (
+    ("spearman", "Spearman(Σu, err)"),
+    ("auroc_error_above_median", "AUROC err>median"),
+    ("ood_auroc_state_shift", "OOD AUROC states"),
+    ("ood_auroc_action_bound", "OOD AUROC actions"),
+    ("score_ratio_H{h}", "score time ×AE H={h}"),
+    ("cem_ratio_H{h}", "CEM time ×AE H={h}"),
+    ("explore_ratio", "explore active/random"),
+)
+
+
+def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per estimator, mean ± std across seeds of every numeric entry of its row."""
+    runs = sorted(runs, key=lambda r: r.get("seed", 0))
+    estimators: dict[str, Any] = {}
+    for name in runs[0]["estimators"]:
+        rows = [r["estimators"][name] for r in runs if name in r["estimators"]]
+        keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
+        stats = {k: mean_std([row[k] for row in rows]) for k in keys}
+        estimators[name] = {
+            "mean": {k: m for k, (m, _) in stats.items()},
+            "std": {k: sd for k, (_, sd) in stats.items()},
+            "n_seeds": len(rows),
+        }
+    return {
+        "seeds": [r.get("seed") for r in runs],
+        "horizons": runs[0].get("horizons", []),
+        "estimators": estimators,
+    }
+
+
+def estimators_table(title: str, rows_by_name: Mapping[str, Any], horizon: int) -> str:
+    """One row per estimator; ``rows_by_name[name]`` maps column keys to numbers."""
+    keys = [k.format(h=horizon) for k, _ in CALIBRATION_COLUMNS]
+    header = ["estimator", *(label.format(h=horizon) for _, label in CALIBRATION_COLUMNS)]
+    rows = [[name, *(fmt(row.get(k), 3) for k in keys)] for name, row in rows_by_name.items()]
+    return title + "\n" + render(header, rows)
+
+
+def result_table(r: Mapping[str, Any]) -> str:
+    """The table of one comparison's results: one row per estimator."""
+    title = (
+        f"uncertainty estimators — {r.get('env')} seed {r.get('seed')} "
+        f"(times as ratios to {r.get('reference_estimator')!r}, measured in the same run)"
+    )
+    return estimators_table(title, r["estimators"], (r.get("horizons") or [0])[0])
+
+
+def summary_table(r: Mapping[str, Any]) -> str:
+    """One table per env of a comparison summary (means across seeds)."""
+    parts = []
+    for env, s in r["envs"].items():
+        title = f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds"
+        means = {name: e["mean"] for name, e in s["estimators"].items()}
+        parts.append(estimators_table(title, means, (s["horizons"] or [0])[0]))
+    return "\n\n".join(parts)
+
+
+def headline(results: Mapping[str, Any]) -> dict[str, float]:
+    """Every number of every estimator's row, as ``<estimator>/<key>``."""
+    return {
+        f"{name}/{key}": value
+        for name, row in results.get("estimators", {}).items()
+        for key, value in row.items()
+        if isinstance(value, (int, float))
+    }
+
+
+def figures(results: Mapping[str, Any]) -> Figures:
+    """``calibration.png``."""
+    return [("calibration.png", plot_calibration(results))]
+
+
+def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
+    """``calibration_<env>.png`` for each env of the summary."""
+    out = []
+    for env, s in summary["envs"].items():
+        rows = {name: e["mean"] for name, e in s["estimators"].items()}
+        out.append(
+            (f"calibration_{env}.png", plot_calibration({"env": env, "estimators": rows, **s}))
+        )
+    return out
+
+
+check = calibrate_errors
+
+
+def stage_values(cfg) -> dict:
+    """``{estimator}`` and ``{kind}`` of the stage names."""
+    return {
+        "estimator": [s.name for s in cfg.estimators],
+        "kind": estimator_comparison_stages.OUTCOME_KINDS,
+    }
+
+
+EXPERIMENT = ExperimentType.of_module(
+    sys.modules[__name__],
+    estimator_comparison_stages,
+    name="calibrate",
+    help="uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
+    schema=CalibrateConfig,
+    list_field=("estimators", EstimatorSpec),
+)

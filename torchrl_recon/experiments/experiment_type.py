@@ -1,0 +1,126 @@
+"""What an experiment kind is: one :class:`ExperimentType` holds everything the CLI, the
+runner, the recipe checks, ``summarize`` and the figures need to know about it."""
+
+from __future__ import annotations
+
+import itertools
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any
+
+from matplotlib.figure import Figure
+from omegaconf import DictConfig
+
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
+
+Results = Mapping[str, Any]
+Figures = list[tuple[str, Figure]]
+"""Figures as (file name, figure) pairs."""
+
+
+MODULE_FUNCTIONS = (
+    "check",
+    "summarize_env",
+    "result_table",
+    "summary_table",
+    "headline",
+    "figures",
+    "summary_figures",
+    "stage_values",
+    "outcome",
+)
+"""The fields :meth:`ExperimentType.of_module` reads from a kind's module by name."""
+
+
+def _no_figures(_: Results) -> Figures:
+    return []
+
+
+@dataclass(frozen=True)
+class ExperimentType:
+    """One experiment kind.
+
+    Attributes:
+        name: the command and the recipes' ``experiment`` value.
+        help: one line for ``torchrl-recon --help``.
+        schema: the recipe's config dataclass (:mod:`~torchrl_recon.experiments.config`).
+        stages: stage name templates in run order; ``{x}`` stands for a value (``{n}`` a count).
+        run: runs (or resumes) the experiment in a :class:`RunContext`; returns its results.
+        check: the kind's own value checks ``check(cfg, errors, recipes)``.
+        summarize_env: the across-seeds summary of one env's results.
+        result_table: the text table of one results dict.
+        summary_table: the text table of one :func:`~.summary.summarize` output.
+        headline: the results' numbers logged as scalars (``results/<key>``).
+        figures: the figures of one results dict.
+        summary_figures: the figures of a summary, ``(summary, results)``.
+        list_field: ``(key, item schema)`` of a list whose items have a schema of their own.
+        stage_values: the values of the templates' fields the recipe fixes (``cfg → {field:
+            values}``).
+        outcome: the headline numbers of a results dict when run as a child of another.
+    """
+
+    name: str
+    help: str
+    schema: type
+    stages: tuple[str, ...]
+    run: Callable[[RunContext], dict[str, Any]]
+    check: Callable[[DictConfig, Any, RecipeLoader], None]
+    summarize_env: Callable[[list[dict[str, Any]]], dict[str, Any]]
+    result_table: Callable[[Results], str]
+    summary_table: Callable[[Results], str]
+    headline: Callable[[Results], dict[str, float]]
+    figures: Callable[[Results], Figures] = _no_figures
+    summary_figures: Callable[[Results, list[Results]], Figures] = lambda s, r: []
+    list_field: tuple[str, type] | None = None
+    stage_values: Callable[[DictConfig], Mapping[str, Sequence[str]]] = field(
+        default=lambda cfg: {}
+    )
+    outcome: Callable[[Results], dict[str, Any]] | None = None
+
+    @classmethod
+    def of_module(cls, module: ModuleType, stages: ModuleType, **fields: Any) -> ExperimentType:
+        """The kind a module defines: ``name``, ``help`` and ``schema`` given, ``run`` and
+        ``STAGES`` from its ``stages`` module, and each of :data:`MODULE_FUNCTIONS` the module
+        defines (``check``, ``summarize_env``, ``result_table``, ...)."""
+        found = {f: getattr(module, f) for f in MODULE_FUNCTIONS if hasattr(module, f)}
+        return cls(run=stages.run, stages=stages.STAGES, **found, **fields)
+
+    def stage_list(self, cfg: DictConfig) -> list[str]:
+        """The stage names of ``cfg``'s run; a template whose fields the recipe leaves open is
+        shown as ``guided_data_<n>``.
+
+        Examples:
+            >>> from torchrl_recon.experiments.registry import get_type
+            >>> get_type("explore").stage_list(None)[3]
+            'guided_data_<n>'
+        """
+        values = self.stage_values(cfg) if cfg is not None else {}
+        names: list[str] = []
+        for template in self.stages:
+            fields = re.findall(r"\{(\w+)\}", template)
+            if all(f in values for f in fields):
+                for combo in itertools.product(*(values[f] for f in fields)):
+                    names.append(template.format(**dict(zip(fields, combo, strict=True))))
+            else:
+                names.append(re.sub(r"\{(\w+)\}", r"<\1>", template))
+        return names
+
+    def is_stage(self, cfg: DictConfig, name: str) -> bool:
+        """Whether ``name`` is a stage of ``cfg``'s run (what ``stop_after`` may name)."""
+        values = self.stage_values(cfg)
+
+        def pattern(template: str) -> str:
+            parts = re.split(r"\{(\w+)\}", template)
+            out = []
+            for i, part in enumerate(parts):
+                if i % 2 == 0:
+                    out.append(re.escape(part))
+                elif part in values:
+                    out.append("(" + "|".join(re.escape(str(v)) for v in values[part]) + ")")
+                else:
+                    out.append(r"\d+" if part == "n" else ".+")
+            return "".join(out)
+
+        return any(re.fullmatch(pattern(t), name) for t in self.stages)

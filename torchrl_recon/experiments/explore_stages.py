@@ -1,0 +1,262 @@
+"""The stages of the exploration experiment (the paper's §3.2 and Table 1), one repeat per seed.
+
+``initial_random`` → ``initial_models`` → ``validation`` → ``guided_data_<r>`` (with
+``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<arm>_<i>``; each stage takes
+the :class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from scipy import stats
+from tensordict import TensorDictBase
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.collectors import (
+    collect,
+    concat_trajectories,
+    validation_trajectories,
+)
+from torchrl_recon.evaluation import multi_step_errors
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_models,
+    build_planner,
+    cost_fn,
+    fit_module,
+    fit_stage,
+    random_data_stage,
+    state_scale,
+)
+from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.planners import PlanningModel
+from torchrl_recon.policies import ExplorationPolicy, exploration_objective
+from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
+
+# What a dataset keeps of a collection (the policies' planning state is not data).
+DATA_KEYS = (
+    "observation",
+    "action",
+    "is_init",
+    "step_count",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+    ("collector", "traj_ids"),
+)
+MSE_UNITS = (
+    "mean over validation trajectories, predicted steps and state dims of the squared error of open-loop "
+    "multi-step predictions (real context of `window` steps, then `validation.steps` steps from the real "
+    "actions), each state dim divided by its standard deviation in the initial random data (shared by both arms)"
+)
+
+
+STAGES = (
+    "initial_random",
+    "initial_models",
+    "validation",
+    "guided_data_{n}",
+    "guided_refit_{n}",
+    "random_arm",
+    "retrain_{arm}_{n}",
+)
+"""Stage name templates, in run order (``{n}`` a round or retraining, ``{arm}`` random|active)."""
+ARMS = ("random", "active")
+
+
+def random_steps_stage(ctx: RunContext, name: str, frames: int) -> TensorDictBase:
+    """``frames`` uniform random steps in the env's episodes (stage ``initial_random`` or
+    ``random_arm``), keeping :data:`DATA_KEYS`."""
+    episode = ctx.cfg.env.episode_steps
+    return random_data_stage(ctx, name, frames=frames, episode_steps=episode, keys=DATA_KEYS)
+
+
+def models_stage(ctx: RunContext, initial: TensorDictBase, name: str = "initial_models"):
+    """Build the world model and the estimator and fit both on ``initial``; returns them."""
+    obs_dim, action_dim = initial["observation"].shape[-1], initial["action"].shape[-1]
+    world, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
+    fit_stage(ctx, name, initial, {"world_model": world, "uncertainty": estimator})
+    return world, estimator
+
+
+def validation_stage(ctx: RunContext) -> TensorDictBase:
+    """Held-out trajectories ``[trajectories, window + validation.steps]`` (stage ``validation``)."""
+    cfg = ctx.cfg
+    length = cfg.models.window + cfg.validation.steps
+
+    def run():
+        seed = ctx.stage_seed("validation")
+        env = build_env(cfg, seed=seed, episode_steps=length)
+        val = validation_trajectories(
+            env,
+            count=cfg.validation.trajectories,
+            length=length,
+            seed=seed,
+            policy=cfg.validation.policy,
+        )
+        env.close()
+        ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
+        return {"trajectories": cfg.validation.trajectories, "length": length}
+
+    ctx.stages.run("validation", run)
+    return ctx.stages.load_data("validation").reshape(cfg.validation.trajectories, length)
+
+
+def guided_round_stage(
+    ctx: RunContext, world, estimator, r: int, rounds: int, frames: int
+) -> tuple[dict, TensorDictBase]:
+    """Round ``r`` of guided exploration (stage ``guided_data_<r>``): ``frames`` steps of the
+    exploration policy planning with ``world`` and ``estimator``; returns its record and data."""
+    cfg, guided, name = ctx.cfg, ctx.cfg.guided, f"guided_data_{r}"
+
+    def run():
+        model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
+        objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
+        policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
+        seed = ctx.stage_seed(name)
+        env = build_env(
+            cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy_device=policy.device
+        )
+        env.append_transform(policy.make_tensordict_primer())
+        data = collect(
+            env,
+            policy,
+            frames=frames,
+            seed=seed,
+            progress=cfg.progress,
+            desc=f"guided exploration {r + 1}/{rounds}",
+        )
+        env.close()
+        planned = data[REPLANNED].squeeze(-1)
+        ctx.stages.save_data(name, data.select(*DATA_KEYS))
+        return {
+            "steps": data.numel(),
+            "plans": int(planned.sum()),
+            "feasible_plans": int(data[FEASIBLE].squeeze(-1)[planned].sum()),
+        }
+
+    record = ctx.stages.run(name, run)
+    return record, ctx.stages.load_data(name)
+
+
+def guided_stages(
+    ctx: RunContext, initial: TensorDictBase, world, estimator
+) -> tuple[list[TensorDictBase], list[tuple[int, int]]]:
+    """Guided exploration in rounds; after each round but the last both networks are refitted
+    on all data so far (stage ``guided_refit_<r>``). Returns the rounds' data and their
+    (feasible plans, plans)."""
+    guided = ctx.cfg.guided
+    per_round = ctx.cfg.env.episode_steps * guided.refit_every_episodes
+    rounds = math.ceil(guided.steps / per_round)
+    parts, feasible_counts = [], []
+    for r in range(rounds):
+        frames = min(per_round, guided.steps - r * per_round)
+        record, data = guided_round_stage(ctx, world, estimator, r, rounds, frames)
+        feasible_counts.append((record["feasible_plans"], record["plans"]))
+        parts.append(data)
+        if r < rounds - 1:
+            grown = concat_trajectories(initial, *parts)
+            modules = {"world_model": world, "uncertainty": estimator}
+            fit_stage(ctx, f"guided_refit_{r}", grown, modules, fit_normalization=False)
+    return parts, feasible_counts
+
+
+def retrain_stage(
+    ctx: RunContext,
+    arm: str,
+    i: int,
+    data: TensorDictBase,
+    validation: TensorDictBase,
+    scale: torch.Tensor,
+) -> float:
+    """Retraining ``i`` of a fresh world model on ``arm``'s data (stage ``retrain_<arm>_<i>``);
+    returns its validation MSE (units of ``scale``)."""
+    name, window = f"retrain_{arm}_{i}", ctx.cfg.models.window
+    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+
+    def run():
+        seed = ctx.stage_seed(f"retrain_{i}")  # both arms start from the same weights
+        torch.manual_seed(seed)
+        model, _ = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
+        fit_module(ctx, model, data, seed=seed, prefix=f"{name}/")
+        errors = multi_step_errors(model, validation, window=window, scale=scale)
+        return {"mse": float(errors.mean())}
+
+    return ctx.stages.run(name, run)["mse"]
+
+
+def explore_results(
+    ctx: RunContext,
+    mse: dict[str, list[float]],
+    steps: dict[str, int],
+    feasible_counts: list[tuple[int, int]],
+) -> dict:
+    """The results dict: arm statistics over retrainings, their ratio, a Welch t-test."""
+    cfg = ctx.cfg
+    summary = {}
+    for arm, v in mse.items():
+        mean, std = mean_std(v, dtype=torch.float32)
+        summary[arm] = {"mse": v, "mean": mean, "std": std}
+    if cfg.retrainings > 1:
+        test = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
+        statistic, p_value = float(test.statistic), float(test.pvalue)
+    else:
+        statistic = p_value = float("nan")
+    plans = sum(p for _, p in feasible_counts)
+    return {
+        **ctx.results_header(),
+        "mse_units": MSE_UNITS,
+        "arms": summary,
+        "ratio": summary["active"]["mean"] / summary["random"]["mean"],
+        "test": {
+            "name": "Welch t-test, active vs random, across retrainings",
+            "statistic": statistic,
+            "p_value": p_value,
+        },
+        "data": {
+            **steps,
+            "active_feasible_fraction": (sum(f for f, _ in feasible_counts) / plans)
+            if plans
+            else float("nan"),
+        },
+        "wall_time_s": dict(ctx.stages.wall_time_s),
+    }
+
+
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) one repeat of the exploration experiment; return its results."""
+    cfg = ctx.cfg
+    initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
+    scale = state_scale(initial)
+    world, estimator = models_stage(ctx, initial)
+    validation = validation_stage(ctx)
+    guided_parts, feasible_counts = guided_stages(ctx, initial, world, estimator)
+    random_arm = random_steps_stage(ctx, "random_arm", cfg.random_steps)
+    arms = {
+        "random": concat_trajectories(initial, random_arm),
+        "active": concat_trajectories(initial, *guided_parts),
+    }
+    mse: dict[str, list[float]] = {arm: [] for arm in ARMS}
+    for i in range(cfg.retrainings):
+        for arm, data in arms.items():
+            mse[arm].append(retrain_stage(ctx, arm, i, data, validation, scale))
+            if ctx.logger is not None:
+                ctx.logger.log_scalar(f"validation_mse/{arm}", mse[arm][-1], step=i)
+    steps = {
+        "initial_steps": initial.numel(),
+        "random_arm_steps": random_arm.numel(),
+        "active_arm_steps": sum(p.numel() for p in guided_parts),
+    }
+    return explore_results(ctx, mse, steps, feasible_counts)
+
+
+def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
+    """Run (or resume) one repeat of the exploration experiment in ``run_dir``; return its results."""
+    return run(RunContext.create(cfg, run_dir, logger))

@@ -1,0 +1,36 @@
+"""The registry of experiment kinds: the CLI, the runner, the recipe checks, ``summarize`` and
+the figures look a kind up here by its name.
+
+Adding a kind: a module defining its ``EXPERIMENT`` (an
+:class:`~torchrl_recon.experiments.experiment_type.ExperimentType`), listed below, and its
+recipes (``experiment: <name>``).
+"""
+
+from __future__ import annotations
+
+from torchrl_recon.errors import RecipeError
+from torchrl_recon.experiments import control, estimator_comparison, explore
+from torchrl_recon.experiments.experiment_type import ExperimentType
+
+EXPERIMENT_TYPES: dict[str, ExperimentType] = {
+    t.name: t for t in (explore.EXPERIMENT, control.EXPERIMENT, estimator_comparison.EXPERIMENT)
+}
+"""Every experiment kind by name, in the order the CLI lists them."""
+
+
+def get_type(name: str) -> ExperimentType:
+    """The experiment kind ``name``.
+
+    Raises:
+        RecipeError: naming the kinds there are.
+
+    Examples:
+        >>> get_type("control").stage_list(None)
+        ['random_data', 'models', 'setting_<setting>']
+    """
+    try:
+        return EXPERIMENT_TYPES[name]
+    except (KeyError, TypeError):
+        raise RecipeError(
+            f"unknown experiment {name!r}; expected one of {sorted(EXPERIMENT_TYPES)}."
+        ) from None

@@ -68,15 +68,19 @@ NOT_DATA = {".lock", "explore.log", "control.log", "meta.json"}
 
 
 def expected_stages(kind: str) -> list[str]:
-    """The stages of a smoke recipe in the order they run (from ``recipe.STAGE_PATTERNS``)."""
+    """The stages of a smoke recipe in the order they run.
+
+    Control: ``recipe._stage_list``. Explore: ``recipe.STAGE_PATTERNS`` with the recipe's rounds
+    of guided data (a refit after each but the last) and retrainings, as ``run_explore`` runs them.
+    """
     cfg = compose_recipe(RECIPES[kind])
     if kind == "control":
         return _stage_list(cfg)
     per_round = cfg.env.episode_steps * cfg.guided.refit_every_episodes
     rounds = math.ceil(cfg.guided.steps / per_round)
-    guided = [f"guided_data_{r}" for r in range(rounds)]
-    for r in reversed(range(rounds - 1)):
-        guided.insert(r + 1, f"guided_refit_{r}")
+    guided = []
+    for r in range(rounds):
+        guided += [f"guided_data_{r}"] + ([f"guided_refit_{r}"] if r < rounds - 1 else [])
     retrain = [f"retrain_{arm}_{i}" for i in range(cfg.retrainings) for arm in ("random", "active")]
     return ["initial_random", "initial_models", "validation", *guided, "random_arm", *retrain]
 

@@ -5,14 +5,15 @@ command is run again in a fresh process. The resumed run directory must hold the
 uninterrupted run (docs/experiments.md, "Stop and resume"): ``results.json`` equal number for
 number (``meta`` and ``wall_time_s`` aside), every buffer, checkpoint, RNG state and figure equal
 byte for byte, every stage record equal but for its wall time. Stages last tenths of a second,
-so where a kill lands is racy: each test records it (the ``kill_landed`` property, printed with
-``-rP``) and asserts only what must hold wherever it lands.
+so where a kill lands is racy: each test records it (the ``kill_landed`` user property, also
+printed: ``-rP`` shows it) and asserts only what must hold wherever it lands.
 
 Kill points, for every stage of the recipe:
 
 - ``boundary``: as soon as the stage's record ``stages/<stage>.json`` appears;
-- ``mid``: half way through the stage (the previous stage's record, or ``meta.json`` for the
-  first stage, plus half the stage's duration in the reference run);
+- ``mid``: half way through the stage: after the previous stage's record (or ``meta.json`` for
+  the first stage), once the process has spent half the CPU time the stage took in the
+  reference run;
 - ``writing``: as soon as the stage's first output appears (its buffer folder, checkpoint,
   first ``part_<i>.json`` or RNG state), before its record.
 
@@ -37,9 +38,11 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -182,11 +185,13 @@ class KillPoint:
         return f"{self.where} of {self.stage}"
 
     def trigger(
-        self, run_dir: Path, order: list[str], durations: Callable[[], dict[str, float]]
+        self, run_dir: Path, order: list[str], pid: int, stage_cpu: float | None = None
     ) -> Callable[[], bool]:
-        """A function that turns true when the run reaches this point (polled by :func:`kill_when`).
+        """A function that turns true when process ``pid`` reaches this point.
 
-        ``durations()`` gives each stage's seconds in the reference run (only ``mid`` asks).
+        ``mid`` needs ``stage_cpu``, the CPU seconds the stage took in the reference run: the kill
+        comes when the process has spent half of them since the previous stage's record. CPU
+        time, unlike wall time, does not stretch when other work shares the cores.
         """
         stages = run_dir / "stages"
         if self.where == "boundary":
@@ -201,21 +206,29 @@ class KillPoint:
                 stages / f"{self.stage}.rng.pt",
             ]
             return lambda: any(p.exists() for p in outputs)
-        assert self.where == "mid", self.where
+        assert self.where == "mid" and stage_cpu is not None, (self.where, stage_cpu)
         i = order.index(self.stage)
         begun = stages / f"{order[i - 1]}.json" if i else run_dir / "meta.json"
         assert not begun.exists(), f"{begun} exists already: 'mid' needs a run that writes it"
-        delay = durations()[self.stage] / 2
         seen: list[float] = []
 
         def fire() -> bool:
             if not seen:
                 if begun.exists():
-                    seen.append(time.monotonic())
+                    seen.append(cpu_seconds(pid) or 0.0)
                 return False
-            return time.monotonic() - seen[0] >= delay
+            return (cpu_seconds(pid) or 0.0) - seen[0] >= stage_cpu / 2
 
         return fire
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time (user + system) of a running process, from ``/proc``; None where there is none."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def landed(run_dir: Path, order: list[str]) -> str:
@@ -229,14 +242,16 @@ def landed(run_dir: Path, order: list[str]) -> str:
         return "after the last stage, before results.json"
     stage = order[len(done)]
     written = sorted(
-        str(p.relative_to(run_dir))
-        for p in (
-            *run_dir.glob(f"buffers/{stage}"),
-            *run_dir.glob(f"checkpoints/{stage}.pt*"),
-            *run_dir.glob(f"stages/{stage}/part_*.json"),
-            *run_dir.glob(f"stages/{stage}.rng.pt*"),
-            *run_dir.rglob("*.tmp"),
-        )
+        {
+            str(p.relative_to(run_dir))
+            for p in (
+                *run_dir.glob(f"buffers/{stage}"),
+                *run_dir.glob(f"checkpoints/{stage}.pt*"),
+                *run_dir.glob(f"stages/{stage}/part_*.json"),
+                *run_dir.glob(f"stages/{stage}.rng.pt*"),
+                *run_dir.rglob("*.tmp"),
+            )
+        }
     )
     return f"in {stage} (stage {len(done) + 1}/{len(order)}; written: {', '.join(written) or 'nothing'})"
 
@@ -320,22 +335,25 @@ def assert_same_run(resumed: Path, reference: Path, context: str) -> None:
 
 @dataclass
 class Reference:
-    """An uninterrupted run: its directory and each stage's duration (from its records' times)."""
+    """An uninterrupted run: its directory and the CPU seconds each stage took (empty without /proc)."""
 
     run_dir: Path
-    durations: dict[str, float]
+    stage_cpu: dict[str, float]
 
 
 class References:
     """Uninterrupted smoke runs, all started on first use, each waited for when needed.
 
-    They run beside the first kill test: kill points are found on the file system, so the
-    shared cores only make them later, and every process is one more start-up to amortise.
+    They run beside the first kill test, which finds its kill points on the file system and
+    needs them only to compare at its end. A thread per run notes the run's CPU time as each
+    stage record appears, for the ``mid`` kill points.
     """
 
     def __init__(self, root: Path, kinds: set[str]):
         self.root, self.kinds = root, kinds
         self.procs: dict[str, subprocess.Popen] = {}
+        self.watchers: dict[str, threading.Thread] = {}
+        self.cpu_marks: dict[str, dict[str, float]] = {}
         self.done: dict[str, Reference] = {}
 
     def start(self, kind: str) -> None:
@@ -343,18 +361,35 @@ class References:
         for k in sorted(self.kinds | {kind}):
             if k not in self.procs:
                 self.procs[k] = start(k, self.root / k, self.root / "logs", k)
+                self.cpu_marks[k] = {}
+                self.watchers[k] = threading.Thread(target=self._watch, args=(k,), daemon=True)
+                self.watchers[k].start()
+
+    def _watch(self, kind: str) -> None:
+        proc, marks = self.procs[kind], self.cpu_marks[kind]
+        files = [("meta.json", self.root / kind / "meta.json")]
+        files += [(s, self.root / kind / "stages" / f"{s}.json") for s in STAGES[kind]]
+        while proc.poll() is None and files:
+            if files[0][1].exists():
+                cpu = cpu_seconds(proc.pid)
+                if cpu is None:
+                    return
+                marks[files.pop(0)[0]] = cpu
+            else:
+                time.sleep(POLL_S)
 
     def __call__(self, kind: str) -> Reference:
         """The finished reference run of ``kind`` (waits for it)."""
         self.start(kind)
         if kind not in self.done:
             code = self.procs[kind].wait(timeout=RUN_TIMEOUT_S)
+            self.watchers[kind].join()
             assert code == 0, f"reference {kind} run failed:\n{tail(self.root / 'logs', kind)}"
-            run_dir = self.root / kind
-            times = [(run_dir / "meta.json").stat().st_mtime]
-            times += [(run_dir / "stages" / f"{s}.json").stat().st_mtime for s in STAGES[kind]]
-            durations = {s: times[i + 1] - times[i] for i, s in enumerate(STAGES[kind])}
-            self.done[kind] = Reference(run_dir, durations)
+            marks, order = self.cpu_marks[kind], ["meta.json", *STAGES[kind]]
+            stage_cpu = {
+                b: marks[b] - marks[a] for a, b in pairwise(order) if a in marks and b in marks
+            }
+            self.done[kind] = Reference(self.root / kind, stage_cpu)
         return self.done[kind]
 
     def close(self) -> None:
@@ -383,30 +418,33 @@ def reference(request, tmp_path_factory):
 
 
 def kill_and_resume(
-    kind: str, points: list[KillPoint], reference: References, tmp_path: Path, record_property
-) -> list[str]:
+    kind: str, points: list[KillPoint], reference: References, tmp_path: Path, request
+) -> None:
     """Kill a fresh run at each point in turn (each time in a new process), then finish it."""
     run_dir, logs = tmp_path / "run", tmp_path / "logs"
     reference.start(kind)
     where = []
     for i, point in enumerate(points):
-        fire = point.trigger(run_dir, STAGES[kind], lambda: reference(kind).durations)
+        stage_cpu = None
+        if point.where == "mid":
+            stage_cpu = reference(kind).stage_cpu.get(point.stage)
+            if stage_cpu is None:
+                pytest.skip("mid-stage kills time the stage by its CPU time, read from /proc")
         proc = start(kind, run_dir, logs, f"killed_{i}")
-        seconds = kill_when(proc, fire)
+        seconds = kill_when(proc, point.trigger(run_dir, STAGES[kind], proc.pid, stage_cpu))
         where.append(f"{point}: landed {landed(run_dir, STAGES[kind])} after {seconds:.1f} s")
         assert proc.returncode == -signal.SIGKILL, tail(logs, f"killed_{i}")
-    record_property("kill_landed", " | ".join(where))
+    request.node.user_properties.append(("kill_landed", " | ".join(where)))
     print("\n".join(where))
     finish(kind, run_dir, logs, "resumed")
     assert_same_run(run_dir, reference(kind).run_dir, "; ".join(where))
-    return where
 
 
 @pytest.mark.parametrize("kind", sorted(CHAINS))
-def test_killed_three_times_resumes_to_the_same_run(kind, reference, tmp_path, record_property):
+def test_killed_three_times_resumes_to_the_same_run(kind, reference, tmp_path, request):
     """Two boundaries and one mid-stage kill, each resumed by the same command in a new process."""
     points = [KillPoint(stage, where) for stage, where in CHAINS[kind]]
-    kill_and_resume(kind, points, reference, tmp_path, record_property)
+    kill_and_resume(kind, points, reference, tmp_path, request)
 
 
 @pytest.mark.parametrize("kind", sorted(RECIPES))
@@ -424,11 +462,9 @@ def test_reference_run_has_the_expected_stages(kind, reference):
 @pytest.mark.parametrize(
     "kind, stage", [(kind, stage) for kind in sorted(STAGES) for stage in STAGES[kind]]
 )
-def test_killed_once_resumes_to_the_same_run(
-    kind, stage, where, reference, tmp_path, record_property
-):
+def test_killed_once_resumes_to_the_same_run(kind, stage, where, reference, tmp_path, request):
     """One kill at one point, then the same command in a new process finishes the run."""
-    kill_and_resume(kind, [KillPoint(stage, where)], reference, tmp_path, record_property)
+    kill_and_resume(kind, [KillPoint(stage, where)], reference, tmp_path, request)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,10 +1,12 @@
 # The two commands of the README: `make demo` and `make test`. Both set up .venv first.
+# `make test` leaves out the tests marked slow; `make test-all` runs every test, and
+# `make test-faults` the whole fault-injection suite (kill and resume at every stage).
 VENV ?= .venv
 PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test lint bench mutation
+.PHONY: setup demo test test-all test-faults lint bench mutation
 
 setup: $(VENV)/.installed
 
@@ -20,7 +22,14 @@ demo: setup
 
 test: setup
 	$(PY) -m ruff check .
+	$(PY) -m pytest -q -m "not slow"
+
+test-all: setup
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q
+
+test-faults: setup
+	$(PY) -m pytest -q -rP tests/experiments/test_fault_injection.py
 
 lint: setup
 	$(PY) -m ruff check .

@@ -24,6 +24,7 @@ from torchrl_recon.modules._lstm_rollout import (
     fold_weights,
     recorded_rollout,
     rollout_inplace,
+    sigmoid_tanh,
 )
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
@@ -228,8 +229,8 @@ class WorldModelPopulation(_Population):
         for t in range(length):
             gates = torch.baddbmm(gates_x[:, :, t], h, w_hh_t)
             i, f, g, o = gates.chunk(4, -1)
-            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
-            h = torch.sigmoid(o) * torch.tanh(c)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
+            h = torch.sigmoid(o) * sigmoid_tanh(c)
             outs.append(h)
         return torch.stack(outs, 2), (h, c)
 

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +45,28 @@ def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
 @torch.no_grad()
 def _evaluate(loss_module: LossModule, batches: list) -> float:
     return float(sum(_loss_value(loss_module, b) for b in batches) / len(batches))
+
+
+@contextlib.contextmanager
+def _cached_boundaries(*buffers: TensorDictReplayBuffer | None) -> Iterator[None]:
+    """Let each buffer's ``SliceSampler`` cache its trajectory boundaries while a fit samples it.
+
+    Without ``cache_values`` a SliceSampler finds every trajectory's start and end anew for each
+    batch, which costs more than the batch itself on a large buffer. TorchRL keys that cache by
+    the storage's revision, so a buffer extended later is never sampled with stale boundaries;
+    the samples are the same either way. The sampler's own setting is restored on exit.
+    """
+    saved = []
+    for buffer in buffers:
+        sampler = getattr(buffer, "sampler", None)
+        if sampler is not None and hasattr(sampler, "cache_values"):
+            saved.append((sampler, sampler.cache_values))
+            sampler.cache_values = True
+    try:
+        yield
+    finally:
+        for sampler, value in saved:
+            sampler.cache_values = value
 
 
 def train_loss_module(
@@ -94,6 +117,49 @@ def train_loss_module(
         check_int(name, value)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
+    with _cached_boundaries(buffer, val_buffer):
+        return _train_loss_module(
+            loss_module,
+            buffer,
+            val_buffer=val_buffer,
+            steps=steps,
+            lr=lr,
+            lr_decay=lr_decay,
+            weight_decay=weight_decay,
+            clip_norm=clip_norm,
+            eval_every=eval_every,
+            val_batches=val_batches,
+            patience=patience,
+            seed=seed,
+            logger=logger,
+            log_prefix=log_prefix,
+            progress=progress,
+            checkpoint_path=checkpoint_path,
+            checkpoint_modules=checkpoint_modules,
+        )
+
+
+def _train_loss_module(
+    loss_module: LossModule,
+    buffer: TensorDictReplayBuffer,
+    *,
+    val_buffer: TensorDictReplayBuffer | None,
+    steps: int,
+    lr: float,
+    lr_decay: bool,
+    weight_decay: float,
+    clip_norm: float | None,
+    eval_every: int,
+    val_batches: int,
+    patience: int | None,
+    seed: int,
+    logger: Logger | None,
+    log_prefix: str,
+    progress: bool,
+    checkpoint_path: str | Path | None,
+    checkpoint_modules: dict[str, nn.Module] | None,
+) -> FitResult:
+    """The loop of :func:`train_loss_module` (arguments checked)."""
     torch.manual_seed(seed)
     params = [p for p in loss_module.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
@@ -352,28 +418,29 @@ def fit_population(
     if log_prefix is None:
         log_prefix = "world_model/" if world else "uncertainty/"
     module, losses_of = _population_loss(models, mode, _slice_len(buffers[0]))
-    results = _train_members(
-        module,
-        losses_of,
-        count,
-        buffers,
-        [
-            v if v is not None and len(v) > 0 else b
-            for v, b in zip(val_buffers, buffers, strict=True)
-        ],
-        _MemberRNG(seeds),
-        steps=steps,
-        lr=lr,
-        lr_decay=lr_decay,
-        weight_decay=weight_decay,
-        clip_norm=clip_norm,
-        eval_every=eval_every,
-        val_batches=val_batches,
-        patience=patience,
-        logger=logger,
-        log_prefix=log_prefix,
-        progress=progress,
-    )
+    with _cached_boundaries(*buffers, *val_buffers):
+        results = _train_members(
+            module,
+            losses_of,
+            count,
+            buffers,
+            [
+                v if v is not None and len(v) > 0 else b
+                for v, b in zip(val_buffers, buffers, strict=True)
+            ],
+            _MemberRNG(seeds),
+            steps=steps,
+            lr=lr,
+            lr_decay=lr_decay,
+            weight_decay=weight_decay,
+            clip_norm=clip_norm,
+            eval_every=eval_every,
+            val_batches=val_batches,
+            patience=patience,
+            logger=logger,
+            log_prefix=log_prefix,
+            progress=progress,
+        )
     if count > 1:
         for i, model in enumerate(models):
             model.load_state_dict(module.member(i).state_dict())

@@ -27,3 +27,4 @@ bench: setup
 	$(PY) benchmarks/uncertainty_overhead.py
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
+	$(PY) benchmarks/training_speed.py

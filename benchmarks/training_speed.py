@@ -6,6 +6,10 @@ Industrial Benchmark dims 6 / 3) on random trajectories. Each timed call is a wh
 validation batch at the end and no early stopping, so a call's time over ``--steps`` is the
 time per step. Sequential and population calls are interleaved (median of ``--repeats``).
 
+``fit_population`` runs twice: as by default (each member samples its own batches, exactly
+its separate fit's) and with ``shared_sampling=True`` (one sample per step for all members,
+statistically equivalent); the headline is the default's.
+
 Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20]
 Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R.
 """
@@ -103,18 +107,24 @@ def main() -> None:
             for model, seed in zip(ms, seeds, strict=True):
                 fit_world_model(model, rb, seed=seed, **fit)
 
-        def run_population(ms=population, seeds=seeds):
-            fit_population(ms, rb, seeds=seeds, **fit)
+        def run_population(ms=population, seeds=seeds, shared=False):
+            fit_population(ms, rb, seeds=seeds, shared_sampling=shared, **fit)
 
         ms = interleaved_median_ms(
-            {"sequential": run_sequential, "population": run_population}, args.repeats
+            {
+                "sequential": run_sequential,
+                "population": run_population,
+                "shared": lambda: run_population(shared=True),
+            },
+            args.repeats,
         )
-        seq, pop = ms["sequential"] / args.steps, ms["population"] / args.steps
+        seq, pop, shared = (ms[k] / args.steps for k in ("sequential", "population", "shared"))
         speed_up[count] = seq / pop
         print(
             f"R={count:3d}  sequential {seq:8.2f} ms/step ({seq / count:6.2f} per member)   "
-            f"population {pop:8.2f} ms/step ({pop / count:6.2f} per member)   "
-            f"speed-up {speed_up[count]:.2f}x"
+            f"population {pop:8.2f} ms/step ({pop / count:6.2f} per member, speed-up "
+            f"{speed_up[count]:.2f}x)   with shared_sampling {shared:8.2f} ms/step (speed-up "
+            f"{seq / shared:.2f}x)"
         )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     largest = max(args.members)

@@ -122,3 +122,24 @@ def test_population_fit_errors_name_what_to_fix():
     with pytest.raises(ValueError, match="share one config"):
         fit_population([_world(0), LSTMWorldModel(N, M, window=4)], rb, **FIT)
     assert math.isfinite(fit_population([_world(0)], rb, **FIT)[0].best_val_loss)
+
+
+def test_shared_sampling_is_statistically_the_separate_fits():
+    """One sample per step split among the members: same-init members still see other data."""
+    kwargs = dict(steps=30, eval_every=10, val_batches=2, progress=False, patience=None)
+    refs = [
+        fit_world_model(_world(0), _buffer(0), val_buffer=_buffer(9), seed=s, **kwargs)
+        for s in range(4)
+    ]
+    models = [_world(0) for _ in range(4)]
+    results = fit_population(
+        models, _buffer(0), val_buffers=_buffer(9), seeds=range(4), shared_sampling=True, **kwargs
+    )
+    assert all(r.steps == 30 for r in results)
+    weights = [m.lstm.weight_hh_l0 for m in models]
+    assert all(not torch.equal(weights[0], w) for w in weights[1:])  # other batches, other fits
+    shared = torch.tensor([r.best_val_loss for r in results])
+    separate = torch.tensor([r.best_val_loss for r in refs])
+    spread = max(shared.std(), separate.std()) + 1e-3
+    assert (shared.mean() - separate.mean()).abs() <= 3 * spread, (shared, separate)
+    assert all(r.best_val_loss <= r.history[0]["val_loss"] for r in results)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -293,6 +294,28 @@ class _MemberRNG:
         return batch.to(device)
 
 
+def _sample_shared(
+    rng: _MemberRNG, buffers: list, active: list[bool], batches: list, device: torch.device
+) -> None:
+    """One sample per buffer for all its active members (``fit_population(shared_sampling=True)``)."""
+    groups: dict[int, list[int]] = {}
+    for r, buffer in enumerate(buffers):
+        if active[r]:
+            groups.setdefault(id(buffer), []).append(r)
+    for members in groups.values():
+        first, buffer = members[0], buffers[members[0]]
+        size = buffer.batch_size
+        with torch.random.fork_rng(devices=[]), warnings.catch_warnings():
+            # TorchRL warns that the size differs from the buffer's: it is meant to.
+            warnings.filterwarnings("ignore", message="Got conflicting batch_sizes")
+            torch.set_rng_state(rng.states[first])
+            batch = buffer.sample(size * len(members))
+            rng.states[first] = torch.get_rng_state()
+        batch = batch.to(device)
+        for j, r in enumerate(members):
+            batches[r] = batch[j * size : (j + 1) * size]
+
+
 def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
     """``clip_grad_norm_`` applied to each member's slice ``[r]`` of every gradient on its own."""
     norms = torch.stack([torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads])
@@ -354,6 +377,7 @@ def fit_population(
     logger: Logger | None = None,
     log_prefix: str | None = None,
     progress: bool = True,
+    shared_sampling: bool = False,
 ) -> list[FitResult]:
     """Train R models of one kind at once, as R independent fits run as one batch.
 
@@ -368,6 +392,13 @@ def fit_population(
     rounding (R = 1 is that fit bit for bit). A stopped member stays frozen at its best weights;
     the fit ends when every member has stopped or after ``steps``. The best weights are written
     back into ``models``. Other arguments are :func:`train_loss_module`'s.
+
+    ``shared_sampling=True`` trades that exactness for speed: the active members that share a
+    buffer draw their training batches as one ``R·num_slices`` sample (one RNG stream, seeded
+    by the first of their seeds), split into one batch each. Members still see different,
+    independently drawn slices, so the fits are statistically those of separate fits, but
+    not their exact data order. Sampling a ``SliceSampler`` costs about as much as a member's
+    step, so this is the faster mode for many members on one buffer.
 
     Returns:
         One :class:`FitResult` per member.
@@ -429,6 +460,7 @@ def fit_population(
                 for v, b in zip(val_buffers, buffers, strict=True)
             ],
             _MemberRNG(seeds),
+            shared_sampling=shared_sampling,
             steps=steps,
             lr=lr,
             lr_decay=lr_decay,
@@ -466,6 +498,7 @@ def _train_members(
     logger: Logger | None,
     log_prefix: str,
     progress: bool,
+    shared_sampling: bool = False,
 ) -> list[FitResult]:
     """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``."""
     stacked = count > 1  # else: one plain model, no member dim
@@ -506,9 +539,12 @@ def _train_members(
         range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False
     )
     for step in bar:
-        for r in range(count):
-            if active[r]:  # a stopped member's batch stays: it is frozen anyway
-                batches[r] = rng.sample(r, buffers[r], device)
+        if shared_sampling and count > 1:
+            _sample_shared(rng, buffers, active, batches, device)
+        else:
+            for r in range(count):
+                if active[r]:  # a stopped member's batch stays: it is frozen anyway
+                    batches[r] = rng.sample(r, buffers[r], device)
         try:
             losses = losses_of(batches)
             finite = torch.isfinite(losses.detach())

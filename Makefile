@@ -40,6 +40,7 @@ bench: setup
 	$(PY) benchmarks/uncertainty_overhead.py
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
+	$(PY) benchmarks/training_speed.py
 
 # Mutation testing (docs/testing.md); not part of `make test`. It runs in a copy of the work
 # tree under MUTATION_DIR. MUTANTS: mutmut mutant-name globs (default: the sample in

@@ -37,7 +37,14 @@ from torchrl_recon.evaluation import (
     multi_step_errors,
     spearman,
 )
-from torchrl_recon.modules import ESTIMATORS, LinearDeltaModel, LSTMWorldModel, make_estimator
+from torchrl_recon.modules import (
+    ESTIMATORS,
+    LinearDeltaModel,
+    LSTMWorldModel,
+    ReconstructionPopulation,
+    WorldModelPopulation,
+    make_estimator,
+)
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -50,6 +57,7 @@ from torchrl_recon.planners import (
 )
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.training import (
+    fit_population,
     fit_uncertainty,
     fit_world_model,
     load_checkpoint,
@@ -506,6 +514,60 @@ def test_checkpoint_round_trip(device, tmp_path):
     # load_modules rebuilds on the CPU (the checkpoint is read with map_location="cpu").
     loaded = load_modules(path)["world_model"].state_dict()
     torch.testing.assert_close(loaded, {k: v.cpu() for k, v in state.items()})
+
+
+@pytest.mark.parametrize("members", [1, 2])
+@pytest.mark.parametrize("device", DEVICES)
+def test_populations(device, members):
+    """Population modules (one member: the single model's ops; two: batched) and their fit."""
+
+    def build():
+        worlds = [_world_model() for _ in range(members)]
+        estimators = [_estimator("reconstruction") for _ in range(members)]
+        obs, action, _ = _sequences(batch=(members, 2))
+        candidates = torch.rand(members, 2, 5, 4, M, generator=torch.Generator().manual_seed(4))
+        return worlds, estimators, obs, action, candidates, [_buffer() for _ in range(members)]
+
+    def run(worlds, estimators, obs, action, candidates, buffers):
+        if device != "meta":
+            worlds = [w.to(device) for w in worlds]
+            estimators = [e.to(device) for e in estimators]
+            obs, action, candidates = obs.to(device), action.to(device), candidates.to(device)
+        pop = WorldModelPopulation.from_members(worlds)
+        ae = ReconstructionPopulation.from_members(estimators)
+        ctx_obs, ctx_action, now = obs[:, :, :T], action[:, :, :T], obs[:, :, T]
+        with torch.no_grad():
+            no_grad = pop.imagine(ctx_obs, ctx_action, now, candidates)
+            score = ae.score(obs, action)
+        candidates = candidates.clone().requires_grad_(True)
+        states = pop.imagine(ctx_obs, ctx_action, now, candidates)
+        (states.square().sum() + ae.loss(obs, action).sum()).backward()
+        stepped = pop.step(now, candidates[:, :, 0, 0], pop.warmup(ctx_obs, ctx_action))
+        split = [m.state_dict() for m in pop.split()]
+        kwargs = dict(steps=2, eval_every=1, val_batches=1, progress=False)
+        results = fit_population(worlds, buffers, **kwargs)
+        results += fit_population(estimators, buffers, **kwargs)
+        return (
+            no_grad,
+            score,
+            states,
+            candidates.grad,
+            _grads(pop),
+            _grads(ae),
+            stepped,
+            split,
+            [r.history for r in results],
+            [w.state_dict() for w in worlds],
+        )
+
+    if device == "meta":
+        check(build, run, device)
+    else:  # the fits' Adam steps move ~lr apart across devices: check devices only
+        objects = build()
+        out = run(*objects)
+        for path, value in _leaves(out):
+            if isinstance(value, torch.Tensor):
+                assert value.device.type == device, f"{path} is on {value.device}"
 
 
 # ---------------------------------------------------------------- evaluation

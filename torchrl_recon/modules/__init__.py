@@ -8,6 +8,7 @@ from torchrl_recon.modules.ensemble import EnsembleUncertainty
 from torchrl_recon.modules.estimators import ESTIMATORS, make_estimator
 from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -23,7 +24,9 @@ __all__ = [
     "module_device",
     "module_dtype",
     "Normalizer",
+    "ReconstructionPopulation",
     "ReconstructionUncertainty",
     "RNDUncertainty",
     "UncertaintyEstimator",
+    "WorldModelPopulation",
 ]

@@ -8,6 +8,10 @@ hand, with the ATen backward kernels autograd uses (``sigmoid_backward``, ``tanh
 ...) in the order autograd accumulates them, so its states and gradients (actions, start state
 and weights) are bitwise those of :func:`recorded_rollout`, the op-by-op reference
 (``tests/modules/test_lstm_rollout.py``).
+
+Both also run a population of models at once: with a leading member dim ``P`` on every
+tensor (weights ``[P, ...]``, states ``[P, R, ...]``), each matmul becomes a batched one
+(``bmm``/``baddbmm``) over the members; 2-D weights run the single model's exact ops.
 """
 
 from __future__ import annotations
@@ -15,11 +19,73 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from torchrl_recon.modules.activations import ACTIVATION_BACKWARDS, ACTIVATIONS
+from torchrl_recon.modules.activations import (
+    ACTIVATION_BACKWARDS,
+    ACTIVATIONS,
+    INPLACE_ACTIVATIONS,
+)
 
 # The kernels autograd's own derivative formulas call (resolved overloads: cheaper to call).
 _sigmoid_backward = torch.ops.aten.sigmoid_backward.default
 _tanh_backward = torch.ops.aten.tanh_backward.default
+
+
+def _addmm(bias: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
+    """``addmm`` for one model's 2-D weights, ``baddbmm`` over the members of ``[P, ...]`` ones."""
+    if mat2.dim() == 2:
+        return torch.addmm(bias, mat1, mat2)
+    return torch.baddbmm(bias.unsqueeze(-2), mat1, mat2)
+
+
+def _mm(mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
+    """``mm`` for 2-D operands, ``bmm`` over a leading member dim."""
+    return mat1.mm(mat2) if mat2.dim() == 2 else torch.bmm(mat1, mat2)
+
+
+def _matvec(mat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
+    """``mat @ vec`` for ``[A, B] @ [B]``, or per member for ``[P, A, B] @ [P, B]``."""
+    return mat @ vec if mat.dim() == 2 else torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
+
+
+def sigmoid_tanh(x: torch.Tensor) -> torch.Tensor:
+    """``tanh(x)`` as ``2·sigmoid(2x) − 1``: within float32 rounding of ``torch.tanh`` (absolute
+    error ~1e-7) and several times faster on the CPU, whose ``tanh`` kernel is slow. A
+    population's rollout uses it; a single model keeps ``torch.tanh`` (bitwise its reference).
+    """
+    return torch.sigmoid(x * 2).mul(2).sub_(1)
+
+
+def fold_weights(
+    w_ih: torch.Tensor,
+    w_hh: torch.Tensor,
+    b_ih: torch.Tensor,
+    b_hh: torch.Tensor,
+    w_dense: torch.Tensor,
+    b_dense: torch.Tensor,
+    w_head: torch.Tensor,
+    b_head: torch.Tensor,
+    norms: tuple[torch.Tensor, ...],
+) -> tuple[torch.Tensor, ...]:
+    """Fold the normalisations into the weights so the rollout works in raw units.
+
+    Args:
+        w_ih, w_hh, b_ih, b_hh: the LSTM's weights (``nn.LSTM`` layout, ``[*P, 4 hid, N + M]``...).
+        w_dense, b_dense, w_head, b_head: the dense and output layers (``nn.Linear`` layout).
+        norms: ``(obs_loc, obs_scale, action_loc, action_scale, delta_loc, delta_scale)``.
+
+    Returns:
+        ``w_a, bias, w_sh, w_d, b_d, w_out, b_out``, the weights :class:`LSTMRollout` takes,
+        with the optional member dim ``P`` leading each.
+    """
+    obs_loc, obs_scale, act_loc, act_scale, delta_loc, delta_scale = norms
+    n = obs_loc.shape[-1]
+    w_s = w_ih[..., :n] / obs_scale.unsqueeze(-2)
+    w_a = w_ih[..., n:] / act_scale.unsqueeze(-2)
+    bias = b_ih + b_hh - _matvec(w_s, obs_loc) - _matvec(w_a, act_loc)
+    w_sh = torch.cat([w_s, w_hh], -1).transpose(-1, -2)  # [*P, N + hid, 4 hid]
+    w_out = (w_head * delta_scale.unsqueeze(-1)).transpose(-1, -2)  # [*P, dense, N]
+    b_out = b_head * delta_scale + delta_loc
+    return w_a.transpose(-1, -2), bias, w_sh, w_dense.transpose(-1, -2), b_dense, w_out, b_out
 
 
 def recorded_rollout(
@@ -36,25 +102,33 @@ def recorded_rollout(
     """
     w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
     act, hid = ACTIVATIONS[activation], h.shape[-1]
-    rows, horizon, action_dim = actions.shape
-    # [H, R, 4 hid] so each step is an `unbind` slice: indexing `gates_a[:, t]` would zero-fill
-    # a full-size gradient per step in the backward (O(H²) memory traffic).
-    gates_a = torch.addmm(bias, actions.transpose(0, 1).reshape(-1, action_dim), w_a).reshape(
-        horizon, rows, 4 * hid
-    )
+    *members, rows, horizon, action_dim = actions.shape
+    # [*P, H, R, 4 hid] so each step is an `unbind` slice: indexing `gates_a[:, t]` would
+    # zero-fill a full-size gradient per step in the backward (O(H²) memory traffic).
+    flat = actions.transpose(-3, -2).reshape(*members, horizon * rows, action_dim)
+    gates_a = _addmm(bias, flat, w_a).reshape(*members, horizon, rows, 4 * hid)
     states = []
-    for gates_t in gates_a.unbind(0):
-        gates = torch.addmm(gates_t, torch.cat([s, h], 1), w_sh)
-        i, f, g, o = gates.chunk(4, 1)
+    for gates_t in gates_a.unbind(-3):
+        gates = _addmm_step(gates_t, torch.cat([s, h], -1), w_sh)
+        i, f, g, o = gates.chunk(4, -1)
         c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
         h = torch.sigmoid(o) * torch.tanh(c)
-        s = s + torch.addmm(b_out, act(torch.addmm(b_d, h, w_d)), w_out)
+        s = s + _addmm(b_out, act(_addmm(b_d, h, w_d)), w_out)
         states.append(s)
-    return torch.stack(states, 1)
+    return torch.stack(states, -2)
+
+
+def _addmm_step(gates: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
+    """``gates + mat1 @ mat2`` where ``gates`` already holds a full ``[*P, R, 4 hid]`` term."""
+    if mat2.dim() == 2:
+        return torch.addmm(gates, mat1, mat2)
+    return torch.baddbmm(gates, mat1, mat2)
 
 
 def _mat2_grad(grad: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
     """Gradient of ``mat2`` in ``addmm(b, mat1, mat2)``, as autograd's ``mm_mat2_backward``."""
+    if mat2.dim() == 3:  # members: baddbmm's backward
+        return torch.bmm(mat1.transpose(-1, -2), grad)
     if mat2.stride(0) == 1 and mat2.stride(1) == mat2.size(0):  # column-major mat2
         return grad.t().mm(mat1).t()
     return mat1.t().mm(grad)
@@ -64,14 +138,15 @@ class LSTMRollout(torch.autograd.Function):
     """``states = LSTMRollout.apply(s0, h0, c0, actions, activation, *weights)``.
 
     Args (of ``apply``):
-        s0, h0, c0: initial state and LSTM state, ``[R, N]``, ``[R, hid]``, ``[R, hid]``.
-        actions: ``[R, H, M]``.
+        s0, h0, c0: initial state and LSTM state, ``[*P, R, N]``, ``[*P, R, hid]``, ``[*P, R, hid]``.
+        actions: ``[*P, R, H, M]``.
         activation: the dense layer's activation name.
         weights: the world model's folded weights ``w_a, bias, w_sh, w_d, b_d, w_out, b_out``
-            (see ``LSTMWorldModel._folded_weights``).
+            (see :func:`fold_weights`), ``[*P, ...]`` each.
 
     Returns:
-        states s_1..s_H, ``[R, H, N]``. Differentiable once (no double backward).
+        states s_1..s_H, ``[*P, R, H, N]``. Differentiable once (no double backward).
+        ``P`` is the optional member dim of a population (see the module docstring).
 
     Examples:
         >>> from torchrl_recon.modules import LSTMWorldModel
@@ -86,32 +161,33 @@ class LSTMRollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx, s0, h0, c0, actions, activation, w_a, bias, w_sh, w_d, b_d, w_out, b_out):
         act = ACTIVATIONS[activation]
-        rows, horizon, action_dim = actions.shape
+        *members, rows, horizon, action_dim = actions.shape
         hid = h0.shape[-1]
         # The same ops as recorded_rollout, so the states are bitwise the same.
-        flat_actions = actions.transpose(0, 1).reshape(-1, action_dim)
-        gates_a = torch.addmm(bias, flat_actions, w_a).reshape(horizon, rows, 4 * hid)
+        flat_actions = actions.transpose(-3, -2).reshape(*members, horizon * rows, action_dim)
+        gates_a = _addmm(bias, flat_actions, w_a).reshape(*members, horizon, rows, 4 * hid)
         s, h, c = s0, h0, c0
         saved = []
         states = []
-        for gates_t in gates_a.unbind(0):
-            x = torch.cat([s, h], 1)
-            gates = torch.addmm(gates_t, x, w_sh)
-            i, f, g, o = gates.chunk(4, 1)
-            sf, si, tg, so = torch.sigmoid(f), torch.sigmoid(i), torch.tanh(g), torch.sigmoid(o)
+        tanh = sigmoid_tanh if members else torch.tanh
+        for gates_t in gates_a.unbind(-3):
+            x = torch.cat([s, h], -1)
+            gates = _addmm_step(gates_t, x, w_sh)
+            i, f, g, o = gates.chunk(4, -1)
+            sf, si, tg, so = torch.sigmoid(f), torch.sigmoid(i), tanh(g), torch.sigmoid(o)
             c_prev = c
             c = sf * c + si * tg
-            tc = torch.tanh(c)
+            tc = tanh(c)
             h = so * tc
-            pre = torch.addmm(b_d, h, w_d)
+            pre = _addmm(b_d, h, w_d)
             z = act(pre)
-            s = s + torch.addmm(b_out, z, w_out)
+            s = s + _addmm(b_out, z, w_out)
             saved.append((si, sf, tg, so, c_prev, tc, pre, z, x, h))
             states.append(s)
         ctx.saved, ctx.flat_actions = saved, flat_actions
         ctx.weights, ctx.activation = (w_a, w_sh, w_d, w_out), activation  # those backward needs
-        ctx.shape = (rows, horizon, action_dim, s0.shape[-1])
-        return torch.stack(states, 1)
+        ctx.shape = (members, rows, horizon, action_dim, s0.shape[-1])
+        return torch.stack(states, -2)
 
     @staticmethod
     @once_differentiable
@@ -119,14 +195,18 @@ class LSTMRollout(torch.autograd.Function):
         w_a, w_sh, w_d, w_out = ctx.weights
         need_weights = any(ctx.needs_input_grad[5:])
         act_backward = ACTIVATION_BACKWARDS[ctx.activation]
-        rows, horizon, action_dim, obs_dim = ctx.shape
-        outputs = grad_states.unbind(1)
-        w_out_t, w_d_t, w_sh_t = w_out.t(), w_d.t(), w_sh.t()
+        members, rows, horizon, action_dim, obs_dim = ctx.shape
+        outputs = grad_states.unbind(-2)
+        w_out_t, w_d_t, w_sh_t = (w.transpose(-1, -2) for w in (w_out, w_d, w_sh))
         # ds, dh, dc: gradients of s_{t+2}, h_{t+1}, c_{t+1}·f_{t+1} from step t + 1; dx: its
         # cat's. Weight gradients sum the steps' contributions last step first, as autograd does.
         ds = dh = dc = dx = None
         dw = [None] * 5  # w_sh, w_d, b_d, w_out, b_out
         dgates_all = [None] * horizon
+        # A population's weight gradients are one batched matmul over all steps after the loop
+        # (a single model sums per-step ones, bitwise as autograd does).
+        per_step = need_weights and not members
+        dpre_all, ds_all = [None] * horizon, [None] * horizon
         for t in range(horizon - 1, -1, -1):
             si, sf, tg, so, c_prev, tc, pre, z, x, h = ctx.saved[t]
             # s_{t+1}: its output slice, then the residual (s_{t+2} = s_{t+1} + ...), then the
@@ -134,10 +214,10 @@ class LSTMRollout(torch.autograd.Function):
             if t == horizon - 1:
                 ds = outputs[t]
             else:
-                ds = (outputs[t] + ds) + dx[:, :obs_dim]
-            dpre = act_backward(ds.mm(w_out_t), pre, z)
-            dh_dense = dpre.mm(w_d_t)
-            dh = dh_dense if t == horizon - 1 else dx[:, obs_dim:] + dh_dense
+                ds = (outputs[t] + ds) + dx[..., :obs_dim]
+            dpre = act_backward(_mm(ds, w_out_t), pre, z)
+            dh_dense = _mm(dpre, w_d_t)
+            dh = dh_dense if t == horizon - 1 else dx[..., obs_dim:] + dh_dense
             dtc = dh * so
             dso = dh * tc
             dc_t = _tanh_backward(dtc, tc)
@@ -149,30 +229,109 @@ class LSTMRollout(torch.autograd.Function):
                     _tanh_backward(dc * si, tg),
                     _sigmoid_backward(dso, so),
                 ],
-                1,
+                -1,
             )
-            dgates_all[t] = dgates
-            if need_weights:
+            dgates_all[t], dpre_all[t], ds_all[t] = dgates, dpre, ds
+            if per_step:
                 step = (
                     _mat2_grad(dgates, x, w_sh),
                     _mat2_grad(dpre, h, w_d),
-                    dpre.sum(0),
+                    dpre.sum(-2),
                     _mat2_grad(ds, z, w_out),
-                    ds.sum(0),
+                    ds.sum(-2),
                 )
                 dw = (
                     list(step)
                     if t == horizon - 1
                     else [a + b for a, b in zip(dw, step, strict=True)]
                 )
-            dx = dgates.mm(w_sh_t)
+            dx = _mm(dgates, w_sh_t)
             dc = dc * sf
-        ds0 = ds + dx[:, :obs_dim]
-        dh0 = dx[:, obs_dim:]
-        dgates_flat = torch.stack(dgates_all).reshape(horizon * rows, -1)
-        dactions = dgates_flat.mm(w_a.t()).reshape(horizon, rows, action_dim).transpose(0, 1)
+        ds0 = ds + dx[..., :obs_dim]
+        dh0 = dx[..., obs_dim:]
+        dgates_flat = torch.stack(dgates_all, -3).reshape(*members, horizon * rows, -1)
+        dactions = (
+            _mm(dgates_flat, w_a.transpose(-1, -2))
+            .reshape(*members, horizon, rows, action_dim)
+            .transpose(-3, -2)
+        )
         dw_a = dbias = None
         if need_weights:
             dw_a = _mat2_grad(dgates_flat, ctx.flat_actions, w_a)
-            dbias = dgates_flat.sum(0)
+            dbias = dgates_flat.sum(-2)
+        if need_weights and members:
+
+            def flat(items: list[torch.Tensor]) -> torch.Tensor:
+                return torch.stack(items, -3).reshape(*members, horizon * rows, -1)
+
+            xs, hs, zs = (flat([saved[k] for saved in ctx.saved]) for k in (8, 9, 7))
+            dpre_flat, ds_flat = flat(dpre_all), flat(ds_all)
+            dw = [
+                _mat2_grad(dgates_flat, xs, w_sh),
+                _mat2_grad(dpre_flat, hs, w_d),
+                dpre_flat.sum(-2),
+                _mat2_grad(ds_flat, zs, w_out),
+                ds_flat.sum(-2),
+            ]
         return ds0, dh0, dc, dactions, None, dw_a, dbias, *dw
+
+
+@torch.no_grad()
+def rollout_inplace(
+    s: torch.Tensor,
+    h: torch.Tensor,
+    c: torch.Tensor,
+    actions: torch.Tensor,
+    activation: str,
+    *weights: torch.Tensor,
+) -> torch.Tensor:
+    """The rollout of :class:`LSTMRollout` for one model (2-D weights) without autograd.
+
+    Preallocated buffers, in-place ops, 11 kernels a step.
+
+    The gates are one ``[R, 4·hidden]`` buffer reused every step (a large per-call slab of
+    all steps' gates cost page faults between planner iterations), filled by three matmuls
+    with columns reordered to ``[i, f, o | g]`` so one sigmoid covers exactly the sigmoid
+    gates. States, ``h`` and the dense output each carry a constant-1
+    column, so every bias rides inside a matmul, and the state update ``s + z·W`` is one
+    ``addmm`` written straight into the ``[H + 1, R, N + 1]`` state slab.
+    """
+    w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
+    n, hid, dense = s.shape[-1], h.shape[-1], w_d.shape[-1]
+    rows, horizon = actions.shape[:2]
+    like = dict(dtype=s.dtype, device=s.device)
+    order = torch.cat(
+        [
+            torch.arange(0, 2 * hid, device=s.device),
+            torch.arange(3 * hid, 4 * hid, device=s.device),
+            torch.arange(2 * hid, 3 * hid, device=s.device),
+        ]
+    )
+    w_s1 = torch.cat([w_sh[:n], bias[None]])[:, order].contiguous()  # [N + 1, 4 hid]
+    w_hh1 = torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)])[:, order].contiguous()
+    w_d1 = torch.cat([w_d, b_d[None]]).contiguous()  # [hid + 1, dense]
+    w_out1 = torch.zeros(dense + 1, n + 1, **like)  # the last column keeps the states' 1
+    w_out1[:dense, :n], w_out1[dense, :n] = w_out, b_out
+    w_a = w_a[:, order].contiguous()
+    steps = actions.transpose(0, 1).contiguous()  # [H, R, M]: one contiguous slice per step
+    gates = torch.empty(rows, 4 * hid, **like)
+    states = torch.ones(horizon + 1, rows, n + 1, **like)
+    states[0, :, :n] = s
+    h1 = torch.ones(rows, hid + 1, **like)
+    h1[:, :hid] = h
+    z1 = torch.ones(rows, dense + 1, **like)
+    h_view, z_view = h1[:, :hid], z1[:, :dense]
+    c = c.contiguous().clone()
+    sig = torch.empty(rows, 3 * hid, **like)
+    tg = torch.empty(rows, hid, **like)
+    act_ = INPLACE_ACTIVATIONS[activation]
+    for t in range(horizon):
+        torch.mm(steps[t], w_a, out=gates).addmm_(states[t], w_s1).addmm_(h1, w_hh1)
+        torch.sigmoid(gates[:, : 3 * hid], out=sig)  # i, f, o
+        torch.tanh(gates[:, 3 * hid :], out=tg)  # g
+        c.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], tg)
+        torch.tanh(c, out=tg)
+        torch.mul(sig[:, 2 * hid :], tg, out=h_view)
+        act_(torch.mm(h1, w_d1, out=z_view))
+        torch.addmm(states[t], z1, w_out1, out=states[t + 1])
+    return states[1:, :, :n].transpose(0, 1)

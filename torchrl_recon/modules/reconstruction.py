@@ -88,42 +88,77 @@ class ReconstructionUncertainty(UncertaintyEstimator):
 
     def _window_errors(self, x: torch.Tensor) -> torch.Tensor:
         """u for every window of standardised sequences ``[R, L, D]`` → ``[R, L - T + 1]`` (differentiable)."""
-        rows, length, dim = x.shape
-        num_windows = length - self.window + 1
-        windows = window_view(x, self.window).reshape(rows * num_windows, self.window * dim)
-        hidden = ACTIVATIONS[self.activation](
-            torch.addmm(self.encoder.bias, windows, self.encoder.weight.t())
-        )
-        error = torch.addmm(self.decoder.bias, hidden, self.decoder.weight.t()) - windows
-        return (torch.linalg.vector_norm(error, dim=-1) / self.window).reshape(rows, num_windows)
+        return window_errors(x, self.window, self.activation, *self._weights())
 
-    @torch.no_grad()
     def _window_errors_blocked(self, x: torch.Tensor) -> torch.Tensor:
-        """The same without autograd, in cache-sized blocks of about ``_BLOCK`` windows.
+        """The same without autograd, in cache-sized blocks (see :func:`window_errors_blocked`)."""
+        return window_errors_blocked(x, self.window, self.activation, *self._weights())
 
-        Per block: one pass copies the windows minus the decoder bias b2, the encoder is a
-        matmul plus an in-place bias and activation (its bias folded to b1 + W1·b2), and the
-        error ``W2·h + b2 − window`` is one in-place ``addmm_(beta=-1)`` on that copy. Timings
-        are in docs/benchmarks.md.
-        """
-        rows, length, dim = x.shape
-        size, num_windows = self.window * dim, length - self.window + 1
-        w1t, w2t = self.encoder.weight.t().contiguous(), self.decoder.weight.t().contiguous()
-        b2 = self.decoder.bias
-        c1 = self.encoder.bias + self.encoder.weight @ b2
-        act_ = INPLACE_ACTIVATIONS[self.activation]
-        out = x.new_empty(rows, num_windows)
-        step = max(1, _BLOCK // num_windows)
-        # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).
-        shifted_buf = x.new_empty(step * num_windows, size)
-        hidden_buf = x.new_empty(step * num_windows, self.hidden_size)
-        for i in range(0, rows, step):
-            block = x[i : i + step]
-            n = block.shape[0] * num_windows
-            windows = window_view(block, self.window)
-            shifted = shifted_buf[:n]
-            torch.sub(windows, b2, out=shifted.view(block.shape[0], num_windows, size))
-            hidden = act_(torch.mm(shifted, w1t, out=hidden_buf[:n]).add_(c1))
-            error = shifted.addmm_(hidden, w2t, beta=-1)
-            torch.linalg.vector_norm(error, dim=-1, out=out[i : i + block.shape[0]].view(-1))
-        return out.div_(self.window)
+    def _weights(self) -> tuple[torch.Tensor, ...]:
+        return self.encoder.weight, self.encoder.bias, self.decoder.weight, self.decoder.bias
+
+
+def window_errors(
+    x: torch.Tensor, window: int, activation: str, *weights: torch.Tensor
+) -> torch.Tensor:
+    """u of every window of standardised sequences, differentiable.
+
+    Args:
+        x: ``[R, L, D]`` for one autoencoder, or ``[P, R, L, D]`` for a population of P.
+        window: T.
+        activation: the hidden layer's activation name.
+        weights: ``enc_w, enc_b, dec_w, dec_b`` in ``nn.Linear`` layout, ``[P, ...]`` each
+            for a population (its matmuls are batched over the members).
+
+    Returns:
+        ``[*P, R, L - T + 1]``.
+    """
+    enc_w, enc_b, dec_w, dec_b = weights
+    *members, rows, length, dim = x.shape
+    num_windows = length - window + 1
+    windows = window_view(x.reshape(-1, length, dim), window).reshape(
+        *members, rows * num_windows, window * dim
+    )
+    act = ACTIVATIONS[activation]
+    if enc_w.dim() == 2:
+        hidden = act(torch.addmm(enc_b, windows, enc_w.t()))
+        error = torch.addmm(dec_b, hidden, dec_w.t()) - windows
+    else:
+        hidden = act(torch.baddbmm(enc_b.unsqueeze(-2), windows, enc_w.transpose(-1, -2)))
+        error = torch.baddbmm(dec_b.unsqueeze(-2), hidden, dec_w.transpose(-1, -2)) - windows
+    u = torch.linalg.vector_norm(error, dim=-1) / window
+    return u.reshape(*members, rows, num_windows)
+
+
+@torch.no_grad()
+def window_errors_blocked(
+    x: torch.Tensor, window: int, activation: str, *weights: torch.Tensor
+) -> torch.Tensor:
+    """:func:`window_errors` of one autoencoder without autograd, in blocks of about ``_BLOCK`` windows.
+
+    Per block: one pass copies the windows minus the decoder bias b2, the encoder is a
+    matmul plus an in-place bias and activation (its bias folded to b1 + W1·b2), and the
+    error ``W2·h + b2 − window`` is one in-place ``addmm_(beta=-1)`` on that copy. Timings
+    are in docs/benchmarks.md.
+    """
+    enc_w, enc_b, dec_w, b2 = weights
+    rows, length, dim = x.shape
+    size, num_windows = window * dim, length - window + 1
+    w1t, w2t = enc_w.t().contiguous(), dec_w.t().contiguous()
+    c1 = enc_b + enc_w @ b2
+    act_ = INPLACE_ACTIVATIONS[activation]
+    out = x.new_empty(rows, num_windows)
+    step = max(1, _BLOCK // num_windows)
+    # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).
+    shifted_buf = x.new_empty(step * num_windows, size)
+    hidden_buf = x.new_empty(step * num_windows, enc_w.shape[0])
+    for i in range(0, rows, step):
+        block = x[i : i + step]
+        n = block.shape[0] * num_windows
+        windows = window_view(block, window)
+        shifted = shifted_buf[:n]
+        torch.sub(windows, b2, out=shifted.view(block.shape[0], num_windows, size))
+        hidden = act_(torch.mm(shifted, w1t, out=hidden_buf[:n]).add_(c1))
+        error = shifted.addmm_(hidden, w2t, beta=-1)
+        torch.linalg.vector_norm(error, dim=-1, out=out[i : i + block.shape[0]].view(-1))
+    return out.div_(window)

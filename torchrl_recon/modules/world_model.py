@@ -7,8 +7,13 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
-from torchrl_recon.modules.activations import ACTIVATIONS, INPLACE_ACTIVATIONS
+from torchrl_recon.modules._lstm_rollout import (
+    LSTMRollout,
+    fold_weights,
+    recorded_rollout,
+    rollout_inplace,
+)
+from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import (
     check_activation,
     check_features,
@@ -170,20 +175,26 @@ class LSTMWorldModel(TensorDictModuleBase):
 
     def _folded_weights(self) -> tuple[torch.Tensor, ...]:
         """Fold the normalisations into the weights so the rollout works in raw units."""
-        n = self.obs_dim
-        w_ih, w_hh = self.lstm.weight_ih_l0, self.lstm.weight_hh_l0
-        w_s = w_ih[:, :n] / self.obs_norm.scale
-        w_a = w_ih[:, n:] / self.action_norm.scale
-        bias = (
-            self.lstm.bias_ih_l0
-            + self.lstm.bias_hh_l0
-            - w_s @ self.obs_norm.loc
-            - w_a @ self.action_norm.loc
+        lstm = self.lstm
+        return fold_weights(
+            lstm.weight_ih_l0,
+            lstm.weight_hh_l0,
+            lstm.bias_ih_l0,
+            lstm.bias_hh_l0,
+            self.dense.weight,
+            self.dense.bias,
+            self.head.weight,
+            self.head.bias,
+            self.norm_stats(),
         )
-        w_sh = torch.cat([w_s, w_hh], 1).t()  # [N + hidden, 4 hidden]
-        w_out = (self.head.weight * self.delta_norm.scale[:, None]).t()  # [dense, N]
-        b_out = self.head.bias * self.delta_norm.scale + self.delta_norm.loc
-        return w_a.t(), bias, w_sh, self.dense.weight.t(), self.dense.bias, w_out, b_out
+
+    def norm_stats(self) -> tuple[torch.Tensor, ...]:
+        """``(obs_loc, obs_scale, action_loc, action_scale, delta_loc, delta_scale)``."""
+        return tuple(
+            t
+            for norm in (self.obs_norm, self.action_norm, self.delta_norm)
+            for t in (norm.loc, norm.scale)
+        )
 
     def imagine(
         self,
@@ -327,57 +338,4 @@ class LSTMWorldModel(TensorDictModuleBase):
         )
         if needs_grad:  # one autograd node with a hand-written backward through time
             return LSTMRollout.apply(s0, h, c, actions, self.activation, *self._folded_weights())
-        return self._rollout_inplace(s0, h, c, actions)
-
-    @torch.no_grad()
-    def _rollout_inplace(
-        self, s: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
-    ) -> torch.Tensor:
-        """The same rollout without autograd: preallocated buffers, in-place ops, 11 kernels a step.
-
-        The gates are one ``[R, 4·hidden]`` buffer reused every step (a large per-call slab of
-        all steps' gates cost page faults between planner iterations), filled by three matmuls
-        with columns reordered to ``[i, f, o | g]`` so one sigmoid covers exactly the sigmoid
-        gates. States, ``h`` and the dense output each carry a constant-1
-        column, so every bias rides inside a matmul, and the state update ``s + z·W`` is one
-        ``addmm`` written straight into the ``[H + 1, R, N + 1]`` state slab.
-        """
-        w_a, bias, w_sh, w_d, b_d, w_out, b_out = self._folded_weights()
-        n, hid, dense = self.obs_dim, self.hidden_size, self.dense_size
-        rows, horizon = actions.shape[:2]
-        like = dict(dtype=s.dtype, device=s.device)
-        order = torch.cat(
-            [
-                torch.arange(0, 2 * hid, device=s.device),
-                torch.arange(3 * hid, 4 * hid, device=s.device),
-                torch.arange(2 * hid, 3 * hid, device=s.device),
-            ]
-        )
-        w_s1 = torch.cat([w_sh[:n], bias[None]])[:, order].contiguous()  # [N + 1, 4 hid]
-        w_hh1 = torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)])[:, order].contiguous()
-        w_d1 = torch.cat([w_d, b_d[None]]).contiguous()  # [hid + 1, dense]
-        w_out1 = torch.zeros(dense + 1, n + 1, **like)  # the last column keeps the states' 1
-        w_out1[:dense, :n], w_out1[dense, :n] = w_out, b_out
-        w_a = w_a[:, order].contiguous()
-        steps = actions.transpose(0, 1).contiguous()  # [H, R, M]: one contiguous slice per step
-        gates = torch.empty(rows, 4 * hid, **like)
-        states = torch.ones(horizon + 1, rows, n + 1, **like)
-        states[0, :, :n] = s
-        h1 = torch.ones(rows, hid + 1, **like)
-        h1[:, :hid] = h
-        z1 = torch.ones(rows, dense + 1, **like)
-        h_view, z_view = h1[:, :hid], z1[:, :dense]
-        c = c.contiguous().clone()
-        sig = torch.empty(rows, 3 * hid, **like)
-        tg = torch.empty(rows, hid, **like)
-        act_ = INPLACE_ACTIVATIONS[self.activation]
-        for t in range(horizon):
-            torch.mm(steps[t], w_a, out=gates).addmm_(states[t], w_s1).addmm_(h1, w_hh1)
-            torch.sigmoid(gates[:, : 3 * hid], out=sig)  # i, f, o
-            torch.tanh(gates[:, 3 * hid :], out=tg)  # g
-            c.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], tg)
-            torch.tanh(c, out=tg)
-            torch.mul(sig[:, 2 * hid :], tg, out=h_view)
-            act_(torch.mm(h1, w_d1, out=z_view))
-            torch.addmm(states[t], z1, w_out1, out=states[t + 1])
-        return states[1:, :, :n].transpose(0, 1)
+        return rollout_inplace(s0, h, c, actions, self.activation, *self._folded_weights())

@@ -5,6 +5,7 @@ from __future__ import annotations
 from torchrl_recon.training.checkpoint import load_checkpoint, load_modules, save_checkpoint
 from torchrl_recon.training.fit import (
     FitResult,
+    fit_population,
     fit_uncertainty,
     fit_world_model,
     train_loss_module,
@@ -12,6 +13,7 @@ from torchrl_recon.training.fit import (
 
 __all__ = [
     "FitResult",
+    "fit_population",
     "fit_uncertainty",
     "fit_world_model",
     "load_checkpoint",

@@ -20,8 +20,10 @@ def _module_classes() -> dict[str, type[nn.Module]]:
         EnsembleUncertainty,
         LSTMWorldModel,
         MCDropoutUncertainty,
+        ReconstructionPopulation,
         ReconstructionUncertainty,
         RNDUncertainty,
+        WorldModelPopulation,
     )
 
     return {
@@ -32,6 +34,8 @@ def _module_classes() -> dict[str, type[nn.Module]]:
             EnsembleUncertainty,
             MCDropoutUncertainty,
             RNDUncertainty,
+            WorldModelPopulation,
+            ReconstructionPopulation,
         )
     }
 

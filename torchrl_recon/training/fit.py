@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
+import warnings
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,9 +20,12 @@ from tqdm.auto import tqdm
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
+from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
+from torchrl_recon.objectives._sequences import as_sequences
 from torchrl_recon.training.checkpoint import save_checkpoint
 
 
@@ -40,6 +46,28 @@ def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
 @torch.no_grad()
 def _evaluate(loss_module: LossModule, batches: list) -> float:
     return float(sum(_loss_value(loss_module, b) for b in batches) / len(batches))
+
+
+@contextlib.contextmanager
+def _cached_boundaries(*buffers: TensorDictReplayBuffer | None) -> Iterator[None]:
+    """Let each buffer's ``SliceSampler`` cache its trajectory boundaries while a fit samples it.
+
+    Without ``cache_values`` a SliceSampler finds every trajectory's start and end anew for each
+    batch, which costs more than the batch itself on a large buffer. TorchRL keys that cache by
+    the storage's revision, so a buffer extended later is never sampled with stale boundaries;
+    the samples are the same either way. The sampler's own setting is restored on exit.
+    """
+    saved = []
+    for buffer in buffers:
+        sampler = getattr(buffer, "sampler", None)
+        if sampler is not None and hasattr(sampler, "cache_values"):
+            saved.append((sampler, sampler.cache_values))
+            sampler.cache_values = True
+    try:
+        yield
+    finally:
+        for sampler, value in saved:
+            sampler.cache_values = value
 
 
 def train_loss_module(
@@ -90,6 +118,49 @@ def train_loss_module(
         check_int(name, value)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
+    with _cached_boundaries(buffer, val_buffer):
+        return _train_loss_module(
+            loss_module,
+            buffer,
+            val_buffer=val_buffer,
+            steps=steps,
+            lr=lr,
+            lr_decay=lr_decay,
+            weight_decay=weight_decay,
+            clip_norm=clip_norm,
+            eval_every=eval_every,
+            val_batches=val_batches,
+            patience=patience,
+            seed=seed,
+            logger=logger,
+            log_prefix=log_prefix,
+            progress=progress,
+            checkpoint_path=checkpoint_path,
+            checkpoint_modules=checkpoint_modules,
+        )
+
+
+def _train_loss_module(
+    loss_module: LossModule,
+    buffer: TensorDictReplayBuffer,
+    *,
+    val_buffer: TensorDictReplayBuffer | None,
+    steps: int,
+    lr: float,
+    lr_decay: bool,
+    weight_decay: float,
+    clip_norm: float | None,
+    eval_every: int,
+    val_batches: int,
+    patience: int | None,
+    seed: int,
+    logger: Logger | None,
+    log_prefix: str,
+    progress: bool,
+    checkpoint_path: str | Path | None,
+    checkpoint_modules: dict[str, nn.Module] | None,
+) -> FitResult:
+    """The loop of :func:`train_loss_module` (arguments checked)."""
     torch.manual_seed(seed)
     params = [p for p in loss_module.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
@@ -213,3 +284,352 @@ def fit_uncertainty(
     kwargs.setdefault("log_prefix", "uncertainty/")
     kwargs.setdefault("checkpoint_modules", {"uncertainty": estimator})
     return train_loss_module(loss, buffer, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Populations: R independent fits run as one batch
+
+
+def _per_member(name: str, value, count: int, *, optional: bool = False) -> list:
+    if value is None and optional:
+        return [None] * count
+    if isinstance(value, TensorDictReplayBuffer):
+        return [value] * count
+    value = list(value)
+    if len(value) != count:
+        raise ValueError(f"{name} has {len(value)} entries; expected one per member ({count}).")
+    return value
+
+
+class _MemberRNG:
+    """One global-RNG stream per member: member r samples as if ``torch.manual_seed(seeds[r])`` ran first."""
+
+    def __init__(self, seeds: list[int]) -> None:
+        self.states = [torch.Generator().manual_seed(int(s)).get_state() for s in seeds]
+
+    def sample(self, r: int, buffer: TensorDictReplayBuffer, device: torch.device):
+        with torch.random.fork_rng(devices=[]):
+            torch.set_rng_state(self.states[r])
+            batch = buffer.sample()
+            self.states[r] = torch.get_rng_state()
+        return batch.to(device)
+
+
+def _sample_shared(
+    rng: _MemberRNG, buffers: list, active: list[bool], batches: list, device: torch.device
+) -> None:
+    """One sample per buffer for all its active members (``fit_population(shared_sampling=True)``)."""
+    groups: dict[int, list[int]] = {}
+    for r, buffer in enumerate(buffers):
+        if active[r]:
+            groups.setdefault(id(buffer), []).append(r)
+    for members in groups.values():
+        first, buffer = members[0], buffers[members[0]]
+        size = buffer.batch_size
+        with torch.random.fork_rng(devices=[]), warnings.catch_warnings():
+            # TorchRL warns that the size differs from the buffer's: it is meant to.
+            warnings.filterwarnings("ignore", message="Got conflicting batch_sizes")
+            torch.set_rng_state(rng.states[first])
+            batch = buffer.sample(size * len(members))
+            rng.states[first] = torch.get_rng_state()
+        batch = batch.to(device)
+        for j, r in enumerate(members):
+            batches[r] = batch[j * size : (j + 1) * size]
+
+
+def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
+    """``clip_grad_norm_`` applied to each member's slice ``[r]`` of every gradient on its own."""
+    norms = torch.stack([torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads])
+    coef = (max_norm / (torch.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.reshape(members, *([1] * (g.dim() - 1))))
+
+
+def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
+    """``(module, losses(batches) -> [R])`` for R models: the models' own loss for one, else a population's."""
+    first = models[0]
+    if len(models) == 1:
+        if isinstance(first, LSTMWorldModel):
+            loss_module = WorldModelPredictionLoss(first, mode=mode, slice_len=slice_len)
+        else:
+            loss_module = UncertaintyLoss(first, slice_len=slice_len)
+        return loss_module, lambda batches: _loss_value(loss_module, batches[0]).reshape(1)
+    if isinstance(first, LSTMWorldModel):
+        pop = WorldModelPopulation.from_members(models)
+        keys = ("observation", "action", ("next", "observation"))
+
+        def losses(batches):
+            seqs = [as_sequences(b, slice_len) for b in batches]
+            obs, action, next_obs = (torch.stack([s.get(k) for s in seqs]) for k in keys)
+            return pop.prediction_loss(obs, action, next_obs, mode)
+
+        return pop, losses
+    if isinstance(first, ReconstructionUncertainty):
+        pop = ReconstructionPopulation.from_members(models)
+
+        def losses(batches):
+            seqs = [as_sequences(b, slice_len) for b in batches]
+            obs, action = (torch.stack([s.get(k) for s in seqs]) for k in ("observation", "action"))
+            return pop.loss(obs, action)
+
+        return pop, losses
+    raise TypeError(
+        f"fit_population runs populations of LSTMWorldModel or ReconstructionUncertainty; got "
+        f"{type(first).__name__} (fit those one at a time with fit_uncertainty)."
+    )
+
+
+def fit_population(
+    models: Sequence[nn.Module],
+    buffers: TensorDictReplayBuffer | Sequence[TensorDictReplayBuffer],
+    *,
+    seeds: Sequence[int] | None = None,
+    val_buffers: TensorDictReplayBuffer | Sequence[TensorDictReplayBuffer | None] | None = None,
+    mode: str = "multi_step",
+    fit_normalization: bool = True,
+    steps: int = 2000,
+    lr: float = 1e-3,
+    lr_decay: bool = True,
+    weight_decay: float = 0.0,
+    clip_norm: float | None = 10.0,
+    eval_every: int = 100,
+    val_batches: int = 8,
+    patience: int | None = 10,
+    logger: Logger | None = None,
+    log_prefix: str | None = None,
+    progress: bool = True,
+    shared_sampling: bool = False,
+) -> list[FitResult]:
+    """Train R models of one kind at once, as R independent fits run as one batch.
+
+    ``models`` are R :class:`~torchrl_recon.modules.LSTMWorldModel` (trained as
+    :func:`fit_world_model` does) or R :class:`~torchrl_recon.modules.ReconstructionUncertainty`
+    (as :func:`fit_uncertainty`), each with its own initialisation. Member r fits on
+    ``buffers[r]`` (one buffer for all, or one each, so several arms' data go into one fit),
+    validates on ``val_buffers[r]`` and draws its batches as ``seed=seeds[r]`` would (default
+    ``0..R-1``): the same batches, in the same order, as its own :func:`fit_world_model` call.
+    Every member has its own early stopping, best weights and gradient clipping (``clip_norm``
+    per member), and Adam is per element, so each member follows its separate fit up to float
+    rounding (R = 1 is that fit bit for bit). A stopped member stays frozen at its best weights;
+    the fit ends when every member has stopped or after ``steps``. The best weights are written
+    back into ``models``. Other arguments are :func:`train_loss_module`'s.
+
+    ``shared_sampling=True`` trades that exactness for speed: the active members that share a
+    buffer draw their training batches as one ``R·num_slices`` sample (one RNG stream, seeded
+    by the first of their seeds), split into one batch each. Members still see different,
+    independently drawn slices, so the fits are statistically those of separate fits, but
+    not their exact data order. Sampling a ``SliceSampler`` costs about as much as a member's
+    step, so this is the faster mode for many members on one buffer.
+
+    Returns:
+        One :class:`FitResult` per member.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.data import make_sequence_buffer
+        >>> rb = make_sequence_buffer(100, slice_len=8, num_slices=4)
+        >>> _ = rb.extend(TensorDict({"observation": torch.randn(60, 2), "action": torch.randn(60, 1),
+        ...     ("next", "observation"): torch.randn(60, 2),
+        ...     ("collector", "traj_ids"): torch.arange(60) // 20}, [60]))
+        >>> models = [LSTMWorldModel(2, 1, window=4, hidden_size=8) for _ in range(3)]
+        >>> results = fit_population(models, rb, steps=10, eval_every=5, progress=False)
+        >>> [r.steps for r in results]
+        [10, 10, 10]
+    """
+    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
+        check_int(name, value)
+    models = list(models)
+    if not models:
+        raise ValueError("fit_population needs at least one model.")
+    count = len(models)
+    buffers = _per_member("buffers", buffers, count)
+    val_buffers = _per_member("val_buffers", val_buffers, count, optional=True)
+    seeds = list(range(count)) if seeds is None else list(seeds)
+    if len(seeds) != count:
+        raise ValueError(f"seeds has {len(seeds)} entries; expected one per member ({count}).")
+    for i, buffer in enumerate(buffers):
+        if len(buffer) == 0:
+            raise ValueError(
+                f"The training replay buffer of member {i} is empty; collect data first."
+            )
+    shapes = {(_slice_len(b), b.batch_size) for b in buffers}
+    if len(shapes) != 1:
+        raise ValueError(
+            f"Every member's buffer must sample one shape (slice_len, batch_size); got {sorted(shapes)}."
+        )
+    world = isinstance(models[0], LSTMWorldModel)
+    if fit_normalization:
+        for model, buffer in zip(models, buffers, strict=True):
+            data = buffer_contents(buffer)
+            if world:
+                model.fit_normalization(
+                    data["observation"], data["action"], data["next", "observation"]
+                )
+            else:
+                model.fit_normalization(data["observation"], data["action"])
+    if log_prefix is None:
+        log_prefix = "world_model/" if world else "uncertainty/"
+    module, losses_of = _population_loss(models, mode, _slice_len(buffers[0]))
+    with _cached_boundaries(*buffers, *val_buffers):
+        results = _train_members(
+            module,
+            losses_of,
+            count,
+            buffers,
+            [
+                v if v is not None and len(v) > 0 else b
+                for v, b in zip(val_buffers, buffers, strict=True)
+            ],
+            _MemberRNG(seeds),
+            shared_sampling=shared_sampling,
+            steps=steps,
+            lr=lr,
+            lr_decay=lr_decay,
+            weight_decay=weight_decay,
+            clip_norm=clip_norm,
+            eval_every=eval_every,
+            val_batches=val_batches,
+            patience=patience,
+            logger=logger,
+            log_prefix=log_prefix,
+            progress=progress,
+        )
+    if count > 1:
+        for i, model in enumerate(models):
+            model.load_state_dict(module.member(i).state_dict())
+    return results
+
+
+def _train_members(
+    module: nn.Module,
+    losses_of,
+    count: int,
+    buffers: list,
+    val_sources: list,
+    rng: _MemberRNG,
+    *,
+    steps: int,
+    lr: float,
+    lr_decay: bool,
+    weight_decay: float,
+    clip_norm: float | None,
+    eval_every: int,
+    val_batches: int,
+    patience: int | None,
+    logger: Logger | None,
+    log_prefix: str,
+    progress: bool,
+    shared_sampling: bool = False,
+) -> list[FitResult]:
+    """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``."""
+    stacked = count > 1  # else: one plain model, no member dim
+    params = [p for p in module.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    schedule = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05)
+        if lr_decay
+        else None
+    )
+    device = module_device(module)
+    fixed_val = [
+        [rng.sample(r, val_sources[r], device) for _ in range(val_batches)] for r in range(count)
+    ]
+    state = module.state_dict()
+    best_state = {k: v.detach().clone() for k, v in state.items()}
+    best_loss = [math.inf] * count
+    since_best, last_step = [0] * count, [0] * count
+    histories: list[list[dict]] = [[] for _ in range(count)]
+    active = [True] * count
+    batches: list = [None] * count
+
+    def keep_best(r: int) -> None:
+        for key, value in state.items():
+            (best_state[key][r] if stacked else best_state[key]).copy_(
+                value[r] if stacked else value
+            )
+
+    @torch.no_grad()
+    def restore(members: list[int]) -> None:
+        for key, value in state.items():
+            for r in members:
+                (value[r] if stacked else value).copy_(
+                    best_state[key][r] if stacked else best_state[key]
+                )
+
+    bar = tqdm(
+        range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False
+    )
+    for step in bar:
+        if shared_sampling and count > 1:
+            _sample_shared(rng, buffers, active, batches, device)
+        else:
+            for r in range(count):
+                if active[r]:  # a stopped member's batch stays: it is frozen anyway
+                    batches[r] = rng.sample(r, buffers[r], device)
+        try:
+            losses = losses_of(batches)
+            finite = torch.isfinite(losses.detach())
+            bad = (
+                []
+                if bool(finite.all())
+                else [r for r in range(count) if active[r] and not finite[r]]
+            )
+            if bad:
+                raise FloatingPointError(
+                    f"the loss of member(s) {bad} is not finite; check the data and the learning rate"
+                )
+        except FloatingPointError as err:
+            restore(list(range(count)))
+            raise FloatingPointError(f"Training stopped at step {step}: {err}.") from err
+        optimizer.zero_grad(set_to_none=True)
+        losses.sum().backward()
+        if clip_norm is not None:
+            if stacked:
+                _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
+            else:
+                torch.nn.utils.clip_grad_norm_(params, clip_norm)
+        optimizer.step()
+        if schedule is not None:
+            schedule.step()
+        frozen = [r for r in range(count) if not active[r]]
+        if frozen:
+            restore(frozen)
+        if step % eval_every == 0 or step == steps:
+            with torch.no_grad():
+                val = sum(
+                    losses_of([fixed_val[r][b] for r in range(count)]) for b in range(val_batches)
+                )
+                val = val / val_batches
+            for r in range(count):
+                if not active[r]:
+                    continue
+                last_step[r] = step
+                record = {
+                    "step": step,
+                    "train_loss": float(losses[r].detach()),
+                    "val_loss": float(val[r]),
+                }
+                histories[r].append(record)
+                if logger is not None:
+                    prefix = f"{log_prefix}member_{r}/" if stacked else log_prefix
+                    logger.log_scalar(f"{prefix}train_loss", record["train_loss"], step=step)
+                    logger.log_scalar(f"{prefix}val_loss", record["val_loss"], step=step)
+                if record["val_loss"] < best_loss[r]:
+                    best_loss[r], since_best[r] = record["val_loss"], 0
+                    keep_best(r)
+                else:
+                    since_best[r] += 1
+                    if patience is not None and since_best[r] >= patience:
+                        active[r] = False
+            bar.set_postfix(active=sum(active), val=f"{min(best_loss):.4g}")
+            if not any(active):
+                break
+        else:
+            for r in range(count):
+                if active[r]:
+                    last_step[r] = step
+    restore(list(range(count)))
+    return [
+        FitResult(steps=last_step[r], best_val_loss=best_loss[r], history=histories[r])
+        for r in range(count)
+    ]

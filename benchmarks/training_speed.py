@@ -1,0 +1,135 @@
+"""Time per fit step: R world models trained as one population vs R sequential single fits.
+
+Paper sizes by default (LSTM 32, dense 32, window 10, 40-step slices, 32 windows per member,
+Industrial Benchmark dims 6 / 3) on random trajectories. Each timed call is a whole fit of
+``--steps`` steps (``fit_world_model`` once per model, or ``fit_population`` once), with one
+validation batch at the end and no early stopping, so a call's time over ``--steps`` is the
+time per step. Sequential and population calls are interleaved (median of ``--repeats``).
+
+``fit_population`` runs twice: as by default (each member samples its own batches, exactly
+its separate fit's) and with ``shared_sampling=True`` (one sample per step for all members,
+statistically equivalent); the headline is the default's.
+
+Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20]
+Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import torch
+from _common import ACTION_DIM, OBS_DIM
+from tensordict import TensorDict
+
+from torchrl_recon._timing import interleaved_median_ms
+from torchrl_recon.data import make_sequence_buffer
+from torchrl_recon.devices import resolve_device
+from torchrl_recon.modules import LSTMWorldModel
+from torchrl_recon.training import fit_population, fit_world_model
+
+
+def random_buffer(args: argparse.Namespace, trajectories: int = 16, length: int = 200):
+    """Random-walk states and uniform actions, ``trajectories`` episodes of ``length`` steps."""
+    g = torch.Generator().manual_seed(0)
+    act = torch.rand(trajectories, length, ACTION_DIM, generator=g) * 2 - 1
+    obs = torch.randn(trajectories, length + 1, OBS_DIM, generator=g).cumsum(1)
+    data = TensorDict(
+        {
+            "observation": obs[:, :-1],
+            "action": act,
+            ("next", "observation"): obs[:, 1:],
+            ("collector", "traj_ids"): torch.arange(trajectories)[:, None].expand(-1, length),
+        },
+        [trajectories, length],
+    ).reshape(-1)
+    rb = make_sequence_buffer(len(data), slice_len=args.slice_len, num_slices=args.windows)
+    rb.extend(data)
+    return rb
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--members", type=int, nargs="+", default=[1, 10, 20])
+    parser.add_argument("--steps", type=int, default=30, help="fit steps per timed call")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--hidden", type=int, default=32)
+    parser.add_argument("--dense", type=int, default=32)
+    parser.add_argument("--window", type=int, default=10)
+    parser.add_argument("--slice-len", type=int, default=40)
+    parser.add_argument("--windows", type=int, default=32, help="sequences per batch per member")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    rb = random_buffer(args)
+    fit = dict(
+        steps=args.steps,
+        eval_every=args.steps,
+        val_batches=1,
+        patience=None,
+        fit_normalization=False,
+        progress=False,
+    )
+
+    def models(count: int) -> list[LSTMWorldModel]:
+        torch.manual_seed(0)
+        out = []
+        for _ in range(count):
+            model = LSTMWorldModel(
+                OBS_DIM,
+                ACTION_DIM,
+                hidden_size=args.hidden,
+                dense_size=args.dense,
+                window=args.window,
+            ).to(device)
+            data = rb[:]
+            model.fit_normalization(
+                *(data[k].to(device) for k in ("observation", "action", ("next", "observation")))
+            )
+            out.append(model)
+        return out
+
+    print(
+        f"device={device}, threads={args.threads}, hidden={args.hidden}, dense={args.dense}, "
+        f"window={args.window}, slice_len={args.slice_len}, windows/member={args.windows}, "
+        f"{args.steps} steps per call, median of {args.repeats} interleaved calls, "
+        f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs"
+    )
+    speed_up = {}
+    for count in args.members:
+        sequential, population = models(count), models(count)
+        seeds = list(range(count))
+
+        def run_sequential(ms=sequential, seeds=seeds):
+            for model, seed in zip(ms, seeds, strict=True):
+                fit_world_model(model, rb, seed=seed, **fit)
+
+        def run_population(ms=population, seeds=seeds, shared=False):
+            fit_population(ms, rb, seeds=seeds, shared_sampling=shared, **fit)
+
+        ms = interleaved_median_ms(
+            {
+                "sequential": run_sequential,
+                "population": run_population,
+                "shared": lambda: run_population(shared=True),
+            },
+            args.repeats,
+        )
+        seq, pop, shared = (ms[k] / args.steps for k in ("sequential", "population", "shared"))
+        speed_up[count] = seq / pop
+        print(
+            f"R={count:3d}  sequential {seq:8.2f} ms/step ({seq / count:6.2f} per member)   "
+            f"population {pop:8.2f} ms/step ({pop / count:6.2f} per member, speed-up "
+            f"{speed_up[count]:.2f}x)   with shared_sampling {shared:8.2f} ms/step (speed-up "
+            f"{seq / shared:.2f}x)"
+        )
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    largest = max(args.members)
+    print(f"speed-up of {largest} vectorised retrainings vs sequential: {speed_up[largest]:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

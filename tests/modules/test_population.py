@@ -1,0 +1,176 @@
+"""Populations: one member is bitwise the single model; R members equal R single models."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_recon.modules import (
+    LSTMWorldModel,
+    ReconstructionPopulation,
+    ReconstructionUncertainty,
+    WorldModelPopulation,
+)
+from torchrl_recon.training import load_modules, save_checkpoint
+
+N, M, T = 6, 3, 4
+SIZES = dict(window=T, hidden_size=8, dense_size=8)
+
+
+def _fit_norm(model, seed: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    s, a = torch.randn(60, N, generator=g) * (seed + 1), torch.rand(60, M, generator=g)
+    if isinstance(model, LSTMWorldModel):
+        model.fit_normalization(s, a, s + torch.randn(60, N, generator=g))
+    else:
+        model.fit_normalization(s, a)
+
+
+def _world_models(count: int) -> list[LSTMWorldModel]:
+    torch.manual_seed(0)
+    models = [LSTMWorldModel(N, M, **SIZES) for _ in range(count)]
+    for i, m in enumerate(models):
+        _fit_norm(m, i)
+    return models
+
+
+def _inputs(members: int, seed: int = 5):
+    g = torch.Generator().manual_seed(seed)
+    return (
+        torch.randn(members, 2, T, N, generator=g),
+        torch.randn(members, 2, T, M, generator=g),
+        torch.randn(members, 2, N, generator=g),
+        torch.rand(members, 2, 3, 7, M, generator=g, requires_grad=True),
+    )
+
+
+def test_one_member_is_bitwise_the_single_model():
+    torch.manual_seed(3)
+    single = LSTMWorldModel(N, M, **SIZES)
+    torch.manual_seed(3)
+    pop = WorldModelPopulation(N, M, num_members=1, **SIZES)
+    for (key, a), b in zip(single.state_dict().items(), pop.state_dict().values(), strict=True):
+        assert torch.equal(a, b[0]), f"{key} initialised differently"
+    _fit_norm(single, 0)
+    pop.load_member(0, single)
+    ctx_s, ctx_a, s0, actions = _inputs(1)
+    got = pop.imagine(ctx_s, ctx_a, s0, actions)
+    got.square().sum().backward()
+    pop_grads = [p.grad[0].clone() for p in pop.parameters()]
+    action_grad, actions.grad = actions.grad.clone(), None
+    want = single.imagine(ctx_s[0], ctx_a[0], s0[0], actions[0])
+    want.square().sum().backward()
+    assert torch.equal(got[0], want)
+    assert torch.equal(action_grad, actions.grad)
+    for a, b in zip(pop_grads, single.parameters(), strict=True):
+        assert torch.equal(a, b.grad)
+    with torch.no_grad():  # the in-place no-grad path
+        want = single.imagine(ctx_s[0], ctx_a[0], s0[0], actions[0])
+        assert torch.equal(pop.imagine(ctx_s, ctx_a, s0, actions)[0], want)
+    obs, act = torch.randn(1, 3, 9, N), torch.randn(1, 3, 9, M)
+    assert torch.equal(pop.predict_delta(obs, act)[0], single.predict_delta(obs[0], act[0]))
+    (s1, (h1, _)), (s2, (h2, _)) = (
+        pop.step(obs[:, :, 0], act[:, :, 0]),
+        single.step(obs[0, :, 0], act[0, :, 0]),
+    )
+    assert torch.equal(s1[0], s2) and torch.equal(h1[0], h2)
+
+
+def test_members_equal_separate_models_outputs_and_gradients():
+    models = _world_models(3)
+    pop = WorldModelPopulation.from_members(models)
+    ctx_s, ctx_a, s0, actions = _inputs(3)
+    got = pop.imagine(ctx_s, ctx_a, s0, actions)
+    got.square().sum().backward()
+    grad, actions.grad = actions.grad.clone(), None
+    want = torch.stack(
+        [m.imagine(*(x[i] for x in (ctx_s, ctx_a, s0, actions))) for i, m in enumerate(models)]
+    )
+    want.square().sum().backward()
+    torch.testing.assert_close(got, want)
+    torch.testing.assert_close(grad, actions.grad)
+    names = dict(pop.named_parameters())
+    for i, m in enumerate(models):
+        for key, p in m.named_parameters():
+            torch.testing.assert_close(
+                names[key.replace(".", "_")].grad[i], p.grad, rtol=1e-4, atol=1e-5
+            )
+    # the engine's recorded reference and the no-grad path agree with the fused node
+    state = pop.warmup(ctx_s, ctx_a)
+    flat = actions[:, :, 0]
+    recorded = pop.rollout(s0, flat, state, recorded=True)
+    torch.testing.assert_close(pop.rollout(s0, flat, state), recorded)
+    with torch.no_grad():
+        torch.testing.assert_close(pop.rollout(s0, flat, state), recorded)
+    obs, act = torch.randn(3, 2, 9, N), torch.randn(3, 2, 9, M)
+    torch.testing.assert_close(
+        pop.predict_delta(obs, act),
+        torch.stack([m.predict_delta(obs[i], act[i]) for i, m in enumerate(models)]),
+    )
+    s1, (h1, c1) = pop.step(obs[:, :, 0], act[:, :, 0], state)
+    for i, m in enumerate(models):
+        s2, (h2, c2) = m.step(obs[i, :, 0], act[i, :, 0], (state[0][i], state[1][i]))
+        torch.testing.assert_close(s1[i], s2)
+        torch.testing.assert_close(c1[i], c2)
+
+
+def test_split_and_stack_round_trip_and_checkpoint(tmp_path):
+    models = _world_models(3)
+    pop = WorldModelPopulation.from_members(models)
+    back = pop.split()
+    for a, b in zip(back, models, strict=True):
+        assert a.config() == b.config()
+        for (key, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+            assert torch.equal(x, y), key
+    again = WorldModelPopulation.from_members(back)
+    for key, value in pop.state_dict().items():
+        assert torch.equal(value, again.state_dict()[key]), key
+    save_checkpoint(tmp_path / "pop.pt", {"world_model": pop})
+    loaded = load_modules(tmp_path / "pop.pt")["world_model"]
+    assert isinstance(loaded, WorldModelPopulation) and loaded.num_members == 3
+    assert torch.equal(loaded.lstm_weight_ih_l0, pop.lstm_weight_ih_l0)
+    with pytest.raises(ValueError, match="share one config"):
+        WorldModelPopulation.from_members([models[0], LSTMWorldModel(N, M, window=T)])
+    with pytest.raises(ValueError, match="member dim first"):
+        pop.warmup(torch.zeros(2, T, N), torch.zeros(2, T, M))
+
+
+def test_single_model_state_dict_layout_is_unchanged():
+    """A checkpoint written before populations holds exactly these entries and still loads."""
+    model = LSTMWorldModel(N, M, **SIZES)
+    shapes = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    assert shapes == {
+        "lstm.weight_ih_l0": (32, N + M),
+        "lstm.weight_hh_l0": (32, 8),
+        "lstm.bias_ih_l0": (32,),
+        "lstm.bias_hh_l0": (32,),
+        "dense.weight": (8, 8),
+        "dense.bias": (8,),
+        "head.weight": (N, 8),
+        "head.bias": (N,),
+        **{
+            f"{n}_norm.{s}": (d,)
+            for n, d in (("obs", N), ("action", M), ("delta", N))
+            for s in ("loc", "scale")
+        },
+        **{f"{n}_norm.fitted": () for n in ("obs", "action", "delta")},
+    }
+
+
+def test_reconstruction_population():
+    torch.manual_seed(0)
+    estimators = [ReconstructionUncertainty(N, M, window=T, hidden_size=8) for _ in range(3)]
+    for i, e in enumerate(estimators):
+        _fit_norm(e, i)
+    pop = ReconstructionPopulation.from_members(estimators)
+    obs, act = torch.randn(3, 2, 9, N), torch.randn(3, 2, 9, M)
+    want = torch.stack([e.score(obs[i], act[i]) for i, e in enumerate(estimators)])
+    torch.testing.assert_close(pop.score(obs, act), want)
+    torch.testing.assert_close(pop.loss(obs, act), want.flatten(1).mean(1))
+    one = ReconstructionPopulation.from_members(estimators[:1])
+    assert torch.equal(one.score(obs[:1], act[:1])[0], want[0])
+    with torch.no_grad():
+        assert torch.equal(one.score(obs[:1], act[:1])[0], estimators[0].score(obs[0], act[0]))
+    for a, b in zip(pop.split(), estimators, strict=True):
+        for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+            assert torch.equal(x, y)

@@ -485,6 +485,9 @@ DAMAGE_TARGETS = {
 }
 # Deleting these two is not damage (see test_deleted_description_is_rewritten).
 REWRITTEN = {"config.yaml", "meta.json"}
+# Deleting a record is the documented remedy for a damaged stage: that stage (or part) is
+# computed again (see test_deleted_record_recomputes).
+RECOMPUTED = {"stages/random_data.json", "stages/setting_baseline/part_0.json"}
 # Run by `make test` once the integrity checks are in (all are slow until then, as an expected
 # failure tells CI nothing): data only a checksum can tell, and a torn checkpoint.
 QUICK_DAMAGE = {("buffer storage", "garble"), ("checkpoint", "truncate")}
@@ -516,7 +519,7 @@ def file_hashes(run_dir: Path) -> dict[str, str]:
 def _damage_cases():
     for kind, target in DAMAGE_TARGETS.items():
         for how in ("truncate", "garble", "delete"):
-            if how == "delete" and target in REWRITTEN:
+            if how == "delete" and target in REWRITTEN | RECOMPUTED:
                 continue
             marks = [*NEEDS_INTEGRITY]
             if (kind, how) not in QUICK_DAMAGE or not INTEGRITY_CHECKS_MERGED:
@@ -535,12 +538,10 @@ def finished_copy(reference: References, tmp_path: Path) -> Path:
 def test_damaged_file_is_refused_and_nothing_changes(target, how, reference, tmp_path):
     """A damaged file stops the re-run before it writes anything, with one line naming the file.
 
-    Truncated, garbled or deleted data (buffer storage and metadata, a checkpoint, an RNG state,
-    a stage or part record) cannot come from a kill: files are written whole, then renamed, and a
-    stage's record comes last. A deleted record of a finished stage (``random_data``, whose
-    later stages are done) or part (of a finished setting) is damage too: re-running that stage
-    would rewrite data the later stages were built on. A torn ``config.yaml`` or ``meta.json``
-    is refused as well, rather than silently replaced. The user reads one ``error:`` line naming
+    Truncated, garbled or deleted data (buffer storage and metadata, a checkpoint, an RNG state),
+    or a truncated or garbled stage or part record, cannot come from a kill: files are written
+    whole, then renamed, and a stage's record comes last. A torn ``config.yaml`` or
+    ``meta.json`` is refused as well, rather than silently replaced. The user reads one ``error:`` line naming
     the file (exit code 2, no traceback); the directory, the damaged file included, is left as
     it was for them to inspect.
     """
@@ -582,3 +583,14 @@ def test_deleted_description_is_rewritten(target, reference, tmp_path):
     assert (run_dir / target).is_file()
     assert_same_run(run_dir, reference("control").run_dir, f"after deleting {target}")
     assert run_data(run_dir) == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", sorted(RECOMPUTED))
+def test_deleted_record_recomputes(target, reference, tmp_path):
+    """Deleting a stage's (or a part's) record is what a refusal tells the user to do: the
+    same command computes that stage again, from its own seed, and the run ends as before."""
+    run_dir = finished_copy(reference, tmp_path)
+    (run_dir / target).unlink()
+    finish("control", run_dir, tmp_path / "logs", "rerun")
+    assert_same_run(run_dir, reference("control").run_dir, f"after deleting {target}")

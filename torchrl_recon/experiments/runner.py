@@ -20,7 +20,7 @@ from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
-from torchrl_recon.experiments.stages import StopRequested
+from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.experiments.summary import format_table, save_figures
 
 
@@ -109,6 +109,7 @@ def run(
         raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
     extra_meta = {**dict(extra_meta or {}), "device": describe_device(device)}
+    verify_run_dir(Path(cfg.output_dir).expanduser())  # a damaged resume: refused before writing
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
     print(f"[{cfg.experiment}] {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
     logger = None

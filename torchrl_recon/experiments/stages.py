@@ -299,6 +299,42 @@ class Stages:
         return out
 
 
+def verify_run_dir(run_dir: str | Path) -> None:
+    """Check every finished stage of an existing run directory before a resumed run writes
+    anything: each stage record, the files it lists, and each part record.
+
+    A run directory without ``stages/`` (a new run) passes. Nothing is written.
+
+    Raises:
+        DamagedFileError: one line naming the damaged file and the record to delete.
+
+    Examples:
+        >>> import tempfile
+        >>> run_dir = Path(tempfile.mkdtemp())
+        >>> _ = Stages(run_dir, seed=0).run("square", lambda: {"x": 4})
+        >>> verify_run_dir(run_dir)  # intact: no error
+        >>> marker = run_dir / "stages" / "square.json"
+        >>> record = json.loads(marker.read_text())
+        >>> record["x"] = 5  # edited by hand: no longer matches its own SHA-256
+        >>> _ = marker.write_text(json.dumps(record))
+        >>> verify_run_dir(run_dir)
+        Traceback (most recent call last):
+        ...
+        torchrl_recon.errors.DamagedFileError: ...square.json ...
+    """
+    folder = Path(run_dir) / "stages"
+    if not folder.is_dir():
+        return
+    stages = Stages(run_dir, seed=0)
+    for marker in sorted(folder.glob("*.json")):
+        stages.verify(marker.stem)
+    for marker in sorted(folder.glob("*/part_*.json")):
+        remedy = f"delete {marker} to compute that part of stage '{marker.parent.name}' again."
+        record = read_record(marker, required=("wall_time_s",), remedy=remedy)
+        if not isinstance(record["wall_time_s"], (int, float)):
+            raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
+
+
 def progress(iterable, *, desc: str, enabled: bool, total: int | None = None):
     """A tqdm bar (or the plain iterable when ``enabled`` is False)."""
     return tqdm(iterable, desc=desc, disable=not enabled, total=total, leave=False)

@@ -272,7 +272,8 @@ def _without(obj, keys: set[str]):
 def run_data(run_dir: Path) -> dict[str, str]:
     """What must not depend on kills: every file of ``run_dir`` but :data:`NOT_DATA`, as text.
 
-    JSON files lose their ``wall_time_s`` keys (``results.json`` its ``meta`` too) and are
+    JSON files lose their ``wall_time_s`` and ``_sha256`` keys (``results.json`` its ``meta``
+    too) and are
     written back sorted (``NaN`` stays ``NaN``, floats exact); ``config.yaml`` loses
     ``output_dir``; any other file is its SHA-256.
     """
@@ -288,7 +289,8 @@ def run_data(run_dir: Path) -> dict[str, str]:
                 data[rel] = f"not JSON: sha256 {hashlib.sha256(path.read_bytes()).hexdigest()}"
                 continue
             obj = _without(obj, {"meta"}) if rel == "results.json" else obj
-            data[rel] = json.dumps(_without(obj, {"wall_time_s"}), sort_keys=True)
+            # a record's own SHA-256 covers its wall time; the files it lists are compared here
+            data[rel] = json.dumps(_without(obj, {"wall_time_s", "_sha256"}), sort_keys=True)
         elif rel == "config.yaml":
             config = yaml.safe_load(path.read_text())
             config.pop("output_dir", None)
@@ -485,9 +487,11 @@ DAMAGE_TARGETS = {
 }
 # Deleting these two is not damage (see test_deleted_description_is_rewritten).
 REWRITTEN = {"config.yaml", "meta.json"}
-# Deleting a record is the documented remedy for a damaged stage: that stage (or part) is
-# computed again (see test_deleted_record_recomputes).
-RECOMPUTED = {"stages/random_data.json", "stages/setting_baseline/part_0.json"}
+# Deleting a record is the documented remedy for a damaged stage: that stage is computed again
+# (see test_deleted_record_recomputes). A deleted part record of a finished setting is never
+# read again (the setting's own record holds its results), so it cannot be refused.
+RECOMPUTED = {"stages/random_data.json"}
+UNREAD = {"stages/setting_baseline/part_0.json"}
 # Run by `make test` once the integrity checks are in (all are slow until then, as an expected
 # failure tells CI nothing): data only a checksum can tell, and a torn checkpoint.
 QUICK_DAMAGE = {("buffer storage", "garble"), ("checkpoint", "truncate")}
@@ -519,7 +523,7 @@ def file_hashes(run_dir: Path) -> dict[str, str]:
 def _damage_cases():
     for kind, target in DAMAGE_TARGETS.items():
         for how in ("truncate", "garble", "delete"):
-            if how == "delete" and target in REWRITTEN | RECOMPUTED:
+            if how == "delete" and target in REWRITTEN | RECOMPUTED | UNREAD:
                 continue
             marks = [*NEEDS_INTEGRITY]
             if (kind, how) not in QUICK_DAMAGE or not INTEGRITY_CHECKS_MERGED:

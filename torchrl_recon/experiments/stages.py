@@ -329,7 +329,10 @@ def verify_run_dir(run_dir: str | Path) -> None:
     for marker in sorted(folder.glob("*.json")):
         stages.verify(marker.stem)
     for marker in sorted(folder.glob("*/part_*.json")):
-        remedy = f"delete {marker} to compute that part of stage '{marker.parent.name}' again."
+        name = marker.parent.name
+        remedy = f"delete {marker} to compute that part of stage '{name}' again."
+        if stages.done(name):  # its parts are read again only when the stage runs again
+            remedy = f"delete {marker} and {stages._marker(name)} to compute stage '{name}' again."
         record = read_record(marker, required=("wall_time_s",), remedy=remedy)
         if not isinstance(record["wall_time_s"], (int, float)):
             raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")

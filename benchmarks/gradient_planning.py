@@ -28,9 +28,9 @@ import time
 import torch
 from _common import COST, add_device_argument, context, describe, paper_models
 
-from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
+from torchrl_recon.timing import interleaved_median_ms
 
 
 def plain_rollout(world, s, h, c, actions: torch.Tensor) -> torch.Tensor:

@@ -23,7 +23,6 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
 
-from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -33,6 +32,7 @@ from torchrl_recon.planners import (
     RandomShootingPlanner,
 )
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
+from torchrl_recon.timing import interleaved_median_ms
 
 
 def plain_model_env(world) -> WorldModelPlanningEnv:

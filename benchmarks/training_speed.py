@@ -23,10 +23,10 @@ import torch
 from _common import ACTION_DIM, OBS_DIM
 from tensordict import TensorDict
 
-from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.modules import LSTMWorldModel
+from torchrl_recon.timing import interleaved_median_ms
 from torchrl_recon.training import fit_population, fit_world_model
 
 

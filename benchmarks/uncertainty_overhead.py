@@ -11,9 +11,9 @@ import argparse
 import torch
 from _common import ACTION_DIM, COST, add_device_argument, context, describe, paper_models
 
-from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import PlanningModel
+from torchrl_recon.timing import interleaved_median_ms
 
 
 def main() -> None:

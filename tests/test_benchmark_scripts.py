@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from torchrl_recon._timing import interleaved_median_ms
+from torchrl_recon.timing import interleaved_median_ms
 
 BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 

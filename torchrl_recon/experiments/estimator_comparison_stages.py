@@ -18,7 +18,6 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon._timing import interleaved_median_ms
 from torchrl_recon.collectors import collect_random, validation_trajectories
 from torchrl_recon.data import cut_sequences
 from torchrl_recon.evaluation import auroc, imagined_uncertainty_and_error, spearman
@@ -34,6 +33,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.timing import interleaved_median_ms
 
 
 def calibration_metrics(

@@ -10,11 +10,11 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_recon._files import with_hash
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
 from torchrl_recon.experiments.control_stages import run_control
 from torchrl_recon.experiments.explore_stages import run_explore
 from torchrl_recon.experiments.stages import StopRequested
+from torchrl_recon.files import with_hash
 from torchrl_recon.planners import cost_to_u_ratio
 
 TRAINING = {

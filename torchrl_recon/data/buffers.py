@@ -11,8 +11,8 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
 
-from torchrl_recon._files import read_json
 from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.files import read_json
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
 _PREFETCH_FILE = "prefetch.pkl"

@@ -21,9 +21,9 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_recon._files import read_json, write_atomically
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.config import SCHEMAS
+from torchrl_recon.files import read_json, write_atomically
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""

@@ -15,7 +15,9 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from torchrl_recon._files import (
+from torchrl_recon.data import load_buffer_data, make_sequence_buffer, save_buffer
+from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.files import (
     HASH_KEY,
     file_entry,
     read_record,
@@ -23,8 +25,6 @@ from torchrl_recon._files import (
     with_hash,
     write_atomically,
 )
-from torchrl_recon.data import load_buffer_data, make_sequence_buffer, save_buffer
-from torchrl_recon.errors import DamagedFileError
 
 
 class StopRequested(Exception):

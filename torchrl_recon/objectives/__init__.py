@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
+from torchrl_recon.objectives.sequences import as_sequences
 from torchrl_recon.objectives.uncertainty_loss import UncertaintyLoss
 from torchrl_recon.objectives.world_model_loss import WorldModelPredictionLoss
 
-__all__ = ["UncertaintyLoss", "WorldModelPredictionLoss"]
+__all__ = ["UncertaintyLoss", "WorldModelPredictionLoss", "as_sequences"]

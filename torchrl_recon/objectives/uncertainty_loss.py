@@ -7,7 +7,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
-from torchrl_recon.objectives._sequences import as_sequences
+from torchrl_recon.objectives.sequences import as_sequences
 
 
 class UncertaintyLoss(LossModule):

@@ -9,7 +9,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives._sequences import as_sequences
+from torchrl_recon.objectives.sequences import as_sequences
 
 
 class WorldModelPredictionLoss(LossModule):

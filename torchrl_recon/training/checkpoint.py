@@ -8,8 +8,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchrl_recon._files import write_atomically
 from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.files import write_atomically
 
 FORMAT_VERSION = 1
 MapLocation = str | torch.device

@@ -24,8 +24,7 @@ from torchrl_recon.modules.population import ReconstructionPopulation, WorldMode
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.objectives._sequences import as_sequences
+from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss, as_sequences
 from torchrl_recon.training.checkpoint import save_checkpoint
 
 

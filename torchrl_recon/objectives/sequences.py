@@ -10,6 +10,12 @@ def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDic
 
     A 2-D batch is returned as it is; a flat ``[B * L]`` batch from a ``SliceSampler`` is
     reshaped with ``slice_len``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> as_sequences(TensorDict({"x": torch.arange(12)}, [12]), 4).batch_size
+        torch.Size([3, 4])
     """
     if tensordict.batch_dims >= 2:
         return tensordict

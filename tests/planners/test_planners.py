@@ -321,3 +321,13 @@ def test_cem_accepts_the_edges_of_its_ranges(context):
 
 if __name__ == "__main__":
     pytest.main([__file__, "-q", "-s"])
+
+
+def test_gradient_planner_refuses_a_constant_objective():
+    from torchrl_recon.envs.drone import drone_cost
+    from torchrl_recon.modules import LSTMWorldModel
+    from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
+
+    model = PlanningModel(LSTMWorldModel(12, 4), drone_cost)
+    with pytest.raises(ValueError, match="alpha or beta must be non-zero"):
+        GradientPlanner(model, Objective(alpha=0.0, beta=0.0), horizon=5)

@@ -316,6 +316,13 @@ def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
     if g.cap is not None:
         errors.need("guided.cap", g.cap, g.cap > g.ratio, f"null or above guided.ratio = {g.ratio}")
     errors.need("guided.beta", g.beta, g.beta <= 0, "<= 0 (exploration seeks uncertainty)")
+    if g.planner.kind == "gradient":
+        errors.need(
+            "guided.beta",
+            g.beta,
+            g.beta < 0,
+            "< 0 with the gradient planner (with beta 0 the objective is constant: no gradient)",
+        )
     _planner_errors(g.planner, "guided.planner", errors)
 
 

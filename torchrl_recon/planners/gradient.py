@@ -80,6 +80,12 @@ class GradientPlanner(PlannerBase):
         check_int("steps", steps)
         if not lr > 0:
             raise ValueError(f"lr must be positive, got {lr!r}.")
+        if objective.alpha == 0 and objective.beta == 0:
+            raise ValueError(
+                "GradientPlanner needs an objective that depends on the actions: alpha or beta "
+                "must be non-zero (a constant objective has no gradient); to pick any plan inside "
+                "the constraints, use RandomShootingPlanner."
+            )
         self.restarts, self.steps, self.lr = restarts, steps, lr
 
     def _optimise(self, context_obs, context_action, observation, init, state, generator):

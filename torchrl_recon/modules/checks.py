@@ -71,6 +71,33 @@ def check_window(name: str, x: torch.Tensor, window: int) -> None:
         )
 
 
+def check_window_pair(
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    *,
+    obs_dim: int,
+    action_dim: int,
+    window: int,
+    min_ndim: int = 2,
+) -> None:
+    """Raise unless ``obs`` ``[*B, L, obs_dim]`` and ``action`` ``[*B, L, action_dim]`` agree on
+    their batch and time dims and hold at least ``window`` steps (what an estimator scores).
+
+    Examples:
+        >>> check_window_pair(torch.zeros(5, 6), torch.zeros(4, 3), obs_dim=6, action_dim=3, window=2)
+        Traceback (most recent call last):
+        ...
+        ValueError: obs (5, 6) and action (4, 3) disagree on batch/time dims.
+    """
+    check_features("obs", obs, obs_dim, min_ndim=min_ndim)
+    check_features("action", action, action_dim, min_ndim=min_ndim)
+    if obs.shape[:-1] != action.shape[:-1]:
+        raise ValueError(
+            f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
+        )
+    check_window("obs", obs, window)
+
+
 def check_activation(activation: str) -> None:
     """Raise unless ``activation`` names one of :data:`~torchrl_recon.modules.activations.ACTIVATIONS`.
 

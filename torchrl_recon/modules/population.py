@@ -27,7 +27,13 @@ from torchrl_recon.modules._lstm_rollout import (
     sigmoid_tanh,
 )
 from torchrl_recon.modules.activations import ACTIVATIONS
-from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
+from torchrl_recon.modules.checks import (
+    check_features,
+    check_finite,
+    check_int,
+    check_window,
+    check_window_pair,
+)
 from torchrl_recon.modules.reconstruction import (
     ReconstructionUncertainty,
     window_errors,
@@ -467,13 +473,14 @@ class ReconstructionPopulation(_Population):
     def score(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Each member's u for every window of ``[R, *B, L, N]``, ``[R, *B, L, M]`` → ``[R, *B, L - T + 1]``."""
         self._members_first("obs", obs, 3)
-        check_features("obs", obs, self.obs_dim, min_ndim=3)
-        check_features("action", action, self.action_dim, min_ndim=3)
-        if obs.shape[:-1] != action.shape[:-1]:
-            raise ValueError(
-                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
-            )
-        check_window("obs", obs, self.window)
+        check_window_pair(
+            obs,
+            action,
+            obs_dim=self.obs_dim,
+            action_dim=self.action_dim,
+            window=self.window,
+            min_ndim=3,
+        )
         check_finite("obs", obs.detach())
         check_finite("action", action.detach())
         length, members = obs.shape[-2], self.num_members

@@ -8,7 +8,12 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
+from torchrl_recon.modules.checks import (
+    check_features,
+    check_finite,
+    check_int,
+    check_window_pair,
+)
 
 
 def window_view(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -90,13 +95,9 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
         return self.score(obs, action).mean()
 
     def _check_pair(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        check_features("obs", obs, self.obs_dim, min_ndim=2)
-        check_features("action", action, self.action_dim, min_ndim=2)
-        if obs.shape[:-1] != action.shape[:-1]:
-            raise ValueError(
-                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
-            )
-        check_window("obs", obs, self.window)
+        check_window_pair(
+            obs, action, obs_dim=self.obs_dim, action_dim=self.action_dim, window=self.window
+        )
 
     def score(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """u for every window of trajectories ``[*B, L, N]``, ``[*B, L, M]`` → ``[*B, L - T + 1]``.

@@ -74,9 +74,7 @@ def build(run_dir: Path, scale: float) -> list[str]:
             models(f"guided_refit_{r}")
     data("random_arm", n(15_000))
     names.append("random_arm")
-    for i in range(10):
-        for arm in ("random", "active"):
-            stages.run(f"retrain_{arm}_{i}", lambda: {"mse": 1.0})
+    stages.run("retrain_0", lambda: {"random": {"mse": [1.0] * 10}, "active": {"mse": [1.0] * 10}})
     return names
 
 

@@ -60,8 +60,14 @@ def test_explore_stages_one_by_one(tmp_path):
     record, data = explore_stages.guided_round_stage(ctx, world, estimator, 0, 1, 10)
     assert data.numel() == record["steps"] == 10 and record["plans"] >= record["feasible_plans"]
     scale = torch.ones(initial["observation"].shape[-1])
-    mse = explore_stages.retrain_stage(ctx, "active", 0, initial, validation, scale)
-    assert math.isfinite(mse) and ctx.stages.done("retrain_active_0")
+    arms = {"random": initial, "active": initial}
+    record = explore_stages.retrain_stage(ctx, 0, [0, 1], arms, validation, scale)
+    assert ctx.stages.done("retrain_0") and record["retrainings"] == [0, 1]
+    for arm in ("random", "active"):
+        assert len(record[arm]["mse"]) == 2 and all(math.isfinite(v) for v in record[arm]["mse"])
+    # same data and same initialisation: both arms' retraining i fit to the same weights
+    assert record["random"]["mse"] == pytest.approx(record["active"]["mse"], rel=1e-5)
+    assert record["random"]["mse"][0] != record["random"]["mse"][1]
 
 
 def test_control_stages_one_by_one(tmp_path):
@@ -138,9 +144,9 @@ def test_stage_names_of_the_registry():
     assert names[:2] == ["random_data", "models"] and names[2] == "setting_baseline"
     assert control.is_stage(cfg, "setting_baseline") and not control.is_stage(cfg, "setting_x")
     explore = get_type("explore")
-    assert explore.is_stage(None, "retrain_active_3") and explore.is_stage(None, "guided_data_0")
-    assert not explore.is_stage(None, "retrain_other_3")
-    assert "retrain_<arm>_<n>" in explore.stage_list(None)
+    assert explore.is_stage(None, "retrain_3") and explore.is_stage(None, "guided_data_0")
+    assert not explore.is_stage(None, "retrain_active_3")
+    assert "retrain_<n>" in explore.stage_list(None)
 
 
 def test_one_mean_std_rule():

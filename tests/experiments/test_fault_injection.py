@@ -47,6 +47,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from torchrl_recon.experiments import explore_stages
 from torchrl_recon.experiments.compose import compose_recipe
 from torchrl_recon.experiments.registry import get_type
 
@@ -85,7 +86,8 @@ def expected_stages(kind: str) -> list[str]:
     guided = []
     for r in range(rounds):
         guided += [f"guided_data_{r}"] + ([f"guided_refit_{r}"] if r < rounds - 1 else [])
-    retrain = [f"retrain_{arm}_{i}" for i in range(cfg.retrainings) for arm in ("random", "active")]
+    groups = explore_stages.retrain_groups(cfg.retrainings, cfg.retrainings_per_fit)
+    retrain = [f"retrain_{g}" for g in range(len(groups))]
     return ["initial_random", "initial_models", "validation", *guided, "random_arm", *retrain]
 
 
@@ -98,7 +100,7 @@ CHAINS = {
     "explore": [
         ("initial_random", "boundary"),
         ("guided_data_0", "writing"),
-        ("retrain_random_0", "boundary"),
+        ("retrain_0", "boundary"),
     ],
     "control": [
         ("random_data", "boundary"),

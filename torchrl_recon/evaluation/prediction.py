@@ -53,3 +53,51 @@ def multi_step_errors(
     if scale is not None:
         err = err / scale.to(err.device)
     return err.pow(2).mean(-1)
+
+
+def population_multi_step_errors(
+    population,
+    trajectories: TensorDictBase,
+    *,
+    window: int,
+    scale: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """:func:`multi_step_errors` of every member of a population, in one batched rollout:
+    ``[R, V, H]``, member r's errors as ``multi_step_errors(population.member(r), ...)``.
+
+    Args:
+        population: a :class:`~torchrl_recon.modules.WorldModelPopulation` (R members).
+        trajectories: TensorDict ``[V, L]`` as for :func:`multi_step_errors`, shared by all members.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import WorldModelPopulation
+        >>> td = TensorDict({"observation": torch.zeros(2, 15, 3), "action": torch.zeros(2, 15, 1),
+        ...                  ("next", "observation"): torch.ones(2, 15, 3)}, [2, 15])
+        >>> population_multi_step_errors(WorldModelPopulation(3, 1, num_members=4, window=5), td,
+        ...                              window=5).shape
+        torch.Size([4, 2, 10])
+    """
+    trajectories = trajectories.to(module_device(population))
+    obs, action = trajectories["observation"], trajectories["action"]
+    next_obs = trajectories["next", "observation"]
+    if obs.ndim != 3 or obs.shape[1] <= window:
+        raise ValueError(
+            f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}."
+        )
+    members = population.num_members
+
+    def each(x: torch.Tensor) -> torch.Tensor:
+        return x.expand(members, *x.shape)
+
+    with torch.no_grad():
+        pred = population.imagine(
+            each(obs[:, :window]),
+            each(action[:, :window]),
+            each(obs[:, window]),
+            each(action[:, None, window:]),
+        )[:, :, 0]
+    err = pred - next_obs[:, window:]
+    if scale is not None:
+        err = err / scale.to(err.device)
+    return err.pow(2).mean(-1)

@@ -120,7 +120,9 @@ def build_models(
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
 
-def _buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
+def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
+    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)
+    with the recipe's ``training`` sizes."""
     train, val = split_by_trajectory(data, cfg.training.val_fraction, seed=seed)
     t = cfg.training
     rb = make_sequence_buffer(len(train), slice_len=t.slice_len, num_slices=t.num_slices)
@@ -130,15 +132,14 @@ def _buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
     return rb, val_rb
 
 
-def _fit_kwargs(
-    fit: DictConfig, *, seed: int, progress: bool, logger: Logger | None, prefix: str
-) -> dict:
+def fit_kwargs(fit: DictConfig, progress: bool, logger: Logger | None, prefix: str) -> dict:
+    """The keywords of a fit (``fit_world_model``, ``fit_population``, ...) from a recipe's
+    ``training.world_model`` or ``training.uncertainty`` block."""
     return dict(
         steps=fit.steps,
         lr=fit.lr,
         eval_every=fit.eval_every,
         patience=fit.patience,
-        seed=seed,
         progress=progress,
         logger=logger,
         log_prefix=prefix,
@@ -159,17 +160,15 @@ def fit_module(
     Returns the best validation loss.
     """
     cfg = ctx.cfg
-    rb, val_rb = _buffers(cfg, data, seed)
+    rb, val_rb = split_buffers(cfg, data, seed)
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
     if isinstance(module, LSTMWorldModel):
         fit_cfg, extra = cfg.training.world_model, {"mode": cfg.training.world_model_mode}
         fit = fit_world_model
     else:
         fit_cfg, extra, fit = cfg.training.uncertainty, {}, fit_uncertainty
-    kwargs = _fit_kwargs(
-        fit_cfg, seed=seed, progress=cfg.progress, logger=ctx.logger, prefix=prefix
-    )
-    return fit(module, rb, **common, **extra, **kwargs).best_val_loss
+    kwargs = fit_kwargs(fit_cfg, cfg.progress, ctx.logger, prefix)
+    return fit(module, rb, seed=seed, **common, **extra, **kwargs).best_val_loss
 
 
 def fit_stage(

@@ -157,6 +157,7 @@ class ExploreConfig(RunConfig):
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     random_steps: int = 15000
     retrainings: int = 10
+    retrainings_per_fit: int | None = None
 
 
 @dataclass

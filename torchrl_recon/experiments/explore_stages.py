@@ -1,12 +1,14 @@
 """The stages of the exploration experiment (the paper's §3.2 and Table 1), one repeat per seed.
 
 ``initial_random`` → ``initial_models`` → ``validation`` → ``guided_data_<r>`` (with
-``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<arm>_<i>``; each stage takes
-the :class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
+``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings
+fitted as one population, in groups of ``retrainings_per_fit``); each stage takes the
+:class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -21,22 +23,25 @@ from torchrl_recon.collectors import (
     concat_trajectories,
     validation_trajectories,
 )
-from torchrl_recon.evaluation import multi_step_errors
+from torchrl_recon.evaluation import population_multi_step_errors
 from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
     cost_fn,
-    fit_module,
+    fit_kwargs,
     fit_stage,
     random_data_stage,
+    split_buffers,
     state_scale,
 )
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.planners import PlanningModel
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
+from torchrl_recon.training import fit_population
 
 # What a dataset keeps of a collection (the policies' planning state is not data).
 DATA_KEYS = (
@@ -65,9 +70,9 @@ STAGES = (
     "guided_data_{n}",
     "guided_refit_{n}",
     "random_arm",
-    "retrain_{arm}_{n}",
+    "retrain_{n}",
 )
-"""Stage name templates, in run order (``{n}`` a round or retraining, ``{arm}`` random|active)."""
+"""Stage name templates, in run order (``{n}`` a round or a group of retrainings)."""
 ARMS = ("random", "active")
 
 
@@ -168,28 +173,82 @@ def guided_stages(
     return parts, feasible_counts
 
 
+def retrain_groups(retrainings: int, per_fit: int | None) -> list[list[int]]:
+    """The retrainings fitted together, in order: groups of ``per_fit`` (all in one if None).
+
+    Examples:
+        >>> retrain_groups(5, 2), retrain_groups(3, None)
+        ([[0, 1], [2, 3], [4]], [[0, 1, 2]])
+    """
+    size = retrainings if per_fit is None else per_fit
+    return [list(range(i, min(i + size, retrainings))) for i in range(0, retrainings, size)]
+
+
 def retrain_stage(
     ctx: RunContext,
-    arm: str,
-    i: int,
-    data: TensorDictBase,
+    group: int,
+    retrainings: list[int],
+    arms: dict[str, TensorDictBase],
     validation: TensorDictBase,
     scale: torch.Tensor,
-) -> float:
-    """Retraining ``i`` of a fresh world model on ``arm``'s data (stage ``retrain_<arm>_<i>``);
-    returns its validation MSE (units of ``scale``)."""
-    name, window = f"retrain_{arm}_{i}", ctx.cfg.models.window
-    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+) -> dict[str, dict[str, list]]:
+    """Retrainings ``retrainings`` of a fresh world model on each arm's data, fitted as one
+    population (stage ``retrain_<group>``); returns per arm the validation MSE (units of
+    ``scale``), best validation loss and fit steps of each retraining, in order.
+
+    Retraining i starts both arms from the same weights (seeded by ``retrain_<i>``). Each arm's
+    data is split once (seeded by ``retrain_split``) into training and validation trajectories,
+    and its members draw their batches from that one buffer as one sample per step
+    (``fit_population(shared_sampling=True)``): the retrainings of an arm differ in their
+    initialisation and the windows they see, as the paper's retrainings on the same data do.
+    """
+    cfg, name, window = ctx.cfg, f"retrain_{group}", ctx.cfg.models.window
+    first = next(iter(arms.values()))
+    obs_dim, action_dim = first["observation"].shape[-1], first["action"].shape[-1]
 
     def run():
-        seed = ctx.stage_seed(f"retrain_{i}")  # both arms start from the same weights
-        torch.manual_seed(seed)
-        model, _ = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
-        fit_module(ctx, model, data, seed=seed, prefix=f"{name}/")
-        errors = multi_step_errors(model, validation, window=window, scale=scale)
-        return {"mse": float(errors.mean())}
+        split_seed = ctx.stage_seed("retrain_split")
+        members, buffers, val_buffers, seeds = [], [], [], []
+        initial = {}
+        for i in retrainings:
+            seed = ctx.stage_seed(f"retrain_{i}")
+            torch.manual_seed(seed)
+            world, _ = build_models(cfg, obs_dim, action_dim, ctx.device)
+            initial[i] = (world, seed)
+        for arm in ARMS:
+            rb, val_rb = split_buffers(cfg, arms[arm], split_seed)
+            for i in retrainings:
+                world, seed = initial[i]
+                members.append(world if arm == ARMS[-1] else copy.deepcopy(world))
+                buffers.append(rb)
+                val_buffers.append(val_rb)
+                seeds.append(seed)
+        fits = fit_population(
+            members,
+            buffers,
+            seeds=seeds,
+            val_buffers=val_buffers,
+            mode=cfg.training.world_model_mode,
+            shared_sampling=True,
+            **fit_kwargs(cfg.training.world_model, cfg.progress, ctx.logger, f"{name}/"),
+        )
+        population = WorldModelPopulation.from_members(members)
+        errors = population_multi_step_errors(population, validation, window=window, scale=scale)
+        mse = errors.mean((-2, -1)).tolist()
+        n = len(retrainings)
+        return {
+            "retrainings": list(retrainings),
+            **{
+                arm: {
+                    "mse": mse[a * n : (a + 1) * n],
+                    "val_loss": [f.best_val_loss for f in fits[a * n : (a + 1) * n]],
+                    "steps": [f.steps for f in fits[a * n : (a + 1) * n]],
+                }
+                for a, arm in enumerate(ARMS)
+            },
+        }
 
-    return ctx.stages.run(name, run)["mse"]
+    return ctx.stages.run(name, run)
 
 
 def explore_results(
@@ -244,11 +303,13 @@ def run(ctx: RunContext) -> dict:
         "active": concat_trajectories(initial, *guided_parts),
     }
     mse: dict[str, list[float]] = {arm: [] for arm in ARMS}
-    for i in range(cfg.retrainings):
-        for arm, data in arms.items():
-            mse[arm].append(retrain_stage(ctx, arm, i, data, validation, scale))
-            if ctx.logger is not None:
-                ctx.logger.log_scalar(f"validation_mse/{arm}", mse[arm][-1], step=i)
+    for g, group in enumerate(retrain_groups(cfg.retrainings, cfg.retrainings_per_fit)):
+        record = retrain_stage(ctx, g, group, arms, validation, scale)
+        for arm in ARMS:
+            for i, value in zip(group, record[arm]["mse"], strict=True):
+                mse[arm].append(value)
+                if ctx.logger is not None:
+                    ctx.logger.log_scalar(f"validation_mse/{arm}", value, step=i)
     steps = {
         "initial_steps": initial.numel(),
         "random_arm_steps": random_arm.numel(),

@@ -298,6 +298,8 @@ def _data_errors(
 def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The explore recipe's own checks."""
     errors.at_least(cfg, ("random_steps", "retrainings"), 1)
+    if cfg.get("retrainings_per_fit") is not None:
+        errors.at_least(cfg, ("retrainings_per_fit",), 1)
     errors.at_least(cfg, ("validation.trajectories", "validation.steps"), 1)
     errors.one_of(cfg, "validation.policy", VALIDATION_POLICIES)
     _data_errors(

@@ -143,3 +143,27 @@ def test_shared_sampling_is_statistically_the_separate_fits():
     spread = max(shared.std(), separate.std()) + 1e-3
     assert (shared.mean() - separate.mean()).abs() <= 3 * spread, (shared, separate)
     assert all(r.best_val_loss <= r.history[0]["val_loss"] for r in results)
+
+
+def test_shared_sampling_follows_each_member_in_any_order():
+    """Members sharing a buffer draw one sample seeded by the first of them, whatever the order
+    of the members: a member's fit is the same with its buffer's members interleaved with
+    another buffer's, and with members that stopped early (patience 1) among them."""
+    a, b = _buffer(0), _buffer(1)
+    kwargs = dict(steps=24, eval_every=3, val_batches=2, progress=False, patience=1)
+
+    def fit(order: list[int]) -> dict[int, float]:
+        buffers = [a, a, b, b]
+        models = [_world(i) for i in order]
+        results = fit_population(
+            models,
+            [buffers[i] for i in order],
+            seeds=[10 + i for i in order],
+            shared_sampling=True,
+            **kwargs,
+        )
+        return {i: r.best_val_loss for i, r in zip(order, results, strict=True)}
+
+    grouped, interleaved = fit([0, 1, 2, 3]), fit([0, 2, 1, 3])
+    assert interleaved == pytest.approx(grouped, rel=1e-6, abs=0)
+    assert len(set(grouped.values())) == 4

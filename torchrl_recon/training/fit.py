@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import LossModule
@@ -315,13 +316,16 @@ class _MemberRNG:
 
 
 def _sample_shared(
-    rng: _MemberRNG, buffers: list, active: list[bool], batches: list, device: torch.device
-) -> None:
-    """One sample per buffer for all its active members (``fit_population(shared_sampling=True)``)."""
+    rng: _MemberRNG, buffers: list, active: list[bool], device: torch.device
+) -> TensorDictBase:
+    """One sample per buffer for all its active members (``fit_population(shared_sampling=True)``),
+    as one ``[R, batch_size]`` batch: member r's rows are its slice of its buffer's sample. A
+    stopped member (frozen, its loss unused) gets the first active member's rows."""
     groups: dict[int, list[int]] = {}
     for r, buffer in enumerate(buffers):
         if active[r]:
             groups.setdefault(id(buffer), []).append(r)
+    parts, order = [], []
     for members in groups.values():
         first, buffer = members[0], buffers[members[0]]
         size = buffer.batch_size
@@ -331,9 +335,13 @@ def _sample_shared(
             torch.set_rng_state(rng.states[first])
             batch = buffer.sample(size * len(members))
             rng.states[first] = torch.get_rng_state()
-        batch = batch.to(device)
-        for j, r in enumerate(members):
-            batches[r] = batch[j * size : (j + 1) * size]
+        parts.append(batch.reshape(len(members), size))
+        order += members
+    rows = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
+    if order != list(range(len(buffers))):  # members out of order, or stopped ones
+        block = dict(zip(order, range(len(order)), strict=True))
+        rows = rows[torch.tensor([block.get(r, 0) for r in range(len(buffers))])]
+    return rows.to(device)
 
 
 def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
@@ -342,6 +350,19 @@ def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -
     coef = (max_norm / (torch.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(coef.reshape(members, *([1] * (g.dim() - 1))))
+
+
+def _member_sequences(
+    batches: list[TensorDictBase] | TensorDictBase, slice_len: int, keys: tuple
+) -> list[torch.Tensor]:
+    """``keys`` of R members' batches as ``[R, B, L, ...]``: from a list of R flat batches, or
+    one ``[R, B·L]`` batch (shared sampling)."""
+    if isinstance(batches, TensorDictBase):
+        members = batches.shape[0]
+        seqs = as_sequences(batches.reshape(-1), slice_len)
+        return [seqs.get(k).reshape(members, -1, *seqs.get(k).shape[1:]) for k in keys]
+    seqs = [as_sequences(b, slice_len) for b in batches]
+    return [torch.stack([s.get(k) for s in seqs]) for k in keys]
 
 
 def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
@@ -358,8 +379,7 @@ def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
         keys = ("observation", "action", ("next", "observation"))
 
         def losses(batches):
-            seqs = [as_sequences(b, slice_len) for b in batches]
-            obs, action, next_obs = (torch.stack([s.get(k) for s in seqs]) for k in keys)
+            obs, action, next_obs = _member_sequences(batches, slice_len, keys)
             return pop.prediction_loss(obs, action, next_obs, mode)
 
         return pop, losses
@@ -367,9 +387,7 @@ def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
         pop = ReconstructionPopulation.from_members(models)
 
         def losses(batches):
-            seqs = [as_sequences(b, slice_len) for b in batches]
-            obs, action = (torch.stack([s.get(k) for s in seqs]) for k in ("observation", "action"))
-            return pop.loss(obs, action)
+            return pop.loss(*_member_sequences(batches, slice_len, ("observation", "action")))
 
         return pop, losses
     raise TypeError(
@@ -560,7 +578,7 @@ def _train_members(
     )
     for step in bar:
         if shared_sampling and count > 1:
-            _sample_shared(rng, buffers, active, batches, device)
+            batches = _sample_shared(rng, buffers, active, device)
         else:
             for r in range(count):
                 if active[r]:  # a stopped member's batch stays: it is frozen anyway

@@ -21,13 +21,14 @@ from torchrl_recon.planners import PlanningModel
 from torchrl_recon.training.checkpoint import load_modules, save_checkpoint
 from torchrl_recon.training.fit import fit_uncertainty
 
-KINDS = ["reconstruction", "ensemble", "mc_dropout", "rnd"]
-NEW_KINDS = ["ensemble", "mc_dropout", "rnd"]
+KINDS = ["reconstruction", "ensemble", "mc_dropout", "rnd", "world_model_ensemble"]
+NEW_KINDS = ["ensemble", "mc_dropout", "rnd", "world_model_ensemble"]
 SMALL = {
     "reconstruction": {"hidden_size": 16},
     "ensemble": {"hidden_size": 16, "num_members": 3},
     "mc_dropout": {"hidden_size": 16, "samples": 4, "dropout": 0.2},
     "rnd": {"hidden_size": 16, "embedding_size": 8},
+    "world_model_ensemble": {"hidden_size": 8, "dense_size": 8, "num_members": 3},
 }
 
 
@@ -184,7 +185,8 @@ def test_make_estimator_builds_each_kind(kind):
 
 def test_make_estimator_unknown_kind_and_keyword():
     with pytest.raises(
-        ValueError, match=r"'gp'.*\['ensemble', 'mc_dropout', 'reconstruction', 'rnd'\]"
+        ValueError,
+        match=r"'gp'.*\['ensemble', 'mc_dropout', 'reconstruction', 'rnd', 'world_model_ensemble'\]",
     ):
         make_estimator("gp", 6, 3)
     with pytest.raises(

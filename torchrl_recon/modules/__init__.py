@@ -13,6 +13,7 @@ from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
+from torchrl_recon.modules.world_model_ensemble import WorldModelEnsembleUncertainty
 
 __all__ = [
     "EnsembleUncertainty",
@@ -28,5 +29,6 @@ __all__ = [
     "ReconstructionUncertainty",
     "RNDUncertainty",
     "UncertaintyEstimator",
+    "WorldModelEnsembleUncertainty",
     "WorldModelPopulation",
 ]

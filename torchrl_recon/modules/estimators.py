@@ -9,12 +9,14 @@ from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.world_model_ensemble import WorldModelEnsembleUncertainty
 
 ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
     "reconstruction": ReconstructionUncertainty,
     "ensemble": EnsembleUncertainty,
     "mc_dropout": MCDropoutUncertainty,
     "rnd": RNDUncertainty,
+    "world_model_ensemble": WorldModelEnsembleUncertainty,
 }
 
 _POSITIONAL = ("self", "obs_dim", "action_dim", "window")
@@ -26,7 +28,8 @@ def make_estimator(
     """Build the estimator registered as ``kind`` in :data:`ESTIMATORS`.
 
     Args:
-        kind: ``"reconstruction"``, ``"ensemble"``, ``"mc_dropout"`` or ``"rnd"``.
+        kind: ``"reconstruction"``, ``"ensemble"``, ``"mc_dropout"``, ``"rnd"`` or
+            ``"world_model_ensemble"``.
         obs_dim: state size N.
         action_dim: action size M.
 

@@ -16,28 +16,17 @@ MapLocation = str | torch.device
 
 
 def _module_classes() -> dict[str, type[nn.Module]]:
+    """The classes a checkpoint may name: the world model, every registered estimator kind and
+    the populations."""
     from torchrl_recon.modules import (
-        EnsembleUncertainty,
+        ESTIMATORS,
         LSTMWorldModel,
-        MCDropoutUncertainty,
         ReconstructionPopulation,
-        ReconstructionUncertainty,
-        RNDUncertainty,
         WorldModelPopulation,
     )
 
-    return {
-        cls.__name__: cls
-        for cls in (
-            LSTMWorldModel,
-            ReconstructionUncertainty,
-            EnsembleUncertainty,
-            MCDropoutUncertainty,
-            RNDUncertainty,
-            WorldModelPopulation,
-            ReconstructionPopulation,
-        )
-    }
+    classes = (LSTMWorldModel, WorldModelPopulation, ReconstructionPopulation, *ESTIMATORS.values())
+    return {cls.__name__: cls for cls in classes}
 
 
 def _to_cpu(obj: Any) -> Any:

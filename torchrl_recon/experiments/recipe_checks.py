@@ -131,6 +131,12 @@ def _env_errors(cfg: DictConfig, errors: _Errors) -> dict[str, Any]:
     except ValueError as e:
         errors.append(f"'{'env.id' if env.id else 'env.name'}': {e}")
         return {}
+    if env.id and env.name in ENVS and ENVS[env.name].gym_id != entry.gym_id:
+        errors.append(
+            f"'env.name': {env.name!r} names a shipped env, but env.id is {env.id!r}; give "
+            f"env.name=<your env's name> too, or start from recipes/gym"
+        )
+        return {}
     kwargs = OmegaConf.to_container(env.kwargs, resolve=True)
     try:
         entry.check_kwargs(kwargs)

@@ -20,7 +20,9 @@ def _own_functions(module: Any) -> list[str]:
     return sorted(
         n
         for n, v in vars(module).items()
-        if callable(v) and not n.startswith("_") and getattr(v, "__module__", None) == module.__name__
+        if callable(v)
+        and not n.startswith("_")
+        and getattr(v, "__module__", None) == module.__name__
     )
 
 
@@ -83,8 +85,7 @@ def import_cost(path: str) -> CostFn:
         signature.bind(None, None, None, **keywords)
     except TypeError:
         raise ValueError(
-            f"{where}: {module}.{attr}{signature} cannot be called as "
-            "cost(obs, action, next_obs)."
+            f"{where}: {module}.{attr}{signature} cannot be called as cost(obs, action, next_obs)."
         ) from None
     return fn
 

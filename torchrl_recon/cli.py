@@ -143,6 +143,9 @@ def _register_resolvers() -> None:
     OmegaConf.register_new_resolver(
         "trr_abspath", lambda p: str(Path(str(p)).expanduser().resolve()), replace=True
     )
+    from torchrl_recon.experiments.compose import register_resolvers
+
+    register_resolvers()  # the recipes' own (${trr_env_name:...})
 
 
 _register_resolvers()  # at import: joblib workers import this module to unpickle _task

@@ -9,6 +9,7 @@ from torchrl_recon.envs.registry import (
     GymEntry,
     get_entry,
     gym_entry,
+    import_cost,
     register_env,
     register_envs,
 )
@@ -19,6 +20,7 @@ __all__ = [
     "GymEntry",
     "get_entry",
     "gym_entry",
+    "import_cost",
     "make_env",
     "register_env",
     "register_envs",

@@ -15,6 +15,81 @@ import torch
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
+def _own_functions(module: Any) -> list[str]:
+    """Public callables defined in ``module`` itself (not imported into it)."""
+    return sorted(
+        n
+        for n, v in vars(module).items()
+        if callable(v)
+        and not n.startswith("_")
+        and getattr(v, "__module__", None) == module.__name__
+    )
+
+
+def import_cost(path: str) -> CostFn:
+    """Import the cost function ``"module:function"`` (this runs ``module``'s code, as any import).
+
+    The function must take ``(obs, action, next_obs)`` (batched torch tensors) and return the
+    per-step cost of the same batch shape.
+
+    Raises:
+        ValueError: one line: ``path`` is not ``module:function``, the module cannot be
+            imported (or fails while importing), it has no such attribute, or the attribute
+            is not a function of three positional arguments.
+
+    Examples:
+        >>> import_cost("torchrl_recon.envs.drone:drone_cost").__name__
+        'drone_cost'
+        >>> try:
+        ...     import_cost("torchrl_recon.envs.drone:no_such_cost")
+        ... except ValueError as e:
+        ...     print(str(e).split(";")[0])
+        cost 'torchrl_recon.envs.drone:no_such_cost': module 'torchrl_recon.envs.drone' has no attribute 'no_such_cost'
+    """
+    module, _, attr = str(path).partition(":")
+    if not module or not attr or ":" in attr:
+        raise ValueError(
+            f"cost must be 'module:function' (a batched torch cost(obs, action, next_obs) -> "
+            f"[...] in an importable module), got {path!r}."
+        )
+    where = f"cost {path!r}"
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        raise ValueError(
+            f"{where}: cannot import module {module!r} ({e}); put the folder holding "
+            f"{module.split('.')[0]}.py on PYTHONPATH (e.g. PYTHONPATH=. torchrl-recon ...)."
+        ) from None
+    except Exception as e:  # the user's module fails while importing
+        raise ValueError(
+            f"{where}: importing module {module!r} failed: {type(e).__name__}: {e}"
+        ) from None
+    fn = getattr(mod, attr, None)
+    if fn is None:
+        raise ValueError(
+            f"{where}: module {module!r} has no attribute {attr!r}; "
+            f"its functions: {_own_functions(mod)}."
+        )
+    if not callable(fn):
+        raise ValueError(f"{where}: {module}.{attr} is a {type(fn).__name__}, not a function.")
+    try:
+        signature = inspect.signature(fn)
+    except ValueError:  # no signature (a builtin): trust it
+        return fn
+    keywords = {
+        n: None
+        for n, p in signature.parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY and p.default is inspect.Parameter.empty
+    }
+    try:  # keyword-only parameters may come from the env's keywords (EnvEntry.cost_fn_with)
+        signature.bind(None, None, None, **keywords)
+    except TypeError:
+        raise ValueError(
+            f"{where}: {module}.{attr}{signature} cannot be called as cost(obs, action, next_obs)."
+        ) from None
+    return fn
+
+
 @dataclass(frozen=True)
 class EnvEntry:
     """One environment: short name, gymnasium id, class path, cost function path, episode limit, state names."""
@@ -28,8 +103,7 @@ class EnvEntry:
 
     def cost_fn(self) -> CostFn:
         """Import and return the batched torch cost ``cost(obs, action, next_obs) -> [...]``."""
-        module, attr = self.cost_fn_path.split(":")
-        return getattr(importlib.import_module(module), attr)
+        return import_cost(self.cost_fn_path)
 
     def cost_fn_with(self, env_kwargs: Mapping[str, Any]) -> CostFn:
         """The cost with the env keywords (a recipe's ``env.kwargs``) that the cost also takes.

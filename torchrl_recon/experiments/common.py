@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 
 import torch
@@ -14,7 +15,7 @@ from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import get_entry, make_env
-from torchrl_recon.envs.registry import CostFn
+from torchrl_recon.envs.registry import CostFn, EnvEntry
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
 from torchrl_recon.planners import (
@@ -42,16 +43,59 @@ def build_env(
     policy its data on that device and the env its actions back on the CPU.
     """
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    env = make_env(cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
+    env = make_env(cfg.env.id or cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
     if policy_device is not None and torch.device(policy_device).type != "cpu":
         env.append_transform(DeviceCastTransform(policy_device, env.device))
     return env
 
 
+def env_entry(cfg: DictConfig) -> EnvEntry:
+    """The recipe's env as a registry entry: ``env.id`` (else ``env.name``) looked up in the
+    registry, named ``env.name``, with ``env.cost`` and ``env.state_names`` when given.
+
+    A shipped env and a gymnasium id go through the same lookup
+    (:func:`~torchrl_recon.envs.get_entry`); nothing is imported but the env's module (for
+    ``module:EnvId``).
+
+    Raises:
+        ValueError: the env is unknown (the message says how to register one).
+
+    Examples:
+        >>> cfg = OmegaConf.create({"env": {"id": "Pendulum-v1", "name": "pendulum",
+        ...     "cost": "my_costs:pendulum", "state_names": ["cos", "sin", "omega"]}})
+        >>> entry = env_entry(cfg)
+        >>> entry.name, entry.gym_id, entry.cost_fn_path, entry.state_names
+        ('pendulum', 'Pendulum-v1', 'my_costs:pendulum', ('cos', 'sin', 'omega'))
+        >>> env_entry(OmegaConf.create({"env": {"name": "drone"}})).cost_fn_path
+        'torchrl_recon.envs.drone:drone_cost'
+    """
+    env = cfg.env
+    entry = get_entry(env.get("id") or env.name)
+    return dataclasses.replace(
+        entry,
+        name=env.name or entry.name,
+        cost_fn_path=env.get("cost") or entry.cost_fn_path,
+        state_names=tuple(env.get("state_names") or ()) or entry.state_names,
+    )
+
+
 def cost_fn(cfg: DictConfig) -> CostFn:
-    """The env's batched torch cost, with the recipe's env keywords where the cost takes them."""
+    """The env's batched torch cost (``env.cost``, else the registered env's), with the
+    recipe's env keywords where the cost takes them (keyword-only parameters)."""
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    return get_entry(cfg.env.name).cost_fn_with(kwargs)
+    return env_entry(cfg).cost_fn_with(kwargs)
+
+
+def planning_model(
+    cfg: DictConfig, world: LSTMWorldModel, uncertainty: UncertaintyEstimator | None = None
+) -> PlanningModel:
+    """The recipe's :class:`PlanningModel`: its cost, and the action bounds of its env's spec
+    (:meth:`PlanningModel.from_env`; the env is built, read and closed, without stepping)."""
+    env = build_env(cfg, seed=0, episode_steps=1)
+    try:
+        return PlanningModel.from_env(world, cost_fn(cfg), env, uncertainty=uncertainty)
+    finally:
+        env.close()
 
 
 def random_data_stage(

@@ -23,6 +23,28 @@ RECIPES_DIR = Path(__file__).resolve().parents[2] / "recipes"
 MAX_SWEEP_JOBS = 10_000
 
 
+def env_name_of(gym_id: str | None) -> str | None:
+    """The name a run gives a gymnasium env (in its directory, tables and loggers): the id
+    without its ``module:`` prefix, with ``/`` as ``_``; the ``${trr_env_name:...}`` resolver
+    of the recipes.
+
+    Examples:
+        >>> env_name_of("Pendulum-v1"), env_name_of("my_envs:Cart-v0"), env_name_of("ALE/Pong-v5")
+        ('Pendulum-v1', 'Cart-v0', 'ALE_Pong-v5')
+    """
+    if gym_id is None:
+        return None
+    return str(gym_id).rpartition(":")[2].replace("/", "_")
+
+
+def register_resolvers() -> None:
+    """``${trr_env_name:<id>}`` (:func:`env_name_of`), used by ``recipes/gym``."""
+    OmegaConf.register_new_resolver("trr_env_name", env_name_of, replace=True)
+
+
+register_resolvers()  # at import: every path that composes or resolves a recipe imports this
+
+
 def hydra_error_message(error: BaseException) -> str:
     """Hydra's own error (several lines, a list of options, its search path) on one line."""
     text = str(error)

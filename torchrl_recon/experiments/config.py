@@ -13,9 +13,22 @@ from omegaconf import MISSING
 
 @dataclass
 class EnvConfig:
-    """Which environment, its constructor keywords and the episode length used by the experiment."""
+    """Which environment, its cost, its constructor keywords and the episode length.
 
-    name: str = MISSING
+    ``id``: a gymnasium id (``Pendulum-v1``, or ``my_module:MyEnv-v0``, which imports
+    ``my_module`` first, where ``gymnasium.register`` registers ``MyEnv-v0``); null: ``name``
+    is the env. ``name``: without ``id``, a registered env (``industrial_benchmark``, ``drone``,
+    ``minitaur``, one given to ``torchrl_recon.envs.register_env``) or a gymnasium id; with
+    ``id``, only the env's name in run directories, tables and loggers. ``cost``:
+    ``module:function``, a batched torch ``cost(obs, action, next_obs) -> [...]`` (imported:
+    the module's code runs); null: the registered env's own (a gymnasium env has none).
+    ``state_names``: the observation's dims, for plots (empty: the registered env's, else
+    ``s0, s1, ...``). ``kwargs``: keywords of the env's constructor."""
+
+    name: str | None = None
+    id: str | None = None
+    cost: str | None = None
+    state_names: list[str] = field(default_factory=list)
     kwargs: dict[str, Any] = field(default_factory=dict)
     episode_steps: int = 100
 

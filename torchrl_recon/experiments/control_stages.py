@@ -16,13 +16,13 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.data import cut_sequences
-from torchrl_recon.envs import get_entry
 from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
-    cost_fn,
+    env_entry,
     fit_stage,
+    planning_model,
     random_data_stage,
     state_scale,
 )
@@ -164,7 +164,7 @@ def episode(ctx: RunContext, setting: DictConfig, planner, controller: Controlle
         for key, value in metrics.items():
             if not (isinstance(value, float) and math.isnan(value)):
                 ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
-    state_names = get_entry(cfg.env.name).state_names
+    state_names = env_entry(cfg).state_names
     example = _trajectory(td, setting.name, state_names) if e == 0 else None
     return {"metrics": metrics, "trajectory_example": example}
 
@@ -207,7 +207,7 @@ def run(ctx: RunContext) -> dict:
     threshold = replan_threshold(cfg, per_window_u)
     relative = any(s.beta_relative for s in cfg.settings)
     beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
-    model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
+    model = planning_model(cfg, world, estimator)  # the env's action bounds
     controller = Controller(model, threshold, beta_unit, scale)
 
     results, example = {}, None

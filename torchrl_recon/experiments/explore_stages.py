@@ -28,9 +28,9 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
-    cost_fn,
     fit_kwargs,
     fit_stage,
+    planning_model,
     random_data_stage,
     split_buffers,
     state_scale,
@@ -38,7 +38,6 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.modules import WorldModelPopulation
-from torchrl_recon.planners import PlanningModel
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
 from torchrl_recon.training import fit_population
@@ -122,7 +121,7 @@ def guided_round_stage(
     cfg, guided, name = ctx.cfg, ctx.cfg.guided, f"guided_data_{r}"
 
     def run():
-        model = PlanningModel(world, cost_fn(cfg), uncertainty=estimator)
+        model = planning_model(cfg, world, estimator)  # the env's action bounds
         objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
         policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
         seed = ctx.stage_seed(name)

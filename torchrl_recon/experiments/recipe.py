@@ -97,7 +97,11 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     (:func:`~torchrl_recon.experiments.recipe_checks.recipe_errors`): no NaN or infinite number
     at any depth; counts, sizes, rates and ratios in their ranges (e.g. ``guided.ratio`` above
     1, ``training.val_fraction`` in (0, 1), enough random data for a held-out trajectory);
-    ``env.name`` registered and ``env.kwargs`` keywords of that env's class; kinds, modes and
+    the env (``env.id`` or ``env.name``) known, ``env.kwargs`` keywords of that env, a cost
+    that imports (``env.cost``, which runs its module, or the registered env's), and for a
+    gymnasium env its spaces and a call of the cost (the env is built, not stepped); without
+    ``env.name``, ``env.id`` names the run (``Pendulum-v1``; ``my_module:MyEnv-v0`` →
+    ``MyEnv-v0``); kinds, modes and
     backends known; setting and estimator names unique and usable as file names. Nothing is
     written: the CLI and :func:`~torchrl_recon.experiments.runner.run` call it before the run
     directory exists.
@@ -143,6 +147,9 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
                 _merge_checked(item_schema, item, prefix=f"{list_key}[{i}].", source=source)
             )
         merged[list_key] = checked
+    env = OmegaConf.to_container(merged.env, resolve=False)
+    if env.get("name") is None and env.get("id") is not None:  # a gymnasium id names the run
+        merged.env.name = "${trr_env_name:${env.id}}"
     try:
         OmegaConf.resolve(merged)
     except OmegaConfBaseException as e:

@@ -108,22 +108,40 @@ def _finite_errors(node: Any, key: str, errors: _Errors, env_defaults: dict[str,
 
 
 def _env_errors(cfg: DictConfig, errors: _Errors) -> dict[str, Any]:
-    """``env.name`` registered; ``env.kwargs`` keywords of that env's class, of its defaults' types.
+    """The env section: ``env.id`` / ``env.name`` known, ``env.kwargs`` keywords of that env of
+    its defaults' types, a cost (``env.cost`` or the registered env's) that imports, and
+    ``env.state_names`` one per observation dim. A gymnasium env that is not shipped is built
+    once (not stepped) to check its spaces, its keywords and a call of the cost.
 
     Returns the env's keyword defaults ({} when unknown).
     """
-    from torchrl_recon.envs import get_entry
+    from torchrl_recon.envs import ENVS, import_cost
+    from torchrl_recon.experiments.common import env_entry
 
-    try:
-        entry = get_entry(cfg.env.name)
-    except ValueError as e:
-        errors.append(f"'env.name': {e}")
+    env = cfg.env
+    if env.id is None and env.name is None:
+        errors.append(
+            "'env': no environment given; give env.id (a gymnasium id such as Pendulum-v1, or "
+            "my_module:MyEnv-v0) with env.cost=module:function, or env.name (one of "
+            f"{sorted(ENVS)})"
+        )
         return {}
-    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
+    try:
+        entry = env_entry(cfg)
+    except ValueError as e:
+        errors.append(f"'{'env.id' if env.id else 'env.name'}': {e}")
+        return {}
+    if env.id and env.name in ENVS and ENVS[env.name].gym_id != entry.gym_id:
+        errors.append(
+            f"'env.name': {env.name!r} names a shipped env, but env.id is {env.id!r}; give "
+            f"env.name=<your env's name> too, or start from recipes/gym"
+        )
+        return {}
+    kwargs = OmegaConf.to_container(env.kwargs, resolve=True)
     try:
         entry.check_kwargs(kwargs)
     except TypeError as e:
-        errors.append(f"'env.kwargs': {e} Fix the keyword, or drop it when changing env.name.")
+        errors.append(f"'env.kwargs': {e} Fix the keyword, or drop it when changing the env.")
         return {}
     defaults = entry.keywords() or {}
     cls = entry.env_class().__name__
@@ -134,7 +152,89 @@ def _env_errors(cfg: DictConfig, errors: _Errors) -> dict[str, Any]:
                 f"'env.kwargs.{name}' must be {expected} ({cls}'s default is "
                 f"{defaults[name]!r}), got {value!r}"
             )
+    cost, before = None, len(errors)
+    if not entry.cost_fn_path:
+        errors.append(
+            f"'env.cost': environment {entry.gym_id!r} has no torch cost; give "
+            "env.cost=module:function, a batched torch cost(obs, action, next_obs) -> [...] "
+            "in a module on PYTHONPATH (e.g. env.cost=my_costs:pendulum; see docs/custom_env.md)"
+        )
+    else:
+        try:
+            import_cost(entry.cost_fn_path)
+            cost = entry.cost_fn_with(kwargs)
+        except ValueError as e:
+            errors.append(f"'env.cost': {e}")
+    shipped = ENVS.get(entry.name)
+    if shipped is not None and shipped.gym_id == entry.gym_id:
+        if env.state_names and len(env.state_names) != len(shipped.state_names):
+            errors.append(
+                f"'env.state_names' must name the {len(shipped.state_names)} observation dims "
+                f"of {entry.name!r}, got {len(env.state_names)} names"
+            )
+    elif len(errors) == before:
+        _gym_env_errors(entry.gym_id, kwargs, cost, list(env.state_names), errors)
     return defaults
+
+
+def _gym_env_errors(
+    gym_id: str, kwargs: dict, cost: Any, state_names: list[str], errors: _Errors
+) -> None:
+    """Build a gymnasium env once (no step): its constructor takes ``kwargs``, its observation
+    is a flat Box, its action a bounded float Box, ``state_names`` fit and ``cost`` runs."""
+    import gymnasium as gym
+    import numpy as np
+    import torch
+
+    try:
+        made = gym.make(gym_id, disable_env_checker=True, **kwargs)
+    except Exception as e:  # the user's constructor: any error is theirs to fix
+        errors.append(f"'env.kwargs': building {gym_id!r} with {kwargs} failed: {e!r}")
+        return
+    try:
+        obs_space, act_space = made.observation_space, made.action_space
+    finally:
+        made.close()
+    box = gym.spaces.Box
+    if not (isinstance(obs_space, box) and len(obs_space.shape) == 1):
+        errors.append(
+            f"'env.id': {gym_id!r} has observation space {obs_space}; the world model needs a "
+            "flat Box (wrap the env, e.g. gymnasium.wrappers.FlattenObservation, and register that)"
+        )
+        return
+    if not (
+        isinstance(act_space, box)
+        and len(act_space.shape) == 1
+        and np.issubdtype(act_space.dtype, np.floating)
+        and np.isfinite(act_space.low).all()
+        and np.isfinite(act_space.high).all()
+    ):
+        errors.append(
+            f"'env.id': {gym_id!r} has action space {act_space}; the planners need a flat Box "
+            "of floats with finite bounds"
+        )
+        return
+    n_obs, n_act = obs_space.shape[0], act_space.shape[0]
+    if state_names and len(state_names) != n_obs:
+        errors.append(
+            f"'env.state_names' must name the {n_obs} observation dims of {gym_id!r}, got "
+            f"{len(state_names)} names"
+        )
+    if cost is None:
+        return
+    obs = torch.zeros(2, 3, n_obs)
+    mid = torch.as_tensor((act_space.low + act_space.high) / 2, dtype=torch.float32)
+    shapes = f"cost(obs [2, 3, {n_obs}], action [2, 3, {n_act}], next_obs [2, 3, {n_obs}])"
+    try:
+        out = cost(obs, mid.expand(2, 3, n_act), obs)
+    except Exception as e:
+        errors.append(f"'env.cost': {shapes} failed: {e!r}")
+        return
+    if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2, 3):
+        got = list(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        errors.append(
+            f"'env.cost': {shapes} must return one cost per step, a tensor [2, 3], got {got}"
+        )
 
 
 def _expected_like(default: Any, value: Any) -> str | None:

@@ -70,7 +70,15 @@ def flat_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Keys (flattened) whose values differ between two configs, ignoring :data:`RESUME_IGNORED_KEYS`."""
+    """Keys (flattened) whose values differ between two configs, ignoring :data:`RESUME_IGNORED_KEYS`.
+
+    A key the old config lacks and the new one holds as null (a schema key added since, at its
+    null default, e.g. ``env.id``) is no difference.
+
+    Examples:
+        >>> config_differences({"env": {"name": "drone"}}, {"env": {"name": "drone", "id": None}})
+        []
+    """
 
     def keep(key: str) -> bool:
         return key.split(".", 1)[0] not in RESUME_IGNORED_KEYS
@@ -80,6 +88,8 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     diffs = []
     for key in sorted(set(a) | set(b)):
         if key not in a:
+            if b[key] is None:
+                continue
             diffs.append(f"{key}: (absent) -> {b[key]!r}")
         elif key not in b:
             diffs.append(f"{key}: {a[key]!r} -> (absent)")

@@ -12,7 +12,7 @@ import torch
 
 import torchrl_recon
 from torchrl_recon.experiments import control_stages, estimator_comparison_stages, explore_stages
-from torchrl_recon.experiments.common import fit_stage
+from torchrl_recon.experiments.common import fit_stage, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
@@ -86,9 +86,7 @@ def test_control_stages_one_by_one(tmp_path):
     assert threshold > 0 and u.device.type == "cpu"
     setting = ctx.cfg.settings[0]
     setting.planner.horizon, setting.planner.num_candidates = 3, 8
-    model = control_stages.PlanningModel(
-        world, control_stages.cost_fn(ctx.cfg), uncertainty=estimator
-    )
+    model = planning_model(ctx.cfg, world, estimator)
     controller = control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
     record = control_stages.setting_stage(ctx, setting, controller)
     assert len(record["episodes"]) == 1

@@ -87,7 +87,7 @@ CALIBRATION_METRICS = (
 
 @pytest.mark.parametrize("env", ("industrial_benchmark", "drone", "minitaur"))
 def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
-    """All four estimators fitted, judged and timed; the outcome runs on IB only (time)."""
+    """All five estimators fitted, judged and timed; the outcome runs on IB only (time)."""
     out = tmp_path / "run"
     skip = [] if env == "industrial_benchmark" else ["outcomes.explore_recipe=null"]
     recipe = RECIPES / env / "calibrate_smoke.yaml"
@@ -95,7 +95,13 @@ def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads((out / "results.json").read_text())
     assert results["experiment"] == "calibrate" and results["env"] == env
-    assert list(results["estimators"]) == ["reconstruction", "ensemble", "mc_dropout", "rnd"]
+    assert list(results["estimators"]) == [
+        "reconstruction",
+        "ensemble",
+        "mc_dropout",
+        "rnd",
+        "world_model_ensemble",
+    ]
     for name, row in results["estimators"].items():
         for key in CALIBRATION_METRICS:
             assert -1.0 <= row[key] <= 1.0, (name, key, row[key])
@@ -109,6 +115,9 @@ def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
         assert sub["experiment"] == "explore"
         sub_cfg = yaml.safe_load((out / "outcomes" / "rnd" / "explore" / "config.yaml").read_text())
         assert sub_cfg["models"]["uncertainty"]["kind"] == "rnd"
+        # the world models' disagreement guides exploration like the other estimators
+        wme = out / "outcomes" / "world_model_ensemble" / "explore" / "results.json"
+        assert json.loads(wme.read_text())["arms"]["active"]["mean"] > 0
 
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

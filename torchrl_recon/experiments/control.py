@@ -11,6 +11,7 @@ from typing import Any
 
 from torchrl_recon.experiments import control_stages
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
+from torchrl_recon.experiments.control_seeds import TESTED, across_seeds
 from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
@@ -21,7 +22,9 @@ from torchrl_recon.experiments.tables import fmt, pm, render
 
 def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Per setting, mean ± sample std over all episodes of all seeds of one env (NaN values,
-    from episodes without a planned step, are left out)."""
+    from episodes without a planned step, are left out); and ``across_seeds``: the per-seed
+    means with paired tests against the first setting and a trend test over the u bands
+    (:func:`~torchrl_recon.experiments.control_seeds.across_seeds`)."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
     seeds = [r.get("seed") for r in runs]
     if len(set(seeds)) != len(seeds):
@@ -44,7 +47,7 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "n_episodes": len(episodes),
             "seeds": [r.get("seed") for r in runs if name in r["settings"]],
         }
-    return {"seeds": seeds, "settings": settings}
+    return {"seeds": seeds, "settings": settings, "across_seeds": across_seeds(runs, names)}
 
 
 def settings_table(title: str, settings: Mapping[str, Any], count_key: str) -> str:
@@ -68,12 +71,46 @@ def result_table(r: Mapping[str, Any]) -> str:
     return settings_table(title, r["settings"], "n_episodes")
 
 
+def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:
+    """The across-seed table of one env: per setting and tested metric, mean ± std across the
+    per-seed means and the paired p-values against the reference; then the trend tests."""
+    ref = seeds["reference"]
+    rows = []
+    for name, s in seeds["settings"].items():
+        row = [name, str(len(s["seeds"]))]
+        for metric in TESTED:
+            tests = s["vs_reference"].get(metric, {})
+            row += [
+                pm(s["mean"][metric], s["std"][metric]),
+                fmt((tests.get("paired_t") or {}).get("p_value"), 3),
+                fmt((tests.get("wilcoxon") or {}).get("p_value"), 3),
+            ]
+        rows.append(row)
+    header = ["setting", "seeds"]
+    for metric in TESTED:
+        header += [f"{metric} across seeds", f"t p vs {ref}", f"W p vs {ref}"]
+    lines = [
+        f"control — {env}: per-seed means, mean ± std across seeds (tests paired by seed)",
+        render(header, rows),
+    ]
+    for metric, trend in seeds["trend"].items():
+        text = f"trend over the u bands ({metric}): "
+        if "order" in trend:
+            text += f"{' < '.join(trend['order'])}: L = {fmt(trend['statistic'])}, p = {fmt(trend['p_value'], 3)}"
+        else:
+            text += f"not computed: {trend['note']}"
+        lines.append(text)
+    return "\n".join(lines)
+
+
 def summary_table(r: Mapping[str, Any]) -> str:
-    """One table per env of a control summary."""
+    """Per env of a control summary: the table over all episodes, then the across-seed one."""
     parts = []
     for env, s in r["envs"].items():
         title = f"control — {env}, seeds {s['seeds']}: mean ± std over all episodes"
         parts.append(settings_table(title, s["settings"], "n_episodes"))
+        if s.get("across_seeds"):
+            parts.append(seeds_table(env, s["across_seeds"]))
     return "\n\n".join(parts)
 
 
@@ -104,11 +141,21 @@ def figures(results: Mapping[str, Any]) -> Figures:
 
 
 def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
-    """``control_errors_<env>.png`` for each env of the summary."""
-    return [
-        (f"control_errors_{env}.png", plot_control_errors({"env": env, **s}))
-        for env, s in summary["envs"].items()
-    ]
+    """``control_errors_<env>.png`` for each env of the summary, with each seed's mean as a dot."""
+    figures = []
+    for env, s in summary["envs"].items():
+        seeds = (s.get("across_seeds") or {}).get("settings", {})
+        settings = {
+            name: {**entry, "per_seed": seeds.get(name, {}).get("per_seed", {})}
+            for name, entry in s["settings"].items()
+        }
+        figures.append(
+            (
+                f"control_errors_{env}.png",
+                plot_control_errors({"env": env, **s, "settings": settings}),
+            )
+        )
+    return figures
 
 
 def check(cfg, errors, recipes) -> None:

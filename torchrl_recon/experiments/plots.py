@@ -109,7 +109,8 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
 
     Panels: prediction MSE, |predicted − real| cumulative cost, real cumulative cost, re-plans
     per episode. ``results`` is a control results dict, or an entry of a control summary
-    (anything with ``settings: {name: {"mean": {...}, "std": {...}}}``).
+    (anything with ``settings: {name: {"mean": {...}, "std": {...}}}``); a setting's optional
+    ``per_seed: {metric: [values]}`` is drawn as one dot per seed.
     """
     settings = results.get("settings") or {}
     if not settings:
@@ -122,6 +123,10 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
         means = _nan_to_zero([settings[n]["mean"].get(key, float("nan")) for n in names])
         stds = _nan_to_zero([settings[n]["std"].get(key, float("nan")) for n in names])
         ax.bar(range(len(names)), means, yerr=stds, capsize=3, color=colors, alpha=0.85)
+        for i, n in enumerate(names):  # a summary's per-seed means, as dots
+            points = (settings[n].get("per_seed") or {}).get(key, [])
+            if points:
+                ax.plot([i] * len(points), points, "o", color="black", ms=3, alpha=0.7)
         ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=7)
         ax.set_title(label, fontsize=9)
         ax.tick_params(axis="y", labelsize=7)

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_recon.modules.checks import check_features, check_finite, check_window
+from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
@@ -55,13 +55,24 @@ class Prediction:
 
     def cat(self, other: Prediction) -> Prediction:
         """Candidates of ``self`` followed by those of ``other``."""
-        u = (
-            None
-            if self.uncertainty is None
-            else torch.cat([self.uncertainty, other.uncertainty], -2)
-        )
+        return Prediction.concat([self, other])
+
+    @staticmethod
+    def concat(predictions: Sequence[Prediction]) -> Prediction:
+        """The candidates of every prediction, in order, in one (a single copy of each).
+
+        Examples:
+            >>> part = Prediction(torch.zeros(2, 3, 5, 6), torch.zeros(2, 3, 5), None)
+            >>> Prediction.concat([part, part, part]).states.shape
+            torch.Size([2, 9, 5, 6])
+        """
+        u = None
+        if predictions[0].uncertainty is not None:
+            u = torch.cat([p.uncertainty for p in predictions], -2)
         return Prediction(
-            torch.cat([self.states, other.states], -3), torch.cat([self.cost, other.cost], -2), u
+            torch.cat([p.states for p in predictions], -3),
+            torch.cat([p.cost for p in predictions], -2),
+            u,
         )
 
     @property
@@ -230,8 +241,48 @@ class PlanningModel(nn.Module):
         actions: torch.Tensor,
         *,
         state: tuple[torch.Tensor, torch.Tensor] | None = None,
+        block_rows: int | None = None,
     ) -> Prediction:
-        """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]`` in one batched pass."""
+        """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]``.
+
+        Keyword Args:
+            state: the world model's state from :meth:`warmup` on this context.
+            block_rows: evaluate at most about this many rows (batch elements × candidates)
+                at a time: the candidates are split along K into blocks of
+                ``max(1, block_rows // B)``, each block is one batched pass over all batch
+                elements, and the blocks' predictions are concatenated. Every row's rollout
+                is independent of the others, so the result is that of one pass up to float
+                rounding; a block's intermediates stay in cache. None (default): one pass.
+        """
+        if block_rows is not None:
+            check_int("block_rows", block_rows)
+        batch_rows = int(observation.shape[:-1].numel())
+        k = actions.shape[-3]
+        if block_rows is not None and batch_rows * k > block_rows:
+            chunk = max(1, block_rows // batch_rows)
+            return Prediction.concat(
+                [
+                    self._predict(
+                        context_obs,
+                        context_action,
+                        observation,
+                        actions[..., i : i + chunk, :, :],
+                        state,
+                    )
+                    for i in range(0, k, chunk)
+                ]
+            )
+        return self._predict(context_obs, context_action, observation, actions, state)
+
+    def _predict(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor] | None,
+    ) -> Prediction:
+        """One batched pass of :meth:`forward`."""
         kwargs = {} if state is None else {"state": state}
         states = self.world_model.imagine(
             context_obs, context_action, observation, actions, **kwargs

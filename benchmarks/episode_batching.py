@@ -71,6 +71,9 @@ def main() -> None:
     parser.add_argument("--elites", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--planners", nargs="+", choices=["gradient", "cem"], default=["gradient", "cem"]
+    )
     add_device_argument(parser)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -80,11 +83,12 @@ def main() -> None:
     model = PlanningModel(world, COST, uncertainty=estimator)
     objective = Objective(beta=0.1)
     ctx = batched_contexts(args.envs, device)
+    cem_name = f"CEM, K={args.candidates}"
     planners = {
         "gradient": GradientPlanner(
             model, objective, horizon=args.horizon, restarts=args.restarts, steps=args.steps
         ),
-        f"CEM, K={args.candidates}": CEMPlanner(
+        cem_name: CEMPlanner(
             model,
             objective,
             horizon=args.horizon,
@@ -93,12 +97,17 @@ def main() -> None:
             num_elites=min(args.elites, args.candidates),
         ),
     }
+    planners = {
+        name: planner
+        for name, planner in planners.items()
+        if ("cem" if name == cem_name else name) in args.planners
+    }
     world_flops, ae_flops = row_step_flops()
     rate = gemm_gflops(device)
     print(f"GEMM rate (1024^3 float32 matmul): {rate:.1f} GFLOP/s")
     rows = {
         "gradient": args.restarts * (args.steps + 1),
-        f"CEM, K={args.candidates}": args.candidates * args.iterations,
+        cem_name: args.candidates * args.iterations,
     }
     speed_ups = {}
     for name, planner in planners.items():

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.modules import LSTMWorldModel, MCDropoutUncertainty, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
     Objective,
@@ -23,10 +23,10 @@ from torchrl_recon.planners import (
 H, B = 12, 3
 
 
-def _model() -> PlanningModel:
+def _model(estimator=ReconstructionUncertainty) -> PlanningModel:
     torch.manual_seed(0)
     world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
-    est = ReconstructionUncertainty(3, 2, window=4, hidden_size=8)
+    est = estimator(3, 2, window=4, hidden_size=8)
     est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
     return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)
 
@@ -56,6 +56,33 @@ def test_planning_model_blocks_match_one_pass(block_rows):
         blocked = model(*ctx, actions, block_rows=block_rows)
     assert blocked.states.shape == (B, 10, H, 3)
     _assert_predictions_close(blocked, whole)
+
+
+def test_mc_dropout_scores_every_block_with_the_same_masks():
+    """MC dropout draws its masks per call: blocks of the rollout, but u in one call."""
+    model, ctx = _model(MCDropoutUncertainty), _context()
+    actions = torch.rand(B, 10, H, 2) * 2 - 1
+    with torch.no_grad():
+        torch.manual_seed(3)
+        whole = model(*ctx, actions)
+        torch.manual_seed(3)
+        blocked = model(*ctx, actions, block_rows=4)
+    _assert_predictions_close(blocked, whole)
+
+
+def test_u_under_autograd_in_row_blocks_matches_each_env_on_its_own():
+    """3 envs x 30 candidates x 50 steps = 4500 windows: two row blocks under autograd (one
+    env's 1500 windows: one). u and the gradient of J w.r.t. the actions match per-env calls."""
+    model, ctx = _model(), _context()
+    actions = (torch.rand(B, 30, 50, 2) * 2 - 1).requires_grad_(True)
+    objective = Objective(beta=0.5)
+    batched = model(*ctx, actions)
+    (grad,) = torch.autograd.grad(objective.score(batched).sum(), actions)
+    for i in range(B):
+        one = model(*(x[i] for x in ctx), actions[i])
+        (grad_i,) = torch.autograd.grad(objective.score(one).sum(), actions)
+        torch.testing.assert_close(batched.uncertainty[i], one.uncertainty)
+        torch.testing.assert_close(grad[i], grad_i[i])
 
 
 @pytest.mark.parametrize(

@@ -35,6 +35,13 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
             1,
         ),
         (
+            "episode_batching.py",
+            ["--envs", "2", "--horizon", "5", "--restarts", "2", "--steps", "1"]
+            + ["--candidates", "8", "--elites", "2", "--iterations", "1", "--repeats", "1"],
+            r"^speed-up of 2 episodes in one call \((?:gradient|CEM, K=8)\): ([0-9.]+)x$",
+            2,
+        ),
+        (
             "uncertainty_overhead.py",
             ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
             r"ratio: ([0-9.]+)$",

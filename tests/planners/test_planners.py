@@ -303,6 +303,7 @@ def test_defaults_are_the_documented_ones():
     assert (cem.smoothing, cem.min_std, cem.on_infeasible) == (0.1, 0.02, "fallback")
     shooting = RandomShootingPlanner(model, Objective(), horizon=3)
     assert (shooting.num_candidates, shooting.on_infeasible) == (1000, "fallback")
+    assert cem.block_rows == shooting.block_rows == 1024
 
 
 def test_cem_accepts_the_edges_of_its_ranges(context):

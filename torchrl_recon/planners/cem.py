@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchrl_recon.modules.checks import check_int
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase
+from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
 
@@ -27,6 +27,10 @@ class CEMPlanner(PlannerBase):
         num_elites: top-k kept per iteration.
         smoothing: weight of the previous mean/std in the update (0 = plain CEM).
         min_std: floor on the standard deviation, as a fraction of the action range.
+        block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
+            :meth:`PlanningModel.forward`): many envs' candidates in one call then run at the
+            speed of cache-sized batches instead of spilling the rollout state to memory. The
+            result is the unblocked one up to float rounding. None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"``.
 
     Examples:
@@ -49,10 +53,14 @@ class CEMPlanner(PlannerBase):
         num_elites: int = 100,
         smoothing: float = 0.1,
         min_std: float = 0.02,
+        block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
+        if block_rows is not None:
+            check_int("block_rows", block_rows)
+        self.block_rows = block_rows
         check_int("iterations", iterations)
         if not 1 <= num_elites <= num_candidates:
             raise ValueError(
@@ -89,7 +97,12 @@ class CEMPlanner(PlannerBase):
                 noise = self._normal(batch, self.num_candidates, generator)
                 candidates = self._clamp(mean + std * noise)
             prediction = self.model(
-                context_obs, context_action, observation, candidates, state=state
+                context_obs,
+                context_action,
+                observation,
+                candidates,
+                state=state,
+                block_rows=self.block_rows,
             )
             if it == 0 and self.objective.band is not None:
                 reference = torch.arange(

@@ -11,7 +11,7 @@ from torch import nn
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction
 
 
 @contextmanager
@@ -96,15 +96,16 @@ class GradientPlanner(PlannerBase):
                 start[..., 0, :, :] = init
         actions = start.requires_grad_(True)
         optimizer = torch.optim.Adam([actions], lr=self.lr)
-        seen_actions, seen = [], None
+        # Every step's samples, concatenated once at the end (not step by step: that copy grows
+        # with the steps and the rows).
+        seen_actions, seen_predictions = [], []
         with torch.enable_grad(), frozen(self.model):
             for step in range(self.steps + 1):
                 prediction = self.model(
                     context_obs, context_action, observation, actions, state=state
                 )
                 seen_actions.append(actions.detach().clone())
-                detached = prediction.detach()
-                seen = detached if seen is None else seen.cat(detached)
+                seen_predictions.append(prediction.detach())
                 if step == self.steps:
                     break
                 (grad,) = torch.autograd.grad(-self.objective.score(prediction).sum(), actions)
@@ -114,6 +115,7 @@ class GradientPlanner(PlannerBase):
                     actions.copy_(self._clamp(actions))
         # Relative bands are resolved on the uniform initial restarts (restart 0 is `init` when given).
         first = 1 if init is not None and self.restarts > 1 else 0
+        seen = Prediction.concat(seen_predictions)
         uniform = torch.arange(first, self.restarts, device=start.device)
         bounds = self._bounds(seen.take(uniform.expand(*batch, -1)))
         return torch.cat(seen_actions, -3), seen, bounds

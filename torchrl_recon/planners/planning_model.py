@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_recon.modules.checks import check_features, check_finite, check_window
+from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
+from torchrl_recon.modules.ensemble import EnsembleUncertainty
+from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
@@ -55,13 +58,24 @@ class Prediction:
 
     def cat(self, other: Prediction) -> Prediction:
         """Candidates of ``self`` followed by those of ``other``."""
-        u = (
-            None
-            if self.uncertainty is None
-            else torch.cat([self.uncertainty, other.uncertainty], -2)
-        )
+        return Prediction.concat([self, other])
+
+    @staticmethod
+    def concat(predictions: Sequence[Prediction]) -> Prediction:
+        """The candidates of every prediction, in order, in one (a single copy of each).
+
+        Examples:
+            >>> part = Prediction(torch.zeros(2, 3, 5, 6), torch.zeros(2, 3, 5), None)
+            >>> Prediction.concat([part, part, part]).states.shape
+            torch.Size([2, 9, 5, 6])
+        """
+        u = None
+        if predictions[0].uncertainty is not None:
+            u = torch.cat([p.uncertainty for p in predictions], -2)
         return Prediction(
-            torch.cat([self.states, other.states], -3), torch.cat([self.cost, other.cost], -2), u
+            torch.cat([p.states for p in predictions], -3),
+            torch.cat([p.cost for p in predictions], -2),
+            u,
         )
 
     @property
@@ -73,6 +87,19 @@ class Prediction:
     def cumulative_uncertainty(self) -> torch.Tensor | None:
         """Σ_k u, ``[*B, K]`` (None without an estimator)."""
         return None if self.uncertainty is None else self.uncertainty.sum(-1)
+
+
+GRAD_BLOCK_WINDOWS = 4096
+"""With autograd, u is scored in row blocks of about this many windows (gradient planning of
+many envs at once; one env's 16 restarts × 200 steps stay in one block)."""
+
+_ROW_INDEPENDENT_ESTIMATORS = (ReconstructionUncertainty, EnsembleUncertainty, RNDUncertainty)
+
+
+def _entering(observation: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+    """s_k for k = 0..H-1: the real state, then the predicted ones but the last, ``[*B, K, H, N]``."""
+    start = observation[..., None, None, :].expand(*states.shape[:-2], 1, states.shape[-1])
+    return torch.cat([start, states[..., :-1, :]], -2)
 
 
 class PlanningModel(nn.Module):
@@ -230,22 +257,73 @@ class PlanningModel(nn.Module):
         actions: torch.Tensor,
         *,
         state: tuple[torch.Tensor, torch.Tensor] | None = None,
+        block_rows: int | None = None,
     ) -> Prediction:
-        """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]`` in one batched pass."""
+        """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]``.
+
+        Keyword Args:
+            state: the world model's state from :meth:`warmup` on this context.
+            block_rows: evaluate at most about this many rows (batch elements × candidates)
+                at a time: the candidates are split along K into blocks of
+                ``max(1, block_rows // B)``, each block one batched pass over all batch
+                elements, so a block's rollout state and u windows stay in cache. Each row's
+                prediction depends on that row alone, so the result is that of one pass up
+                to float rounding. An estimator that draws random numbers per call (MC
+                dropout's masks) still scores all rows in one call, so every candidate is
+                scored by the same masks. None (default): one pass.
+        """
+        if block_rows is not None:
+            check_int("block_rows", block_rows)
+        batch_rows = int(observation.shape[:-1].numel())
+        k = actions.shape[-3]
+        if block_rows is None or batch_rows * k <= block_rows:
+            return self._predict(context_obs, context_action, observation, actions, state)
+        chunk = max(1, block_rows // batch_rows)
+        blocks_u = self._row_independent_u
+        prediction = Prediction.concat(
+            [
+                self._predict(
+                    context_obs,
+                    context_action,
+                    observation,
+                    actions[..., i : i + chunk, :, :],
+                    state,
+                    with_u=blocks_u,
+                )
+                for i in range(0, k, chunk)
+            ]
+        )
+        if self.uncertainty is not None and not blocks_u:
+            entering = _entering(observation, prediction.states)
+            prediction.uncertainty = self._score_uncertainty(
+                context_obs, context_action, entering, actions
+            )
+        return prediction
+
+    @property
+    def _row_independent_u(self) -> bool:
+        """Whether the estimator's u of a window depends on that window alone (no per-call draws)."""
+        return isinstance(self.uncertainty, _ROW_INDEPENDENT_ESTIMATORS)
+
+    def _predict(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor] | None,
+        *,
+        with_u: bool = True,
+    ) -> Prediction:
+        """One batched pass of :meth:`forward` (u left out unless ``with_u``)."""
         kwargs = {} if state is None else {"state": state}
         states = self.world_model.imagine(
             context_obs, context_action, observation, actions, **kwargs
         )
-        k = actions.shape[-3]
-        start = (
-            observation.unsqueeze(-2)
-            .unsqueeze(-2)
-            .expand(*observation.shape[:-1], k, 1, self.obs_dim)
-        )
-        entering = torch.cat([start, states[..., :-1, :]], -2)  # s_k for k = 0..H-1
+        entering = _entering(observation, states)  # s_k for k = 0..H-1
         cost = self.cost_fn(entering, actions, states)
         uncertainty = None
-        if self.uncertainty is not None:
+        if self.uncertainty is not None and with_u:
             uncertainty = self._score_uncertainty(context_obs, context_action, entering, actions)
         return Prediction(states=states, cost=cost, uncertainty=uncertainty)
 
@@ -268,4 +346,12 @@ class PlanningModel(nn.Module):
             x[..., :past, self.obs_dim :] = context_action[..., None, -past:, :]
         x[..., past:, : self.obs_dim] = entering
         x[..., past:, self.obs_dim :] = actions
-        return est.score_sequence(x.view(rows, past + horizon, -1)).view(*batch, k, horizon)
+        x = x.view(rows, past + horizon, -1)
+        if torch.is_grad_enabled() and self._row_independent_u:
+            # With autograd the estimators score all windows at once; rows in blocks of about
+            # GRAD_BLOCK_WINDOWS windows keep each block's forward and backward in cache.
+            step = max(1, GRAD_BLOCK_WINDOWS // horizon)
+            if rows > step:
+                u = torch.cat([est.score_sequence(block) for block in x.split(step)])
+                return u.view(*batch, k, horizon)
+        return est.score_sequence(x).view(*batch, k, horizon)

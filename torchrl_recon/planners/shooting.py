@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchrl_recon.modules.checks import check_int
-from torchrl_recon.planners.base import OnInfeasible, PlannerBase
+from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel
 
@@ -20,6 +20,8 @@ class RandomShootingPlanner(PlannerBase):
     Keyword Args:
         horizon: H.
         num_candidates: K.
+        block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
+            :class:`~torchrl_recon.planners.CEMPlanner`). None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
 
     Examples:
@@ -38,14 +40,24 @@ class RandomShootingPlanner(PlannerBase):
         *,
         horizon: int,
         num_candidates: int = 1000,
+        block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
-        self.num_candidates = num_candidates
+        if block_rows is not None:
+            check_int("block_rows", block_rows)
+        self.num_candidates, self.block_rows = num_candidates, block_rows
 
     @torch.inference_mode()
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         candidates = self._uniform(observation.shape[:-1], self.num_candidates, generator)
-        prediction = self.model(context_obs, context_action, observation, candidates, state=state)
+        prediction = self.model(
+            context_obs,
+            context_action,
+            observation,
+            candidates,
+            state=state,
+            block_rows=self.block_rows,
+        )
         return candidates, prediction, self._bounds(prediction)

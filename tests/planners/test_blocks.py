@@ -1,0 +1,139 @@
+"""Candidates evaluated in row blocks give the one-pass result (same draws, float rounding only).
+
+Blocking splits the ``B·K`` candidate rows into several batched passes. Each row's rollout,
+cost and u depend on that row alone, so the numbers are those of one pass; only the matrix
+products' kernels may differ with the number of rows (a different split of the same sums), which
+moves results by float32 rounding. Hence ``assert_close`` with float32 tolerances, not ``equal``.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_recon.modules import LSTMWorldModel, MCDropoutUncertainty, ReconstructionUncertainty
+from torchrl_recon.planners import (
+    CEMPlanner,
+    Objective,
+    PlanningModel,
+    RandomShootingPlanner,
+    UncertaintyBand,
+)
+
+H, B = 12, 3
+
+
+def _model(estimator=ReconstructionUncertainty) -> PlanningModel:
+    torch.manual_seed(0)
+    world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
+    est = estimator(3, 2, window=4, hidden_size=8)
+    est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
+    return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)
+
+
+def _context(batch: int = B) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(1)
+    return (
+        torch.randn(batch, 4, 3, generator=g),
+        torch.rand(batch, 4, 2, generator=g) * 2 - 1,
+        torch.randn(batch, 3, generator=g),
+    )
+
+
+def _assert_predictions_close(a, b) -> None:
+    torch.testing.assert_close(a.states, b.states)
+    torch.testing.assert_close(a.cost, b.cost)
+    torch.testing.assert_close(a.uncertainty, b.uncertainty)
+
+
+@pytest.mark.parametrize("block_rows", [1, 4, 7, 3 * 10])
+def test_planning_model_blocks_match_one_pass(block_rows):
+    """Blocks of 1, 1 (4 // 3), 2 (with a ragged last block) and all 10 candidates per env."""
+    model, ctx = _model(), _context()
+    actions = torch.rand(B, 10, H, 2) * 2 - 1
+    with torch.no_grad():
+        whole = model(*ctx, actions)
+        blocked = model(*ctx, actions, block_rows=block_rows)
+    assert blocked.states.shape == (B, 10, H, 3)
+    _assert_predictions_close(blocked, whole)
+
+
+def test_mc_dropout_scores_every_block_with_the_same_masks():
+    """MC dropout draws its masks per call: blocks of the rollout, but u in one call."""
+    model, ctx = _model(MCDropoutUncertainty), _context()
+    actions = torch.rand(B, 10, H, 2) * 2 - 1
+    with torch.no_grad():
+        torch.manual_seed(3)
+        whole = model(*ctx, actions)
+        torch.manual_seed(3)
+        blocked = model(*ctx, actions, block_rows=4)
+    _assert_predictions_close(blocked, whole)
+
+
+def test_u_under_autograd_in_row_blocks_matches_each_env_on_its_own():
+    """3 envs x 30 candidates x 50 steps = 4500 windows: two row blocks under autograd (one
+    env's 1500 windows: one). u and the gradient of J w.r.t. the actions match per-env calls."""
+    model, ctx = _model(), _context()
+    actions = (torch.rand(B, 30, 50, 2) * 2 - 1).requires_grad_(True)
+    objective = Objective(beta=0.5)
+    batched = model(*ctx, actions)
+    (grad,) = torch.autograd.grad(objective.score(batched).sum(), actions)
+    for i in range(B):
+        one = model(*(x[i] for x in ctx), actions[i])
+        (grad_i,) = torch.autograd.grad(objective.score(one).sum(), actions)
+        torch.testing.assert_close(batched.uncertainty[i], one.uncertainty)
+        torch.testing.assert_close(grad[i], grad_i[i])
+
+
+@pytest.mark.parametrize(
+    "objective",
+    [Objective(beta=0.5), Objective(band=UncertaintyBand(low=0.2, high=0.8, kind="quantile"))],
+)
+@pytest.mark.parametrize("kind", ["cem", "shooting"])
+def test_blocked_planners_match_unblocked_for_the_same_draws(kind, objective):
+    model, ctx = _model(), _context()
+    init = torch.rand(B, H, 2) * 2 - 1
+
+    def plan(block_rows):
+        if kind == "cem":
+            planner = CEMPlanner(
+                model,
+                objective,
+                horizon=H,
+                num_candidates=40,
+                num_elites=5,
+                iterations=3,
+                block_rows=block_rows,
+            )
+        else:
+            planner = RandomShootingPlanner(
+                model, objective, horizon=H, num_candidates=40, block_rows=block_rows
+            )
+        return planner.plan(*ctx, init=init, generator=torch.Generator().manual_seed(7))
+
+    whole, blocked = plan(None), plan(16)  # 16 rows: blocks of 5 candidates x 3 envs
+    torch.testing.assert_close(blocked.actions, whole.actions)
+    torch.testing.assert_close(blocked.states, whole.states)
+    torch.testing.assert_close(blocked.objective, whole.objective)
+    torch.testing.assert_close(blocked.uncertainty, whole.uncertainty)
+    assert torch.equal(blocked.feasible, whole.feasible)
+
+
+def test_block_rows_must_be_a_positive_int():
+    model = _model()
+    with pytest.raises(ValueError, match="^block_rows must be an int >= 1, got 0"):
+        CEMPlanner(model, Objective(), horizon=H, num_candidates=8, num_elites=2, block_rows=0)
+    with pytest.raises(ValueError, match="^block_rows must be an int >= 1, got 2.5"):
+        RandomShootingPlanner(model, Objective(), horizon=H, block_rows=2.5)
+    actions = torch.rand(B, 4, H, 2)
+    with pytest.raises(ValueError, match="^block_rows must be an int >= 1, got -1"):
+        model(*_context(), actions, block_rows=-1)
+
+
+def test_default_block_leaves_one_env_of_1000_candidates_in_one_pass():
+    """The sampling planners' default block holds one env's K = 1000 (the recipes'), so a
+    single-env plan runs exactly as before; 10 envs run in blocks of 102 candidates."""
+    model = _model()
+    planner = CEMPlanner(model, Objective(), horizon=H)
+    assert planner.block_rows >= 1000
+    assert RandomShootingPlanner(model, Objective(), horizon=H).block_rows == planner.block_rows

@@ -404,3 +404,18 @@ def test_estimator_inside_planning_model(kind):
     assert torch.isfinite(pred.uncertainty).all()
     pred.uncertainty.sum().backward()
     assert torch.isfinite(actions.grad).all() and actions.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_window_local_estimators_score_rows_independently(kind):
+    """``window_local`` lets planners score candidates in row blocks: for those kinds, rows
+    scored in two calls equal the rows scored in one; MC dropout (per-call masks) is not one."""
+    est = _est(kind)
+    assert est.window_local == (kind != "mc_dropout")
+    if not est.window_local:
+        return
+    obs, action = torch.randn(6, 9, 3), torch.randn(6, 9, 2)
+    with torch.no_grad():
+        whole = est.score(obs, action)
+        parts = torch.cat([est.score(obs[:2], action[:2]), est.score(obs[2:], action[2:])])
+    torch.testing.assert_close(parts, whole)

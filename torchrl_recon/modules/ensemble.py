@@ -55,6 +55,8 @@ class EnsembleUncertainty(UncertaintyEstimator):
         torch.Size([])
     """
 
+    window_local = True  # u of a window depends on that window alone
+
     def __init__(
         self,
         obs_dim: int,

@@ -44,6 +44,8 @@ class ReconstructionUncertainty(UncertaintyEstimator):
         torch.Size([4, 21])
     """
 
+    window_local = True  # u of a window depends on that window alone
+
     def __init__(
         self,
         obs_dim: int,

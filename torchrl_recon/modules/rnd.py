@@ -52,6 +52,8 @@ class RNDUncertainty(UncertaintyEstimator):
         False
     """
 
+    window_local = True  # u of a window depends on that window alone
+
     def __init__(
         self,
         obs_dim: int,

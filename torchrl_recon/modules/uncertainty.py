@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+from typing import ClassVar
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -42,7 +43,14 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
     ``forward`` reads ``obs_key`` ``[*B, L, N]`` and ``action_key`` ``[*B, L, M]`` and writes
     ``out_key`` ``[*B, L]``: the u of the window *ending* at each step; the first
     ``window - 1`` steps have no full window and hold NaN.
+
+    ``window_local`` (class attribute) says that a window's u depends on that window alone, with
+    no random draw per call, so a planner may score its candidates in blocks of rows and get
+    the same u (:class:`~torchrl_recon.planners.PlanningModel`'s ``block_rows``). It is False
+    unless a subclass sets it (MC dropout draws its masks per call and leaves it False).
     """
+
+    window_local: ClassVar[bool] = False
 
     def __init__(
         self,

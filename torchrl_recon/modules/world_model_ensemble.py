@@ -53,6 +53,8 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
         torch.Size([])
     """
 
+    window_local = True  # u of a window depends on that window alone
+
     def __init__(
         self,
         obs_dim: int,

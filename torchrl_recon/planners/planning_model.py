@@ -11,9 +11,6 @@ from torchrl.envs import EnvBase
 
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
-from torchrl_recon.modules.ensemble import EnsembleUncertainty
-from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
-from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
@@ -92,8 +89,6 @@ class Prediction:
 GRAD_BLOCK_WINDOWS = 4096
 """With autograd, u is scored in row blocks of about this many windows (gradient planning of
 many envs at once; one env's 16 restarts × 200 steps stay in one block)."""
-
-_ROW_INDEPENDENT_ESTIMATORS = (ReconstructionUncertainty, EnsembleUncertainty, RNDUncertainty)
 
 
 def _entering(observation: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
@@ -303,7 +298,7 @@ class PlanningModel(nn.Module):
     @property
     def _row_independent_u(self) -> bool:
         """Whether the estimator's u of a window depends on that window alone (no per-call draws)."""
-        return isinstance(self.uncertainty, _ROW_INDEPENDENT_ESTIMATORS)
+        return bool(getattr(self.uncertainty, "window_local", False))
 
     def _predict(
         self,

@@ -85,7 +85,7 @@ def random_data_stage(
         seed = ctx.stage_seed(name)
         env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps, num_envs=ctx.cfg.num_envs)
         data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
-        env.close()
+        env.close(raise_if_closed=False)  # the collector closes a batched env
         ctx.stages.save_data(name, data if keys is None else data.select(*keys))
         return {"steps": data.numel()}
 

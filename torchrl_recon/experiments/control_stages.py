@@ -228,7 +228,9 @@ def batch_part(
     batch of one (the record of a run with ``num_envs = 1``), else ``{"episodes": [metrics
     per episode], "trajectory_example"}``."""
     tds = episode_batch(ctx, setting, planner, controller, batch)
-    records = [episode_record(ctx, setting, controller, e, td) for e, td in zip(batch, tds)]
+    records = [
+        episode_record(ctx, setting, controller, e, td) for e, td in zip(batch, tds, strict=True)
+    ]
     if len(records) == 1:
         return records[0]
     example = next((r["trajectory_example"] for r in records if r["trajectory_example"]), None)
@@ -265,7 +267,7 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
         )
         episodes = [
             metrics
-            for b, (part, batch) in enumerate(zip(parts, batches))
+            for b, (part, batch) in enumerate(zip(parts, batches, strict=True))
             for metrics in part_episodes(part, batch, folder / f"part_{b}.json")
         ]
         first = parts[0]["trajectory_example"] if parts else None

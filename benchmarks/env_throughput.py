@@ -5,6 +5,7 @@ Run from the repository root (a few minutes on a 2-core CPU box with the default
     .venv/bin/python benchmarks/env_throughput.py
     .venv/bin/python benchmarks/env_throughput.py --envs drone industrial_benchmark --steps 5000
     .venv/bin/python benchmarks/env_throughput.py --workers 2
+    .venv/bin/python benchmarks/env_throughput.py --paths torchrl torchrl-serial torchrl-par --serial-envs 10
 
 For each environment it measures, with uniformly random actions and a reset at every episode
 end, the transitions per second of
@@ -13,7 +14,12 @@ end, the transitions per second of
 * ``gym-sync-xN``      ``gymnasium.vector.SyncVectorEnv`` of N envs (N = ``--workers``);
 * ``gym-async-xN``     ``gymnasium.vector.AsyncVectorEnv`` of N envs (N worker processes);
 * ``torchrl``          ``make_env(name, seed=0)`` (GymEnv + DoubleToFloat/StepCounter/InitTracker);
+* ``torchrl-serial-xS`` ``make_env(name, seed=0, num_envs=S, parallel=False)`` (SerialEnv of S
+  envs stepped one after the other in the main process; S = ``--serial-envs``);
 * ``torchrl-par-xN``   ``make_env(name, seed=0, num_envs=N)`` (ParallelEnv, N worker processes).
+
+``--paths`` picks some of these kinds (``gym``, ``gym-sync``, ``gym-async``, ``torchrl``,
+``torchrl-serial``, ``torchrl-par``); all by default.
 
 The torchrl loops use ``env.rand_action`` + ``env.step_and_maybe_reset`` (what a collector
 does, without storing the data). Vector paths count ``N`` transitions per batched step; vector
@@ -46,6 +52,7 @@ from torchrl_recon.envs import ENVS, get_entry, make_env, register_envs
 # Timed steps per (env, path kind) when --steps is not given: chosen so that every measurement
 # takes seconds, not minutes, on a 2-core CPU box (Minitaur steps cost ~5 ms, IB and Drone
 # steps ~0.1 ms through gymnasium and ~1 ms through TorchRL).
+PATHS = ("gym", "gym-sync", "gym-async", "torchrl", "torchrl-serial", "torchrl-par")
 DEFAULT_STEPS = {
     "industrial_benchmark": {"gym": 20000, "torchrl": 5000},
     "drone": {"gym": 20000, "torchrl": 5000},
@@ -102,8 +109,10 @@ def _time_gym_vector(
         env.close()
 
 
-def _time_torchrl(name: str, num_envs: int, steps: int, warmup: int) -> tuple[float, int]:
-    env = make_env(name, seed=0, num_envs=num_envs)
+def _time_torchrl(
+    name: str, num_envs: int, steps: int, warmup: int, parallel: bool = True
+) -> tuple[float, int]:
+    env = make_env(name, seed=0, num_envs=num_envs, parallel=parallel)
     torch.manual_seed(0)  # rand_action draws from torch's global RNG
 
     def run(td, n: int):
@@ -151,13 +160,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--warmup", type=int, default=200, help="untimed transitions before each measurement"
     )
+    parser.add_argument(
+        "--serial-envs", type=int, default=10, help="envs of the torchrl-serial path (SerialEnv)"
+    )
+    parser.add_argument(
+        "--paths",
+        nargs="+",
+        choices=PATHS,
+        default=list(PATHS),
+        help="which path kinds to measure (default: all)",
+    )
     args = parser.parse_args(argv)
     if args.steps is not None and args.steps < 1:
         parser.error("--steps must be >= 1")
-    if args.workers < 1:
-        parser.error("--workers must be >= 1")
+    if args.workers < 1 or args.serial_envs < 1:
+        parser.error("--workers and --serial-envs must be >= 1")
     names = [get_entry(n).name for n in args.envs]
-    n = args.workers
+    n, s = args.workers, args.serial_envs
 
     print(
         f"# {datetime.datetime.now().isoformat(timespec='seconds')}  "
@@ -174,19 +193,32 @@ def main(argv: list[str] | None = None) -> int:
         gym_steps = args.steps or DEFAULT_STEPS[name]["gym"]
         trl_steps = args.steps or DEFAULT_STEPS[name]["torchrl"]
         measurements = [
-            ("gym", partial(_time_gym_single, gym_id, gym_steps, args.warmup)),
+            ("gym", "gym", partial(_time_gym_single, gym_id, gym_steps, args.warmup)),
             (
+                "gym-sync",
                 f"gym-sync-x{n}",
                 partial(_time_gym_vector, SyncVectorEnv, gym_id, n, gym_steps, args.warmup),
             ),
             (
+                "gym-async",
                 f"gym-async-x{n}",
                 partial(_time_gym_vector, AsyncVectorEnv, gym_id, n, gym_steps, args.warmup),
             ),
-            ("torchrl", partial(_time_torchrl, name, 1, trl_steps, args.warmup)),
-            (f"torchrl-par-x{n}", partial(_time_torchrl, name, n, trl_steps, args.warmup)),
+            ("torchrl", "torchrl", partial(_time_torchrl, name, 1, trl_steps, args.warmup)),
+            (
+                "torchrl-serial",
+                f"torchrl-serial-x{s}",
+                partial(_time_torchrl, name, s, trl_steps, args.warmup, parallel=False),
+            ),
+            (
+                "torchrl-par",
+                f"torchrl-par-x{n}",
+                partial(_time_torchrl, name, n, trl_steps, args.warmup),
+            ),
         ]
-        for path, measure in measurements:
+        for kind, path, measure in measurements:
+            if kind not in args.paths:
+                continue
             seconds, transitions = measure()
             rows.append((name, path, transitions, seconds, transitions / seconds))
             print(

@@ -1,7 +1,9 @@
 from __future__ import annotations
 
 import warnings
+from functools import partial
 
+import pytest
 import torch
 
 from torchrl_recon.collectors import collect_random
@@ -28,3 +30,34 @@ def test_odd_frame_counts_collect_no_extra_steps_and_the_same_data():
     assert divided.batch_size == overshooting.batch_size == torch.Size([1500])
     assert torch.equal(divided["observation"], overshooting["observation"])
     assert torch.equal(divided["action"], overshooting["action"])
+
+
+def test_a_batch_of_envs_gives_env_major_contiguous_trajectories():
+    def data():
+        env = make_env("drone", seed=0, num_envs=3, parallel=False, max_episode_steps=10)
+        return collect_random(env, frames=50, seed=1, frames_per_batch=30)
+
+    first, again = data(), data()
+    assert first.batch_size == torch.Size([50])  # 3 x 20 collected, the last env's tail dropped
+    assert torch.equal(first["observation"], again["observation"])
+    ids = first["collector", "traj_ids"]
+    # env 0's two episodes, env 1's two, then 10 steps of env 2: each id one block
+    assert ids.tolist() == [0] * 10 + [3] * 10 + [1] * 10 + [4] * 10 + [2] * 10
+    assert (first["step_count"].squeeze(-1) == torch.arange(10).repeat(5)).all()
+
+
+def test_validation_trajectories_from_a_batch_are_complete_and_spread_their_offsets():
+    from torchrl_recon.collectors import validation_trajectories
+
+    # A drone tilting past 0.005 rad ends early: rows are discarded and drawn again.
+    env = make_env("drone", seed=0, num_envs=4, parallel=False, max_tilt=0.005)
+    draw = partial(validation_trajectories, env, count=6, length=12, seed=0, policy="offset_noise")
+    with pytest.raises(RuntimeError, match=r"Only \d of 6 trajectories reached 12 steps in 8"):
+        draw(max_attempts=8)  # two batches of 4 rows are not enough
+    val = draw()
+    assert val.batch_size == torch.Size([6, 12])
+    assert not val["next", "done"][:, :-1].any()
+    assert (val["step_count"].squeeze(-1) == torch.arange(12)).all()
+    # trajectory k has offset magnitude (k % 4) / 3: magnitude 0 leaves actions in [-0.5, 0.5]
+    assert val["action"][0].abs().max() <= 0.5 and val["action"][4].abs().max() <= 0.5
+    assert val["action"][3].abs().max() > 0.5

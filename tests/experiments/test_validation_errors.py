@@ -76,6 +76,8 @@ BAD = [
     ("drone/control_smoke", "replan.every=0", ["'replan.every'"]),
     ("drone/control_smoke", "random_episodes=1", ["'random_episodes'", ">= 2"]),
     ("drone/control_smoke", "episodes=0", ["'episodes'"]),
+    ("drone/control_smoke", "num_envs=0", ["'num_envs'", ">= 1", "got 0"]),
+    ("industrial_benchmark/explore_smoke", "num_envs=1.5", ["num_envs", "1.5"]),
     ("drone/control_smoke", "warmup_random_steps=30", ["'env.episode_steps'", "warmup"]),
     ("drone/control_smoke", "env.kwargs.goal=[1,2]", ["'env.kwargs.goal'", "3"]),
     (

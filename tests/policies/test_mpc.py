@@ -276,6 +276,33 @@ def test_warmup_steps_take_random_actions_before_the_first_plan():
         _small_drone_policy(warmup_steps=CONTEXT - 1)
 
 
+def test_rows_of_an_env_batch_replan_on_their_own_state():
+    """Two drones in one SerialEnv: each row re-plans when its own plan's Σu crosses the
+    threshold (or its plan runs out); the rows' re-plan steps differ."""
+    policy = _small_drone_policy(replan="uncertainty", threshold=5.0, threshold_on="cumulative")
+    env = make_env("drone", seed=[0, 1], parallel=False)
+    env.append_transform(policy.make_tensordict_primer())
+    torch.manual_seed(0)
+    td = env.rollout(20, policy)
+    replanned = td["mpc_replanned"].squeeze(-1)  # [2, 20]
+    assert replanned.any(1).all() and not torch.equal(replanned[0], replanned[1])
+    step = td["mpc_plan_step"].squeeze(-1).masked_fill(td["is_init"].squeeze(-1), PLAN_H)
+    ready = td["mpc_steps_seen"].squeeze(-1).masked_fill(td["is_init"].squeeze(-1), 0) >= CONTEXT
+    sum_u = td["mpc_plan_u"].cumsum(-1).gather(-1, step.clamp(max=PLAN_H - 1)[..., None])
+    expected = ready & ((step >= PLAN_H) | (sum_u.squeeze(-1) > 5.0))
+    assert torch.equal(replanned, expected)
+    env.close()
+
+
+def test_rows_a_partial_step_leaves_out_are_not_planned():
+    policy = _small_drone_policy(replan="every_step")
+    td = _make_drone(policy).reset().expand(3).clone()
+    td["is_init"] = torch.zeros_like(td["is_init"])
+    td["mpc_steps_seen"] = torch.full_like(td["mpc_steps_seen"], CONTEXT)
+    td["_step"] = torch.tensor([True, False, True])  # TorchRL: row 1 is done and waits
+    assert policy(td)["mpc_replanned"].squeeze(-1).tolist() == [True, False, True]
+
+
 @pytest.fixture(scope="module")
 def ib_policy_factory(trained_models):
     trained = trained_models("industrial_benchmark")

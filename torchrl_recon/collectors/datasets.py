@@ -50,11 +50,19 @@ def validation_trajectories(
     Each starts from a fresh reset; episodes that terminate early (a drone crash, a fallen
     Minitaur) are discarded and drawn again. ``policy="random"`` uses uniform actions;
     ``"offset_noise"`` draws one :class:`OffsetNoisePolicy` offset per trajectory, with
-    magnitudes spread evenly over 0, 1/3, 2/3 and 1.
+    magnitudes spread evenly over 0, 1/3, 2/3 and 1 (trajectory ``k`` has magnitude
+    ``(k % 4) / 3``; a discarded one is drawn again with the same magnitude).
+
+    A batched env of ``B`` envs draws ``B`` trajectories per rollout, one per missing
+    trajectory slot in order (each attempt counts towards ``max_attempts``); with ``B = 1``
+    (or an unbatched env) the trajectories are drawn one after the other.
 
     Examples:
         >>> from torchrl_recon.envs import make_env
         >>> validation_trajectories(make_env("drone", seed=0), count=2, length=5, seed=0).batch_size
+        torch.Size([2, 5])
+        >>> batch = make_env("drone", seed=0, num_envs=3, parallel=False)
+        >>> validation_trajectories(batch, count=2, length=5, seed=0, policy="offset_noise").batch_size
         torch.Size([2, 5])
     """
     if policy not in ("random", "offset_noise"):
@@ -63,21 +71,36 @@ def validation_trajectories(
     torch.manual_seed(seed)
     env.set_seed(seed)
     action_dim = env.action_spec.shape[-1]
-    trajectories, attempts = [], 0
+    batched = len(env.batch_size) > 0
+    rows = env.batch_size.numel()
+    slots: list[TensorDictBase | None] = [None] * count
+    attempts = 0
     max_attempts = max_attempts or 10 * count
-    while len(trajectories) < count:
-        attempts += 1
-        if attempts > max_attempts:
+    while (missing := [k for k, td in enumerate(slots) if td is None]) != []:
+        if attempts >= max_attempts:
+            done = count - len(missing)
             raise RuntimeError(
-                f"Only {len(trajectories)} of {count} trajectories reached {length} steps in {max_attempts} attempts; "
+                f"Only {done} of {count} trajectories reached {length} steps in {max_attempts} attempts; "
                 "use shorter validation trajectories for this environment."
             )
+        targets = [missing[j % len(missing)] for j in range(rows)]  # the slot each row fills
+        attempts += rows
         rollout_policy = None
         if policy == "offset_noise":
-            magnitude = (len(trajectories) % 4) / 3
-            offset = (torch.rand(action_dim, generator=generator) * 2 - 1) * magnitude
+            offsets = [
+                (torch.rand(action_dim, generator=generator) * 2 - 1) * ((k % 4) / 3)
+                for k in targets
+            ]
+            offset = torch.stack(offsets) if batched else offsets[0]
             rollout_policy = OffsetNoisePolicy(offset, generator=generator)
-        td = env.rollout(length, policy=rollout_policy, break_when_any_done=True)
-        if td.shape[0] == length and not td["next", "done"][:-1].any():
-            trajectories.append(td)
-    return torch.stack(trajectories, 0).contiguous()
+        if batched:  # finished rows wait (partial steps) until every row is done
+            td = env.rollout(length, policy=rollout_policy, break_when_all_done=True)
+        else:
+            td = env.rollout(length, policy=rollout_policy, break_when_any_done=True)[None]
+        if td.shape[1] < length:
+            continue
+        complete = ~td["next", "done"][:, :-1].flatten(1).any(-1)
+        for row, k in enumerate(targets):
+            if complete[row] and slots[k] is None:
+                slots[k] = td[row]
+    return torch.stack(slots, 0).contiguous()

@@ -14,7 +14,7 @@ class OffsetNoisePolicy(TensorDictModuleBase):
     episode gives validation sets that cover more of the state-action space.
 
     Args:
-        offset: ``[M]`` action offset.
+        offset: ``[M]`` action offset, or ``[B, M]``: one per row of a batch of ``B`` envs.
 
     Keyword Args:
         noise: half-width of the uniform noise.
@@ -50,7 +50,7 @@ class OffsetNoisePolicy(TensorDictModuleBase):
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        shape = (*tensordict.batch_size, *self.offset.shape)
+        shape = (*tensordict.batch_size, self.offset.shape[-1])
         noise = torch.rand(shape, generator=self.generator) * 2 - 1
         return tensordict.set(
             "action", (self.offset + self.noise * noise).clamp(self.low, self.high)

@@ -61,27 +61,47 @@ def collect(
     Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
     ``SliceSampler`` never crosses an episode. Same ``seed`` → same data.
 
+    A batched env of ``B`` envs (``make_env(..., num_envs=B)``) steps them together, about
+    ``frames / B`` steps each (rounded up to a whole batch of ``B`` steps); the result is
+    env-major (all of env 0's steps, then env 1's, ...), so every trajectory is contiguous,
+    and the collector's trajectory ids tell the envs' trajectories apart. The last ``frames``
+    mod ``B`` steps of the last env are dropped.
+
     Examples:
         >>> from torchrl_recon.envs import make_env
         >>> collect(make_env("drone", seed=0), None, frames=50, seed=0).batch_size
         torch.Size([50])
+        >>> data = collect(make_env("drone", seed=0, num_envs=2, parallel=False), None, frames=50, seed=0)
+        >>> data.batch_size, data["collector", "traj_ids"].unique().tolist()
+        (torch.Size([50]), [0, 1])
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}.")
     torch.manual_seed(seed)
+    envs = env.batch_size.numel()
     frames_per_batch = frames_per_batch or default_frames_per_batch(frames)
+    if envs > 1:  # whole batched steps: every env takes the same number of steps
+        frames_per_batch = -(-frames_per_batch // envs) * envs
+        total = -(-frames // frames_per_batch) * frames_per_batch
+    else:
+        total = frames
     collector = Collector(
         env,
         policy=policy,
         frames_per_batch=frames_per_batch,
-        total_frames=frames,
+        total_frames=total,
         split_trajs=False,
     )
     collector.set_seed(seed)
     batches = []
     with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
         for batch in collector:
-            batches.append(batch.reshape(-1).clone())
-            bar.update(batch.numel())
+            if envs > 1:  # [envs, time]: kept apart until the end, then env-major
+                batches.append(batch.reshape(envs, -1).clone())
+            else:
+                batches.append(batch.reshape(-1).clone())
+            bar.update(min(batch.numel(), frames - bar.n))
     collector.shutdown()
+    if envs > 1:
+        return torch.cat(batches, 1).reshape(-1)[:frames]
     return torch.cat(batches, 0)[:frames]

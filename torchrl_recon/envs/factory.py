@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import partial
 
 import torch
@@ -20,19 +21,22 @@ from torchrl.envs import (
 from torchrl_recon.envs.registry import get_entry, register_envs
 
 
-def _make_gym_env(gym_id: str, **kwargs) -> GymEnv:
+def _make_gym_env(gym_id: str, seed: int | None = None, **kwargs) -> GymEnv:
     # ParallelEnv workers are spawned processes that never import torchrl_recon unless the main
     # module does; unpickling this function imports it, and register_envs() makes sure the
     # torchrl_recon/* ids exist in the worker before gymnasium.make looks them up.
     register_envs()
-    return GymEnv(gym_id, **kwargs)
+    env = GymEnv(gym_id, **kwargs)
+    if seed is not None:  # a sub-env of a batch seeded on its own (make_env(seed=[...]))
+        env.set_seed(seed)
+    return env
 
 
 def make_env(
     name: str,
     *,
-    seed: int,
-    num_envs: int = 1,
+    seed: int | Sequence[int],
+    num_envs: int | None = None,
     device: str | torch.device = "cpu",
     parallel: bool = True,
     max_episode_steps: int | None = None,
@@ -58,8 +62,9 @@ def make_env(
             to ``register_env``) or gymnasium id (``"Pendulum-v1"``, ``"my_module:MyEnv-v0"``).
 
     Keyword Args:
-        seed: seed of the (first) environment.
-        num_envs: number of environments in the batch.
+        seed: seed of the (first) environment, or one seed per environment.
+        num_envs: number of environments in the batch (default: ``len(seed)`` for a list of
+            seeds, else 1).
         device: device of the TorchRL env.
         parallel: use worker processes when ``num_envs > 1``.
         max_episode_steps: truncate episodes here instead of at the registered limit.
@@ -74,13 +79,28 @@ def make_env(
         >>> env.close()
         >>> make_env("Pendulum-v1", seed=0).action_spec.space.high.tolist()
         [2.0]
+        >>> batch = make_env("drone", seed=[3, 7], parallel=False)  # a SerialEnv, one seed each
+        >>> batch.reset()["observation"].shape
+        torch.Size([2, 12])
+        >>> batch.close()
     """
     register_envs()
     entry = get_entry(name)
-    if not isinstance(num_envs, int) or num_envs < 1:
+    seeds = None
+    if isinstance(seed, Sequence) and not isinstance(seed, str):
+        seeds = list(seed)
+        if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+            raise TypeError(f"seed must be an int or a non-empty list of ints, got {seed!r}.")
+        num_envs = len(seeds) if num_envs is None else num_envs
+        if num_envs != len(seeds):
+            raise ValueError(
+                f"seed lists {len(seeds)} seeds but num_envs is {num_envs}: give one per env."
+            )
+    elif not isinstance(seed, int) or isinstance(seed, bool):
+        raise TypeError(f"seed must be an int or a list of ints, got {seed!r}.")
+    num_envs = 1 if num_envs is None else num_envs
+    if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
-    if not isinstance(seed, int):
-        raise TypeError(f"seed must be an int, got {seed!r}.")
     entry.check_kwargs(env_kwargs)
     if max_episode_steps is not None:
         if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
@@ -90,11 +110,14 @@ def make_env(
         env_kwargs["max_episode_steps"] = max_episode_steps
 
     create = partial(_make_gym_env, entry.gym_id, device=device, **env_kwargs)
-    if num_envs == 1:
-        base = create()
-    else:
-        batched = ParallelEnv if parallel else SerialEnv
+    batched = ParallelEnv if parallel else SerialEnv
+    if seeds is not None and num_envs > 1:
+        base = batched(num_envs, [partial(create, seed=s) for s in seeds], device=device)
+    elif num_envs > 1:
         base = batched(num_envs, create, device=device)
+    else:
+        base = create()
     env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker()))
-    env.set_seed(seed)
+    if seeds is None or num_envs == 1:
+        env.set_seed(seed if seeds is None else seeds[0])
     return env

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -35,15 +35,29 @@ from torchrl_recon.training import (
 
 
 def build_env(
-    cfg: DictConfig, *, seed: int, episode_steps: int, policy_device: torch.device | None = None
+    cfg: DictConfig,
+    *,
+    seed: int | Sequence[int],
+    episode_steps: int,
+    policy_device: torch.device | None = None,
+    num_envs: int | None = None,
 ) -> EnvBase:
     """The recipe's TorchRL env with episodes of ``episode_steps``, simulated on the CPU.
 
-    With a ``policy_device`` other than the CPU, TorchRL's ``DeviceCastTransform`` hands the
-    policy its data on that device and the env its actions back on the CPU.
+    With ``num_envs > 1`` (or a list of seeds, one per env) it is a ``SerialEnv`` batch (see
+    :func:`~torchrl_recon.envs.make_env`). With a ``policy_device`` other than the CPU,
+    TorchRL's ``DeviceCastTransform`` hands the policy its data on that device and the env
+    its actions back on the CPU.
     """
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    env = make_env(cfg.env.id or cfg.env.name, seed=seed, max_episode_steps=episode_steps, **kwargs)
+    env = make_env(
+        cfg.env.id or cfg.env.name,
+        seed=seed,
+        num_envs=num_envs,
+        parallel=False,  # worker processes cost more than they save here (docs/benchmarks.md)
+        max_episode_steps=episode_steps,
+        **kwargs,
+    )
     if policy_device is not None and torch.device(policy_device).type != "cpu":
         env.append_transform(DeviceCastTransform(policy_device, env.device))
     return env
@@ -108,13 +122,14 @@ def random_data_stage(
 ) -> TensorDictBase:
     """A resumable stage: ``frames`` uniform random steps in episodes of ``episode_steps``,
     seeded by (seed, ``name``), stored as ``buffers/<name>`` (only ``keys``, if given); returns
-    the stored data."""
+    the stored data. With the recipe's ``num_envs > 1`` the steps come from that many envs
+    stepped as one batch (each env's trajectories contiguous in the stored data)."""
 
     def run() -> dict:
         seed = ctx.stage_seed(name)
-        env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps)
+        env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps, num_envs=ctx.cfg.num_envs)
         data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
-        env.close()
+        env.close(raise_if_closed=False)  # the collector closes a batched env
         ctx.stages.save_data(name, data if keys is None else data.select(*keys))
         return {"steps": data.numel()}
 

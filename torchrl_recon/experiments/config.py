@@ -144,10 +144,15 @@ class RunConfig:
     models, how they are trained, and the logger.
 
     ``device``: ``auto`` (CUDA when available, else CPU), ``cpu``, ``cuda`` or ``cuda:N``; the
-    networks, planning and fitting run there, the envs stay on the CPU."""
+    networks, planning and fitting run there, the envs stay on the CPU.
+
+    ``num_envs``: envs stepped side by side as one batch (a TorchRL ``SerialEnv``) when
+    collecting data and playing control episodes; the policy then plans for all of them in
+    one call. 1 keeps one env at a time."""
 
     experiment: str = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
+    num_envs: int = 1
     seed: int = 0
     threads: int = 1
     device: str = "auto"

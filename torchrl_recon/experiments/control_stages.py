@@ -1,6 +1,7 @@
 """The stages of the uncertainty-aware control experiment (the paper's §3.1 and Fig. 3).
 
-``random_data`` → ``models`` → ``setting_<name>`` for each setting (one record per episode);
+``random_data`` → ``models`` → ``setting_<name>`` for each setting (one part record per batch
+of ``num_envs`` episodes);
 each stage takes the :class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
 """
 
@@ -16,6 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.data import cut_sequences
+from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.common import (
     build_env,
     build_models,
@@ -139,8 +141,43 @@ def setting_objective(setting: DictConfig, beta_unit: float) -> tuple[Objective,
     return objective, beta
 
 
-def episode(ctx: RunContext, setting: DictConfig, planner, controller: Controller, e: int) -> dict:
-    """Episode ``e`` of ``setting``: one MPC rollout; its metrics and (episode 0) trajectory."""
+def episode_batches(episodes: int, num_envs: int) -> list[range]:
+    """The episodes of a setting in batches of ``num_envs`` (the last one may be smaller).
+
+    Examples:
+        >>> [list(b) for b in episode_batches(5, 2)]
+        [[0, 1], [2, 3], [4]]
+    """
+    return [range(i, min(i + num_envs, episodes)) for i in range(0, episodes, num_envs)]
+
+
+def first_done_lengths(td: TensorDictBase) -> list[int]:
+    """Per env of a batched rollout ``[B, T]``: the steps up to and including its first done
+    (``T`` when it never ends).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> done = torch.tensor([[False, True, True], [False, False, False]])[..., None]
+        >>> first_done_lengths(TensorDict({("next", "done"): done}, [2, 3]))
+        [2, 3]
+    """
+    done = td["next", "done"].flatten(2).any(-1)  # [B, T]
+    steps = done.shape[1]
+    first = torch.where(done.any(1), done.int().argmax(1) + 1, steps)
+    return first.tolist()
+
+
+def episode_batch(
+    ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
+) -> list[TensorDictBase]:
+    """The episodes ``batch`` of ``setting`` played side by side: one MPC rollout of
+    ``len(batch)`` envs, episode ``e``'s env seeded with ``stage_seed("setting_<name>_<e>")``;
+    returns each episode's steps, cut at its first done.
+
+    The torch RNG (random warm-up actions, the planner's samples) is seeded with the first
+    episode's seed and shared by the batch. Envs that ended wait (TorchRL partial steps)
+    until every env is done or ``env.episode_steps`` have run.
+    """
     cfg, name = ctx.cfg, f"setting_{setting.name}"
     policy = MPCPolicy(
         planner,
@@ -151,42 +188,93 @@ def episode(ctx: RunContext, setting: DictConfig, planner, controller: Controlle
         error_threshold=cfg.replan.error_threshold,
         warmup_steps=max(cfg.warmup_random_steps, controller.model.context_length),
     )
-    episode_seed = ctx.stage_seed(f"{name}_{e}")
+    seeds = [ctx.stage_seed(f"{name}_{e}") for e in batch]
+    steps = cfg.env.episode_steps
     env = build_env(
-        cfg, seed=episode_seed, episode_steps=cfg.env.episode_steps, policy_device=ctx.device
+        cfg,
+        seed=seeds if len(seeds) > 1 else seeds[0],
+        episode_steps=steps,
+        policy_device=ctx.device,
     )
     env.append_transform(policy.make_tensordict_primer())
-    torch.manual_seed(episode_seed)
-    td = env.rollout(cfg.env.episode_steps, policy, break_when_any_done=True).cpu()
+    torch.manual_seed(seeds[0])
+    if len(seeds) == 1:
+        tds = [env.rollout(steps, policy, break_when_any_done=True).cpu()]
+    else:
+        td = env.rollout(steps, policy, break_when_all_done=True).cpu()
+        tds = [td[i, :n] for i, n in enumerate(first_done_lengths(td))]
     env.close()
+    return tds
+
+
+def episode_record(
+    ctx: RunContext, setting: DictConfig, controller: Controller, e: int, td: TensorDictBase
+) -> dict:
+    """Episode ``e``'s metrics (logged) and, for episode 0, its trajectory."""
     metrics = episode_metrics(td, controller.scale)
     if ctx.logger is not None:
         for key, value in metrics.items():
             if not (isinstance(value, float) and math.isnan(value)):
                 ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
-    state_names = env_entry(cfg).state_names
+    state_names = env_entry(ctx.cfg).state_names
     example = _trajectory(td, setting.name, state_names) if e == 0 else None
     return {"metrics": metrics, "trajectory_example": example}
 
 
+def batch_part(
+    ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
+) -> dict:
+    """The part record of one batch of episodes: ``{"metrics", "trajectory_example"}`` for a
+    batch of one (the record of a run with ``num_envs = 1``), else ``{"episodes": [metrics
+    per episode], "trajectory_example"}``."""
+    tds = episode_batch(ctx, setting, planner, controller, batch)
+    records = [
+        episode_record(ctx, setting, controller, e, td) for e, td in zip(batch, tds, strict=True)
+    ]
+    if len(records) == 1:
+        return records[0]
+    example = next((r["trajectory_example"] for r in records if r["trajectory_example"]), None)
+    return {"episodes": [r["metrics"] for r in records], "trajectory_example": example}
+
+
+def part_episodes(part: dict, batch: range, marker: Path) -> list[dict]:
+    """The metrics of each episode a part record holds (checked against its batch's size)."""
+    episodes = part["episodes"] if "episodes" in part else [part.get("metrics")]
+    if len(episodes) != len(batch) or not all(isinstance(m, dict) for m in episodes):
+        raise DamagedFileError(
+            f"{marker}: expected the metrics of episodes {batch.start}..{batch.stop - 1} "
+            f"({len(batch)} dicts), found {len(episodes)}; it was written with another "
+            "num_envs or damaged: delete it to compute those episodes again."
+        )
+    return episodes
+
+
 def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) -> dict:
-    """All episodes of ``setting`` (stage ``setting_<name>``, one record per episode)."""
+    """All episodes of ``setting`` (stage ``setting_<name>``), ``num_envs`` at a time: one part
+    record per batch, so a setting stopped half way resumes at its next unfinished batch."""
     name = f"setting_{setting.name}"
 
     def run():
         objective, beta = setting_objective(setting, controller.beta_unit)
         planner = build_planner(setting.planner, controller.model, objective)
-        # one record per episode: a setting stopped half way resumes at its next episode
+        batches = episode_batches(ctx.cfg.episodes, ctx.cfg.num_envs)
+        folder = ctx.stages.run_dir / "stages" / name
         parts = ctx.stages.run_parts(
             name,
-            ctx.cfg.episodes,
-            lambda e: episode(ctx, setting, planner, controller, e),
+            len(batches),
+            lambda b: batch_part(ctx, setting, planner, controller, batches[b]),
             show_progress=ctx.cfg.progress,
         )
-        episodes = [part["metrics"] for part in parts]
+        episodes = [
+            metrics
+            for b, (part, batch) in enumerate(zip(parts, batches, strict=True))
+            for metrics in part_episodes(part, batch, folder / f"part_{b}.json")
+        ]
         first = parts[0]["trajectory_example"] if parts else None
         mean, std = episode_mean_std(episodes)
         record = {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+        if setting.band is not None:  # the across-seed trend test orders the settings by it
+            record["band"] = {k: setting.band[k] for k in ("low", "high", "kind")}
         return record | ({"beta_effective": beta} if setting.beta_relative else {})
 
     return ctx.stages.run(name, run)

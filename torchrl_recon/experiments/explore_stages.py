@@ -91,13 +91,14 @@ def models_stage(ctx: RunContext, initial: TensorDictBase, name: str = "initial_
 
 
 def validation_stage(ctx: RunContext) -> TensorDictBase:
-    """Held-out trajectories ``[trajectories, window + validation.steps]`` (stage ``validation``)."""
+    """Held-out trajectories ``[trajectories, window + validation.steps]`` (stage ``validation``),
+    drawn ``num_envs`` at a time."""
     cfg = ctx.cfg
     length = cfg.models.window + cfg.validation.steps
 
     def run():
         seed = ctx.stage_seed("validation")
-        env = build_env(cfg, seed=seed, episode_steps=length)
+        env = build_env(cfg, seed=seed, episode_steps=length, num_envs=cfg.num_envs)
         val = validation_trajectories(
             env,
             count=cfg.validation.trajectories,
@@ -117,7 +118,8 @@ def guided_round_stage(
     ctx: RunContext, world, estimator, r: int, rounds: int, frames: int
 ) -> tuple[dict, TensorDictBase]:
     """Round ``r`` of guided exploration (stage ``guided_data_<r>``): ``frames`` steps of the
-    exploration policy planning with ``world`` and ``estimator``; returns its record and data."""
+    exploration policy planning with ``world`` and ``estimator`` (in ``num_envs`` envs at
+    once, planned in one call); returns its record and data."""
     cfg, guided, name = ctx.cfg, ctx.cfg.guided, f"guided_data_{r}"
 
     def run():
@@ -126,7 +128,11 @@ def guided_round_stage(
         policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
         seed = ctx.stage_seed(name)
         env = build_env(
-            cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy_device=policy.device
+            cfg,
+            seed=seed,
+            episode_steps=cfg.env.episode_steps,
+            policy_device=policy.device,
+            num_envs=cfg.num_envs,
         )
         env.append_transform(policy.make_tensordict_primer())
         data = collect(
@@ -137,7 +143,7 @@ def guided_round_stage(
             progress=cfg.progress,
             desc=f"guided exploration {r + 1}/{rounds}",
         )
-        env.close()
+        env.close(raise_if_closed=False)  # the collector closes a batched env
         planned = data[REPLANNED].squeeze(-1)
         ctx.stages.save_data(name, data.select(*DATA_KEYS))
         return {

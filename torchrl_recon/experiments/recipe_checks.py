@@ -280,7 +280,9 @@ def _run_errors(cfg: DictConfig, errors: _Errors) -> None:
         check_device(cfg.device)
     except ValueError as e:
         errors.append(f"'device': {e}")
-    errors.at_least(cfg, ("threads", "models.window", "models.world_model.hidden_size"), 1)
+    errors.at_least(
+        cfg, ("threads", "num_envs", "models.window", "models.world_model.hidden_size"), 1
+    )
     errors.at_least(cfg, ("models.world_model.dense_size", "models.uncertainty.hidden_size"), 1)
     errors.extend(_world_model_errors(cfg))
     errors.extend(

@@ -33,6 +33,9 @@ PLAN, PLAN_STATES, PLAN_COST, PLAN_U, PLAN_STEP, SEEN = (
     "mpc_steps_seen",
 )
 STATE_KEYS = (OBS_HISTORY, ACTION_HISTORY, PLAN, PLAN_STATES, PLAN_COST, PLAN_U, PLAN_STEP, SEEN)
+# TorchRL's partial-step mask: rollout(break_when_all_done=True) sets it False for the envs
+# of a batch that are done and wait for the others.
+PARTIAL_STEP = "_step"
 # Per-step outputs, for plotting predicted vs real.
 REPLANNED, FEASIBLE = "mpc_replanned", "mpc_feasible"
 PRED_NEXT, PRED_U, PRED_COST = (
@@ -72,6 +75,11 @@ class MPCPolicy(TensorDictModuleBase):
     of (observed − predicted), in units of the world model's ``obs_norm`` standard deviations,
     exceeds it. Predicted u only sees the predicted states, so a plan kept where u is low can
     otherwise run open loop to its end while the real states drift away.
+
+    In a batch of envs every row keeps its own state and re-plan trigger; the rows whose
+    trigger fired are planned together in one planner call. Rows that TorchRL's partial-step
+    mask (``"_step"``, set by ``rollout(break_when_all_done=True)`` for envs that are done
+    and wait for the others) leaves out are not planned.
 
     Per step it writes ``action``, ``mpc_replanned``, ``mpc_feasible`` (False when no
     candidate met the planner's constraints; the planner's warning is not repeated) and the predicted next
@@ -298,6 +306,9 @@ class MPCPolicy(TensorDictModuleBase):
         ready = seen >= self.warmup_steps
         drifted = self._drifted(obs, state[PLAN_STATES], step)
         replanned = ready & (self._needs_plan(step, plan_u) | drifted)
+        stepped = flat.get(PARTIAL_STEP, None)  # rows an env batch will not step: never planned
+        if stepped is not None:
+            replanned &= stepped.to(device).reshape(rows)
         if replanned.any():
             idx = replanned.nonzero().squeeze(-1)
             with warnings.catch_warnings():  # recorded per step in mpc_feasible instead

@@ -42,6 +42,12 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
             2,
         ),
         (
+            "control_batching.py",
+            ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
+            r"^speed-up of 2 episodes as one batch \(baseline\): ([0-9.]+)x$",
+            1,
+        ),
+        (
             "uncertainty_overhead.py",
             ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
             r"ratio: ([0-9.]+)$",

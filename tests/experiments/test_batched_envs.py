@@ -12,7 +12,7 @@ import torch
 import torchrl_recon
 from torchrl_recon.data import TRAJ_KEY, make_sequence_buffer, split_by_trajectory
 from torchrl_recon.experiments import control_stages, explore_stages
-from torchrl_recon.experiments.common import build_env
+from torchrl_recon.experiments.common import build_env, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 
@@ -52,7 +52,7 @@ def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control_stages
     data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
     world, estimator = control_stages.models_stage(ctx, data)
     u = control_stages.window_uncertainty(ctx, data, estimator)
-    model = control_stages.PlanningModel(world, control_stages.cost_fn(cfg), uncertainty=estimator)
+    model = planning_model(cfg, world, estimator)
     threshold = control_stages.replan_threshold(cfg, u)
     return ctx, control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
 

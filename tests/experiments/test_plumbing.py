@@ -202,6 +202,7 @@ def test_full_recipes_hold_every_key(env, kind):
             "ensemble",
             "mc_dropout",
             "rnd",
+            "world_model_ensemble",
         ]
         for e in raw["estimators"]:
             assert set(e) == spec_fields

@@ -167,3 +167,30 @@ def test_shared_sampling_follows_each_member_in_any_order():
     grouped, interleaved = fit([0, 1, 2, 3]), fit([0, 2, 1, 3])
     assert interleaved == pytest.approx(grouped, rel=1e-6, abs=0)
     assert len(set(grouped.values())) == 4
+
+
+def test_population_errors_are_each_members_multi_step_errors():
+    """One batched rollout of all members gives each member's own ``multi_step_errors``."""
+    from torchrl_recon.evaluation import multi_step_errors, population_multi_step_errors
+    from torchrl_recon.modules import WorldModelPopulation
+
+    models = [_world(i) for i in range(3)]
+    g = torch.Generator().manual_seed(0)
+    td = TensorDict(
+        {
+            "observation": torch.randn(5, 12, N, generator=g),
+            "action": torch.rand(5, 12, M, generator=g),
+            ("next", "observation"): torch.randn(5, 12, N, generator=g),
+        },
+        [5, 12],
+    )
+    scale = torch.rand(N, generator=g) + 0.5
+    together = population_multi_step_errors(
+        WorldModelPopulation.from_members(models), td, window=4, scale=scale
+    )
+    assert together.shape == (3, 5, 8)
+    for r, model in enumerate(models):
+        alone = multi_step_errors(model, td, window=4, scale=scale)
+        torch.testing.assert_close(together[r], alone, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="L > window=12"):
+        population_multi_step_errors(WorldModelPopulation.from_members(models), td, window=12)

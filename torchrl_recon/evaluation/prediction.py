@@ -39,17 +39,31 @@ def multi_step_errors(
     """
     if isinstance(model, nn.Module):
         trajectories = trajectories.to(module_device(model))
-    obs, action = trajectories["observation"], trajectories["action"]
-    next_obs = trajectories["next", "observation"]
-    if obs.ndim != 3 or obs.shape[1] <= window:
-        raise ValueError(
-            f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}."
-        )
+    obs, action, next_obs = _parts(trajectories, window)
     with torch.no_grad():
         pred = model.imagine(
             obs[:, :window], action[:, :window], obs[:, window], action[:, None, window:]
         )[:, 0]
-    err = pred - next_obs[:, window:]
+    return _squared_errors(pred, next_obs[:, window:], scale)
+
+
+def _parts(
+    trajectories: TensorDictBase, window: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Observations, actions and next observations of ``[V, L]`` trajectories with L > window."""
+    obs, action = trajectories["observation"], trajectories["action"]
+    if obs.ndim != 3 or obs.shape[1] <= window:
+        raise ValueError(
+            f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}."
+        )
+    return obs, action, trajectories["next", "observation"]
+
+
+def _squared_errors(
+    pred: torch.Tensor, real: torch.Tensor, scale: torch.Tensor | None
+) -> torch.Tensor:
+    """Squared error averaged over state dims, in units of ``scale`` when given."""
+    err = pred - real
     if scale is not None:
         err = err / scale.to(err.device)
     return err.pow(2).mean(-1)
@@ -79,12 +93,7 @@ def population_multi_step_errors(
         torch.Size([4, 2, 10])
     """
     trajectories = trajectories.to(module_device(population))
-    obs, action = trajectories["observation"], trajectories["action"]
-    next_obs = trajectories["next", "observation"]
-    if obs.ndim != 3 or obs.shape[1] <= window:
-        raise ValueError(
-            f"trajectories must be [V, L] with L > window={window}, got observation {tuple(obs.shape)}."
-        )
+    obs, action, next_obs = _parts(trajectories, window)
     members = population.num_members
 
     def each(x: torch.Tensor) -> torch.Tensor:
@@ -97,7 +106,4 @@ def population_multi_step_errors(
             each(obs[:, window]),
             each(action[:, None, window:]),
         )[:, :, 0]
-    err = pred - next_obs[:, window:]
-    if scale is not None:
-        err = err / scale.to(err.device)
-    return err.pow(2).mean(-1)
+    return _squared_errors(pred, next_obs[:, window:], scale)

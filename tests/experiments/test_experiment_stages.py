@@ -32,6 +32,7 @@ TINY = [
     "training.uncertainty.steps=2",
     "training.uncertainty.eval_every=1",
     "logger.backend=none",
+    "num_envs=1",  # the stages one env at a time (batches: tests/experiments/test_batched_envs.py)
 ]
 
 

@@ -198,8 +198,10 @@ class Stages:
         content) as soon as it ends, so a stage stopped half way (e.g. after 7 of 10 control
         episodes) resumes at the first missing part; a part record that does not match its
         SHA-256 is refused. ``fn`` seeds itself: parts must not depend on the random state left
-        by earlier ones. Call it inside :meth:`run` of the same ``name``: that stage's
-        ``wall_time_s`` then includes the parts' time from earlier runs.
+        by earlier ones. After the parts the global torch RNG is seeded from (seed, ``name``),
+        so what follows does not depend on which parts ran here and which were read back. Call
+        it inside :meth:`run` of the same ``name``: that stage's ``wall_time_s`` then includes
+        the parts' time from earlier runs.
 
         Examples:
             >>> import tempfile
@@ -228,6 +230,7 @@ class Stages:
             folder.mkdir(parents=True, exist_ok=True)
             write_atomically(marker, lambda tmp, text=text: tmp.write_text(text))
             records.append(record)
+        torch.manual_seed(stage_seed(self.seed, f"{name}/after_parts"))
         return records
 
     def save_data(self, name: str, data: TensorDictBase) -> None:

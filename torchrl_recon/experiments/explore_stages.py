@@ -28,6 +28,7 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    build_world_model,
     fit_kwargs,
     fit_stage,
     planning_model,
@@ -218,7 +219,7 @@ def retrain_stage(
         for i in retrainings:
             seed = ctx.stage_seed(f"retrain_{i}")
             torch.manual_seed(seed)
-            world, _ = build_models(cfg, obs_dim, action_dim, ctx.device)
+            world = build_world_model(cfg, obs_dim, action_dim).to(ctx.device)
             initial[i] = (world, seed)
         for arm in ARMS:
             rb, val_rb = split_buffers(cfg, arms[arm], split_seed)

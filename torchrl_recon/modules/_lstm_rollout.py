@@ -250,11 +250,13 @@ class LSTMRollout(torch.autograd.Function):
         ds0 = ds + dx[..., :obs_dim]
         dh0 = dx[..., obs_dim:]
         dgates_flat = torch.stack(dgates_all, -3).reshape(*members, horizon * rows, -1)
-        dactions = (
-            _mm(dgates_flat, w_a.transpose(-1, -2))
-            .reshape(*members, horizon, rows, action_dim)
-            .transpose(-3, -2)
-        )
+        dactions = None
+        if ctx.needs_input_grad[3]:  # planning: the actions' gradient; fitting: none
+            dactions = (
+                _mm(dgates_flat, w_a.transpose(-1, -2))
+                .reshape(*members, horizon, rows, action_dim)
+                .transpose(-3, -2)
+            )
         dw_a = dbias = None
         if need_weights:
             dw_a = _mat2_grad(dgates_flat, ctx.flat_actions, w_a)

@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 import torchrl_recon
+from tests.experiments.tiny import TINY
 from torchrl_recon.data import TRAJ_KEY, make_sequence_buffer, split_by_trajectory
 from torchrl_recon.experiments import control_stages, explore_stages
 from torchrl_recon.experiments.common import build_env, planning_model
@@ -17,19 +18,6 @@ from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 
 RECIPES = Path(torchrl_recon.__file__).parents[1] / "recipes" / "drone"
-TINY = [
-    "models.window=3",
-    "models.world_model.hidden_size=4",
-    "models.world_model.dense_size=4",
-    "models.uncertainty.hidden_size=4",
-    "training.slice_len=6",
-    "training.num_slices=2",
-    "training.world_model.steps=2",
-    "training.world_model.eval_every=1",
-    "training.uncertainty.steps=2",
-    "training.uncertainty.eval_every=1",
-    "logger.backend=none",
-]
 # A drone that tilts past 0.01 rad ends its episode: episodes of a batch end at different steps.
 CONTROL = [
     *TINY,

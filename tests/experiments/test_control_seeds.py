@@ -7,7 +7,8 @@ import math
 import pytest
 
 from torchrl_recon.experiments import control
-from torchrl_recon.experiments.control_seeds import across_seeds, paired_tests, trend_test
+from torchrl_recon.experiments.control_seeds import across_seeds, trend_test
+from torchrl_recon.experiments.stats import paired_tests
 
 BANDS = {"u_low": (0.0, 0.33), "u_mid": (0.33, 0.66), "u_high": (0.66, 1.0)}
 
@@ -60,11 +61,11 @@ def test_trend_follows_the_bands_not_the_setting_order():
 
 def test_too_few_seeds_or_bands_is_said_not_computed():
     one = across_seeds(_runs(1, ERRORS), list(ERRORS))
-    assert "needs 2 seeds, got 1" in one["trend"]["prediction_mse"]["note"]
+    assert "not computed: needs at least 2 seeds, got 1" in one["trend"]["prediction_mse"]["note"]
     assert math.isnan(
         one["settings"]["u_low"]["vs_reference"]["prediction_mse"]["paired_t"]["p_value"]
     )
-    assert "needs 3 banded settings" in trend_test({"a": {0: 1.0}}, ["a"])["note"]
+    assert "needs at least 3 banded settings" in trend_test({"a": {0: 1.0}}, ["a"])["note"]
     assert paired_tests([1.0] * 5, [1.0] * 5)["wilcoxon"]["p_value"] == 1.0
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import torchrl_recon
+from tests.experiments.tiny import TINY as TINY_OVERRIDES
 from torchrl_recon.experiments import control_stages, estimator_comparison_stages, explore_stages
 from torchrl_recon.experiments.common import fit_stage, planning_model
 from torchrl_recon.experiments.context import RunContext
@@ -21,17 +22,7 @@ from torchrl_recon.experiments.stats import mean_std
 PACKAGE = Path(torchrl_recon.__file__).parent
 RECIPES = PACKAGE.parent / "recipes" / "industrial_benchmark"
 TINY = [
-    "models.window=3",
-    "models.world_model.hidden_size=4",
-    "models.world_model.dense_size=4",
-    "models.uncertainty.hidden_size=4",
-    "training.slice_len=6",
-    "training.num_slices=2",
-    "training.world_model.steps=2",
-    "training.world_model.eval_every=1",
-    "training.uncertainty.steps=2",
-    "training.uncertainty.eval_every=1",
-    "logger.backend=none",
+    *TINY_OVERRIDES,
     "num_envs=1",  # the stages one env at a time (batches: tests/experiments/test_batched_envs.py)
 ]
 

@@ -98,7 +98,7 @@ def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:
         if "order" in trend:
             text += f"{' < '.join(trend['order'])}: L = {fmt(trend['statistic'])}, p = {fmt(trend['p_value'], 3)}"
         else:
-            text += f"not computed: {trend['note']}"
+            text += trend["note"]
         lines.append(text)
     return "\n".join(lines)
 

@@ -5,17 +5,16 @@ settings with an uncertainty band, paired by seed."""
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.experiments.stats import mean_std, not_computed, paired_tests
 
 TESTED = ("prediction_mse", "real_cost")
 """The metrics tested across seeds."""
-MIN_SEEDS_TTEST, MIN_SEEDS_WILCOXON, MIN_SEEDS_TREND = 2, 5, 2
+MIN_SEEDS_TREND = 2
 
 
 def seed_mean(record: Mapping[str, Any], metric: str) -> float:
@@ -27,41 +26,6 @@ def seed_mean(record: Mapping[str, Any], metric: str) -> float:
     """
     values = [float(e[metric]) for e in record.get("episodes", []) if metric in e]
     return mean_std(v for v in values if math.isfinite(v))[0]
-
-
-def _not_computed(n: int, minimum: int, what: str = "seeds") -> dict[str, Any]:
-    nan = float("nan")
-    return {"statistic": nan, "p_value": nan, "n": n, "note": f"needs {minimum} {what}, got {n}"}
-
-
-def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, Any]:
-    """A paired t-test (from 2 pairs) and a two-sided Wilcoxon signed-rank test (from 5) of
-    ``a`` against ``b``, paired by position.
-
-    Examples:
-        >>> tests = paired_tests([1.0, 2.0, 3.0], [2.0, 3.5, 4.0])
-        >>> round(tests["paired_t"]["p_value"], 3), tests["wilcoxon"]["note"]
-        (0.02, 'needs 5 seeds, got 3')
-    """
-    from scipy import stats
-
-    n = len(a)
-    out: dict[str, Any] = {}
-    if n >= MIN_SEEDS_TTEST:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            t = stats.ttest_rel(a, b)
-        out["paired_t"] = {"statistic": float(t.statistic), "p_value": float(t.pvalue), "n": n}
-    else:
-        out["paired_t"] = _not_computed(n, MIN_SEEDS_TTEST)
-    if n >= MIN_SEEDS_WILCOXON and np.any(np.subtract(a, b) != 0):
-        w = stats.wilcoxon(a, b)
-        out["wilcoxon"] = {"statistic": float(w.statistic), "p_value": float(w.pvalue), "n": n}
-    elif n >= MIN_SEEDS_WILCOXON:
-        out["wilcoxon"] = {"statistic": float("nan"), "p_value": 1.0, "n": n}
-    else:
-        out["wilcoxon"] = _not_computed(n, MIN_SEEDS_WILCOXON)
-    return out
 
 
 def band_order(runs: Sequence[Mapping[str, Any]], names: Sequence[str]) -> list[str]:
@@ -82,9 +46,9 @@ def trend_test(per_seed: Mapping[str, Mapping[int, float]], order: Sequence[str]
 
     seeds = sorted(set.intersection(*(set(per_seed[n]) for n in order))) if order else []
     if len(order) < 3:
-        return _not_computed(len(order), 3, "banded settings")
+        return not_computed(len(order), 3, "banded settings")
     if len(seeds) < MIN_SEEDS_TREND:
-        return _not_computed(len(seeds), MIN_SEEDS_TREND)
+        return not_computed(len(seeds), MIN_SEEDS_TREND)
     data = np.array([[per_seed[n][s] for n in order] for s in seeds])
     result = stats.page_trend_test(data)
     return {

@@ -5,29 +5,16 @@
 from __future__ import annotations
 
 import sys
-import warnings
 from collections.abc import Mapping
 from typing import Any
-
-import numpy as np
 
 from torchrl_recon.experiments import explore_stages
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_table1
 from torchrl_recon.experiments.recipe_checks import explore_errors
-from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.experiments.stats import mean_std, paired_tests
 from torchrl_recon.experiments.tables import fmt, pm, render
-
-MIN_SEEDS_TTEST = 2
-MIN_SEEDS_WILCOXON = 5
-
-
-def _not_computed(n: int, minimum: int) -> dict[str, Any]:
-    """A test entry for too few seeds: NaN statistic and p-value, and why."""
-    nan = float("nan")
-    note = f"not computed: needs at least {minimum} seeds, got {n}"
-    return {"statistic": nan, "p_value": nan, "n": n, "note": note}
 
 
 def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -53,35 +40,11 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
         }
     random_mean, active_mean = arms["random"]["mean"], arms["active"]["mean"]
     ratio = active_mean / random_mean if random_mean else float("nan")
-    n = len(runs)
-    tests: dict[str, Any] = {}
-    if n >= MIN_SEEDS_TTEST:
-        from scipy import stats
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            t = stats.ttest_rel(per_seed["active"], per_seed["random"])
-        tests["paired_t"] = {
-            "statistic": float(t.statistic),
-            "p_value": float(t.pvalue),
-            "n": n,
-            "note": "paired t-test across seeds of the per-seed arm means (active vs random)",
-        }
-    else:
-        tests["paired_t"] = _not_computed(n, MIN_SEEDS_TTEST)
-    if n >= MIN_SEEDS_WILCOXON:
-        from scipy import stats
-
-        diffs = np.subtract(per_seed["active"], per_seed["random"])
-        if np.all(diffs == 0):
-            w_stat, w_p, note = float("nan"), 1.0, "all paired differences are zero"
-        else:
-            w = stats.wilcoxon(per_seed["active"], per_seed["random"])
-            w_stat, w_p = float(w.statistic), float(w.pvalue)
-            note = "Wilcoxon signed-rank test across seeds (two-sided)"
-        tests["wilcoxon"] = {"statistic": w_stat, "p_value": w_p, "n": n, "note": note}
-    else:
-        tests["wilcoxon"] = _not_computed(n, MIN_SEEDS_WILCOXON)
+    tests = paired_tests(
+        per_seed["active"],
+        per_seed["random"],
+        t_note="paired t-test across seeds of the per-seed arm means (active vs random)",
+    )
     return {
         "seeds": seeds,
         "per_seed": {

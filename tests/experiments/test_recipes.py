@@ -115,6 +115,8 @@ def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
         assert sub["experiment"] == "explore"
         sub_cfg = yaml.safe_load((out / "outcomes" / "rnd" / "explore" / "config.yaml").read_text())
         assert sub_cfg["models"]["uncertainty"]["kind"] == "rnd"
+        feasible = results["estimators"]["rnd"]["outcomes"]["explore"]["active_feasible_fraction"]
+        assert 0.0 <= feasible <= 1.0  # the explore run's share of plans above the Σu threshold
         # the world models' disagreement guides exploration like the other estimators
         wme = out / "outcomes" / "world_model_ensemble" / "explore" / "results.json"
         assert json.loads(wme.read_text())["arms"]["active"]["mean"] > 0

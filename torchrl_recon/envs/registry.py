@@ -376,6 +376,7 @@ def register_env(
         >>> entry = register_env("Pendulum-v1", name="pendulum_doc", state_names=("cos", "sin", "omega"))
         >>> get_entry("pendulum_doc").state_names
         ('cos', 'sin', 'omega')
+        >>> _ = USER_ENVS.pop("pendulum_doc")  # leave the registry as it was
     """
     entry = gym_entry(gym_id, name=name, cost=cost, state_names=state_names)
     if entry.name in ENVS:

@@ -139,7 +139,7 @@ def outcome(results: Mapping[str, Any]) -> dict[str, Any]:
         "active_mse": results["arms"]["active"]["mean"],
         "ratio": results["ratio"],
         "p_value": (results.get("test") or {}).get("p_value"),
-        "active_feasible_fraction": results.get("active_feasible_fraction"),
+        "active_feasible_fraction": (results.get("data") or {}).get("active_feasible_fraction"),
     }
 
 

@@ -127,19 +127,25 @@ def test_every_recipe_loads_and_validates(path):
 
 @pytest.mark.parametrize("path", SWEEP_RECIPES, ids=lambda p: p.name)
 def test_all_envs_sweep_runs_each_env_recipe(path):
-    """Every job of recipes/all_envs/<kind>.yaml is its env's own recipe with the job's seed."""
+    """Every job of recipes/all_envs/<kind>.yaml is its env's own recipe with the job's seed;
+    control_bands.yaml keeps only the first four settings (the baseline and the u bands)."""
     from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs
 
     jobs = sweep_jobs(compose_recipe(path, with_hydra=True), [])
     envs = {"drone", "industrial_benchmark", "minitaur"}
-    assert len(jobs) == {"explore": 15, "control": 3}[path.stem]
+    kind = path.stem.split("_")[0]
+    assert len(jobs) == {"explore": 15, "control": 3, "control_bands": 15}[path.stem]
     for job in jobs:
         values = dict(o.split("=") for o in job)
-        env, seed = values[f"{path.stem}_env"], values["seed"]
+        env, seed = values[f"{kind}_env"], values["seed"]
         envs.discard(env)
-        cfg = load_recipe(path, job)
-        own = load_recipe(RECIPES / env / f"{path.stem}.yaml", [f"seed={seed}"])
-        assert OmegaConf.to_container(cfg) == OmegaConf.to_container(own)
+        cfg = OmegaConf.to_container(load_recipe(path, job))
+        own = OmegaConf.to_container(load_recipe(RECIPES / env / f"{kind}.yaml", [f"seed={seed}"]))
+        if path.stem == "control_bands":
+            assert cfg.pop("settings") == own.pop("settings")[:4]
+            assert cfg.pop("output_dir") == f"outputs/control_bands/{env}/seed{seed}"
+            own.pop("output_dir")
+        assert cfg == own
     assert not envs
 
 

@@ -282,6 +282,3 @@ class CalibrateConfig(RunConfig):
     evaluation: CalibrationEvalConfig = field(default_factory=CalibrationEvalConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
     outcomes: OutcomesConfig = field(default_factory=OutcomesConfig)
-
-
-SCHEMAS = {"explore": ExploreConfig, "control": ControlConfig, "calibrate": CalibrateConfig}

@@ -22,7 +22,6 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.experiments.config import SCHEMAS
 from torchrl_recon.files import read_json, write_atomically
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
@@ -332,11 +331,14 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
         raise DamagedFileError(f"{path} is not valid YAML ({reason}); {remedy}") from None
     if not isinstance(saved, DictConfig):
         raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
-    schema = SCHEMAS.get(saved.get("experiment"))
-    if schema is not None:
+    # Imported here: the registry imports the experiments, which import this module.
+    from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
+
+    kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
+    if kind is not None:
         # Keys added to the schema after the run was made compare at their defaults.
         try:
-            saved = OmegaConf.merge(OmegaConf.structured(schema), saved)
+            saved = OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
         except Exception as err:
             reason = str(err).strip().splitlines()[0]
             raise DamagedFileError(

@@ -15,16 +15,12 @@ from scipy import stats
 
 from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.experiments import runner
-from torchrl_recon.experiments.config import (
-    SCHEMAS,
-    ControlSetting,
-    EstimatorSpec,
-    PlannerConfig,
-)
+from torchrl_recon.experiments.config import ControlSetting, EstimatorSpec, PlannerConfig
 from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
+from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import (
     RunDirConflict,
     git_info,
@@ -189,7 +185,7 @@ def _schema_keys(schema) -> set[str]:
 def test_full_recipes_hold_every_key(env, kind):
     raw = OmegaConf.to_container(compose_recipe(RECIPES / env / f"{kind}.yaml"))
     lists = {"settings", "estimators"}
-    keys = _schema_keys(SCHEMAS[kind]) - lists
+    keys = _schema_keys(get_type(kind).schema) - lists
     flat = set()
 
     def walk(node, prefix):

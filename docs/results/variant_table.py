@@ -3,8 +3,11 @@
 Run: python docs/results/variant_table.py docs/results/explore_variants/minitaur [--base base]
      python docs/results/variant_table.py docs/results/explore_variants_full/minitaur \
          --base-root docs/results/explore/minitaur
+     python docs/results/variant_table.py docs/results/explore_population/drone \
+         --base-root docs/results/explore/drone
 
-The directory holds ``<variant>/seed<n>/results.json`` (explore runs); ``--base-root`` takes the
+The directory holds ``<variant>/seed<n>/results.json`` (explore runs), or is one variant's
+``seed<n>/`` directories itself; ``--base-root`` takes the
 base from another directory of ``seed<n>/results.json`` (e.g. the main runs). For each variant it prints
 the ratio of each seed, their mean ± std, a paired t-test across the seeds both variants ran
 against ``--base``, the mean fraction of active plans that found a candidate above the Σu
@@ -22,7 +25,10 @@ from scipy import stats
 
 
 def load(root: Path) -> dict[str, dict[int, dict]]:
-    """``{variant: {seed: results}}`` of every ``<variant>/seed<n>/results.json`` under ``root``."""
+    """``{variant: {seed: results}}`` of every ``<variant>/seed<n>/results.json`` under ``root``;
+    a ``root`` that holds ``seed<n>/`` runs itself is one variant, named after it."""
+    if any(root.glob("seed*/results.json")):
+        return {root.name: load_seeds(root)}
     variants = sorted({path.parent.parent for path in root.glob("*/seed*/results.json")})
     return {variant.name: load_seeds(variant) for variant in variants}
 

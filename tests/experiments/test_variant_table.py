@@ -43,3 +43,11 @@ def test_the_base_can_come_from_another_directory(tmp_path, results_script):
         1: {"ratio": 1.1, "arms": {}, "data": {}},
     }
     assert tables.load_seeds(tmp_path / "missing") == {}
+
+
+def test_a_directory_of_seeds_is_one_variant(tmp_path, results_script):
+    for seed, ratio in enumerate([0.9, 0.8]):
+        _write(tmp_path, "population", seed, ratio)
+    tables = results_script("variant_table")
+    runs = tables.load(tmp_path / "population")
+    assert list(runs) == ["population"] and sorted(runs["population"]) == [0, 1]

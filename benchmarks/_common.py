@@ -6,6 +6,7 @@ import argparse
 
 import torch
 
+from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_device, describe_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
@@ -18,6 +19,25 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--device", default="cpu", type=check_device, help="auto, cpu, cuda or cuda:N"
     )
+
+
+def add_malloc_argument(parser: argparse.ArgumentParser) -> None:
+    """``--default-malloc``: keep glibc's default malloc thresholds (see :func:`set_up_cpu`)."""
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="keep glibc's default malloc thresholds instead of the runner's (torchrl_recon.allocator)",
+    )
+
+
+def set_up_cpu(args: argparse.Namespace) -> str:
+    """``torch.set_num_threads(args.threads)`` and, unless ``--default-malloc``,
+    :func:`~torchrl_recon.allocator.keep_freed_memory`, as the experiment runner does before a
+    run. Returns a line that says both, for the benchmark's output."""
+    torch.set_num_threads(args.threads)
+    kept = False if args.default_malloc else keep_freed_memory()
+    malloc = "keeps freed memory (torchrl_recon.allocator)" if kept else "glibc defaults"
+    return f"threads={args.threads}, malloc: {malloc}"
 
 
 def describe(device: torch.device) -> str:

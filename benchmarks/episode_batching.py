@@ -25,7 +25,17 @@ import argparse
 from functools import partial
 
 import torch
-from _common import COST, OBS_DIM, WINDOW, add_device_argument, context, describe, paper_models
+from _common import (
+    COST,
+    OBS_DIM,
+    WINDOW,
+    add_device_argument,
+    add_malloc_argument,
+    context,
+    describe,
+    paper_models,
+    set_up_cpu,
+)
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import CEMPlanner, GradientPlanner, Objective, PlanningModel
@@ -75,8 +85,9 @@ def main() -> None:
         "--planners", nargs="+", choices=["gradient", "cem"], default=["gradient", "cem"]
     )
     add_device_argument(parser)
+    add_malloc_argument(parser)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    print(set_up_cpu(args))
     device = resolve_device(args.device)
     print(f"device: {describe(device)}, threads={args.threads}")
     world, estimator = paper_models(device=device)

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import add_malloc_argument, set_up_cpu
 from tensordict import TensorDict
 
 from torchrl_recon.experiments.stages import Stages
@@ -83,8 +84,9 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of the paper's steps")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    add_malloc_argument(parser)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    print(set_up_cpu(args))
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)

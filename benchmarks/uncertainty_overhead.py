@@ -9,7 +9,16 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import ACTION_DIM, COST, add_device_argument, context, describe, paper_models
+from _common import (
+    ACTION_DIM,
+    COST,
+    add_device_argument,
+    add_malloc_argument,
+    context,
+    describe,
+    paper_models,
+    set_up_cpu,
+)
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import PlanningModel
@@ -23,8 +32,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     add_device_argument(parser)
+    add_malloc_argument(parser)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    print(set_up_cpu(args))
     device = resolve_device(args.device)
     print(f"device: {describe(device)}")
     world, estimator = paper_models(device=device)

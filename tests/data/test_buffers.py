@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_recon.data import (
+    GatherTensorStorage,
     buffer_contents,
     cut_sequences,
     load_buffer,
@@ -180,3 +181,33 @@ def test_buffers_that_prefetch_are_not_saved(tmp_path):
     ):
         save_buffer(rb, tmp_path / "rb")
     assert not (tmp_path / "rb").exists()
+
+
+def test_gather_storage_samples_the_rows_lazy_tensor_storage_would():
+    """Same seed, same windows: the index_select gather changes the speed, not the rows."""
+    data = _episodes()
+    gather = make_sequence_buffer(500, slice_len=5, num_slices=6)
+    plain = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(500),
+        sampler=type(gather.sampler)(
+            slice_len=5, strict_length=True, traj_key=("collector", "traj_ids")
+        ),
+        batch_size=30,
+    )
+    assert isinstance(gather.storage, GatherTensorStorage)
+    for rb in (gather, plain):
+        rb.extend(data)
+    for seed in range(3):
+        torch.manual_seed(seed)
+        a = gather.sample()
+        torch.manual_seed(seed)
+        b = plain.sample()
+        assert (a == b).all()
+    storage, t = gather.storage, data["t"]
+    rows = torch.tensor([4, 0, 4, len(data) - 1])
+    assert (storage.get(rows)["t"] == t[rows]).all()
+    assert (storage.get((rows,))["t"] == t[rows]).all()
+    assert (storage.get(slice(2, 5))["t"] == t[2:5]).all()  # other indices: LazyTensorStorage's
+    assert (storage.get(torch.tensor([-1]))["t"] == t[-1:]).all()
+    with pytest.raises(IndexError):
+        storage.get(torch.tensor([len(data)]))  # a row past the filled part is refused

@@ -6,6 +6,7 @@ import dataclasses
 import datetime as dt
 import json
 import math
+import platform
 from pathlib import Path
 
 import pytest
@@ -640,6 +641,9 @@ def test_cli_runs_recipe_through_hydra_without_writing_to_cwd(tmp_path, monkeypa
     assert not (run_dir / ".hydra").exists()
     meta = json.loads((run_dir / "meta.json").read_text())
     assert meta["job_overrides"][-1] == "seed=4"
+    # the runner raised glibc's malloc thresholds before the run (on a glibc Linux, as CI's)
+    glibc = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+    assert meta["malloc_keeps_freed_memory"] is glibc
 
 
 def test_cli_refuses_bad_recipes_before_any_work(tmp_path, capsys):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from torchrl_recon.data.buffers import (
     TRAJ_KEY,
+    GatherTensorStorage,
     buffer_contents,
     cut_sequences,
     load_buffer,
@@ -15,6 +16,7 @@ from torchrl_recon.data.buffers import (
 
 __all__ = [
     "TRAJ_KEY",
+    "GatherTensorStorage",
     "buffer_contents",
     "cut_sequences",
     "load_buffer",

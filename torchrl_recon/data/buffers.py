@@ -38,6 +38,42 @@ _DTYPES = {
 _PLAIN_KEY = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
 
 
+class GatherTensorStorage(LazyTensorStorage):
+    """A ``LazyTensorStorage`` that gathers flat integer indices with ``index_select``.
+
+    A ``SliceSampler`` asks the storage for ``num_slices * slice_len`` rows as one 1-D index
+    tensor. ``LazyTensorStorage`` reads them with advanced indexing (``x[index]``), which on
+    the CPU costs about three times ``x.index_select(0, index)`` for the same rows; a fit step
+    of a population reads tens of thousands of rows a key. Any other index (a slice, an int,
+    negative or multi-dim indices) goes through ``LazyTensorStorage.get`` unchanged, and the
+    rows are the same either way.
+
+    Examples:
+        >>> storage = GatherTensorStorage(10)
+        >>> storage.set(torch.arange(4), TensorDict({"x": torch.arange(4.0)}, [4]))
+        >>> storage.get(torch.tensor([3, 1]))["x"]
+        tensor([3., 1.])
+    """
+
+    def get(self, index: Any) -> Any:
+        # SliceSampler passes its rows as a 1-tuple of one long tensor.
+        rows = index[0] if isinstance(index, tuple) and len(index) == 1 else index
+        if (
+            not isinstance(rows, torch.Tensor)
+            or rows.dim() != 1
+            or rows.dtype != torch.long
+            or not self.initialized
+            or not isinstance(self._storage, TensorDictBase)
+            or (rows.numel() > 0 and bool(rows.min() < 0))
+        ):
+            return super().get(index)
+        filled = super().get(slice(None))  # a view of the filled part
+        return filled.apply(
+            lambda x: x.index_select(0, rows.to(x.device)),
+            batch_size=[rows.numel(), *filled.batch_size[1:]],
+        )
+
+
 def make_sequence_buffer(
     max_size: int,
     *,
@@ -60,7 +96,7 @@ def make_sequence_buffer(
             f"max_size, slice_len and num_slices must be >= 1, got {max_size}, {slice_len}, {num_slices}."
         )
     return TensorDictReplayBuffer(
-        storage=LazyTensorStorage(max_size),
+        storage=GatherTensorStorage(max_size),
         sampler=SliceSampler(slice_len=slice_len, traj_key=traj_key, strict_length=True),
         batch_size=slice_len * num_slices,
     )

@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import describe_device, resolve_device
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
@@ -92,7 +93,8 @@ def run(
     """Validate ``cfg``, prepare its run directory and logger, run the experiment, store results.
 
     Steps: :func:`validate` (before any work) → the device (``cfg.device``; ``meta.json``
-    records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` →
+    records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` and
+    :func:`~torchrl_recon.allocator.keep_freed_memory` (recorded in ``meta.json``) →
     :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
     :func:`make_logger` → the kind's ``run`` with the run's :class:`RunContext` →
     ``results.json`` → figures →
@@ -108,7 +110,11 @@ def run(
     except ValueError as e:  # a CUDA device this machine lacks: refused before the run directory
         raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
-    extra_meta = {**dict(extra_meta or {}), "device": describe_device(device)}
+    extra_meta = {
+        **dict(extra_meta or {}),
+        "device": describe_device(device),
+        "malloc_keeps_freed_memory": keep_freed_memory(),
+    }
     verify_run_dir(Path(cfg.output_dir).expanduser())  # a damaged resume: refused before writing
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
     print(f"[{cfg.experiment}] {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)

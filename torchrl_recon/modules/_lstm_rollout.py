@@ -173,8 +173,13 @@ class LSTMRollout(torch.autograd.Function):
         for gates_t in gates_a.unbind(-3):
             x = torch.cat([s, h], -1)
             gates = _addmm_step(gates_t, x, w_sh)
-            i, f, g, o = gates.chunk(4, -1)
-            sf, si, tg, so = torch.sigmoid(f), torch.sigmoid(i), tanh(g), torch.sigmoid(o)
+            if members:  # one sigmoid over all gates: tanh(g) = 2·sigmoid(2g) − 1
+                gates[..., 2 * hid : 3 * hid].mul_(2)
+                si, sf, s2g, so = torch.sigmoid(gates).chunk(4, -1)
+                tg = s2g.mul(2).sub_(1)
+            else:
+                i, f, g, o = gates.chunk(4, -1)
+                sf, si, tg, so = torch.sigmoid(f), torch.sigmoid(i), tanh(g), torch.sigmoid(o)
             c_prev = c
             c = sf * c + si * tg
             tc = tanh(c)

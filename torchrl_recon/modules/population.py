@@ -232,8 +232,10 @@ class WorldModelPopulation(_Population):
         ).reshape(members, rows, length, 4 * hid)
         w_hh_t = w_hh.transpose(-1, -2)
         outs = []
-        for t in range(length):
-            gates = torch.baddbmm(gates_x[:, :, t], h, w_hh_t)
+        # `unbind`, not `gates_x[:, :, t]`: a slice's backward zero-fills a full-size gradient
+        # per step (O(L²) memory traffic); unbind's is one stack.
+        for gates_t in gates_x.unbind(2):
+            gates = torch.baddbmm(gates_t, h, w_hh_t)
             i, f, g, o = gates.chunk(4, -1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
             h = torch.sigmoid(o) * sigmoid_tanh(c)

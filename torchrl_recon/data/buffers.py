@@ -63,11 +63,12 @@ class GatherTensorStorage(LazyTensorStorage):
             or rows.dim() != 1
             or rows.dtype != torch.long
             or not self.initialized
-            or not isinstance(self._storage, TensorDictBase)
             or (rows.numel() > 0 and bool(rows.min() < 0))
         ):
             return super().get(index)
         filled = super().get(slice(None))  # a view of the filled part
+        if not isinstance(filled, TensorDictBase):
+            return super().get(index)
         return filled.apply(
             lambda x: x.index_select(0, rows.to(x.device)),
             batch_size=[rows.numel(), *filled.batch_size[1:]],

@@ -21,23 +21,24 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_malloc_argument(parser: argparse.ArgumentParser) -> None:
-    """``--default-malloc``: keep glibc's default malloc thresholds (see :func:`set_up_cpu`)."""
+def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:
+    """Parse a benchmark's arguments and set the CPU up as the experiment runner does.
+
+    Adds ``--default-malloc`` (keep glibc's default malloc thresholds), parses, calls
+    ``torch.set_num_threads(args.threads)`` and, unless ``--default-malloc``,
+    :func:`~torchrl_recon.allocator.keep_freed_memory`, and prints a line that says both.
+    """
     parser.add_argument(
         "--default-malloc",
         action="store_true",
         help="keep glibc's default malloc thresholds instead of the runner's (torchrl_recon.allocator)",
     )
-
-
-def set_up_cpu(args: argparse.Namespace) -> str:
-    """``torch.set_num_threads(args.threads)`` and, unless ``--default-malloc``,
-    :func:`~torchrl_recon.allocator.keep_freed_memory`, as the experiment runner does before a
-    run. Returns a line that says both, for the benchmark's output."""
+    args = parser.parse_args()
     torch.set_num_threads(args.threads)
     kept = False if args.default_malloc else keep_freed_memory()
     malloc = "keeps freed memory (torchrl_recon.allocator)" if kept else "glibc defaults"
-    return f"threads={args.threads}, malloc: {malloc}"
+    print(f"threads={args.threads}, malloc: {malloc}")
+    return args
 
 
 def describe(device: torch.device) -> str:

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import add_malloc_argument, set_up_cpu
+from _common import parse_args
 
 from torchrl_recon.experiments import control_stages
 from torchrl_recon.experiments.common import build_planner, planning_model
@@ -38,9 +38,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     overrides = [
         f"env.episode_steps={args.steps}",
         f"episodes={args.episodes}",

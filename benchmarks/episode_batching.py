@@ -30,11 +30,10 @@ from _common import (
     OBS_DIM,
     WINDOW,
     add_device_argument,
-    add_malloc_argument,
     context,
     describe,
     paper_models,
-    set_up_cpu,
+    parse_args,
 )
 
 from torchrl_recon.devices import resolve_device
@@ -85,9 +84,7 @@ def main() -> None:
         "--planners", nargs="+", choices=["gradient", "cem"], default=["gradient", "cem"]
     )
     add_device_argument(parser)
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     device = resolve_device(args.device)
     print(f"device: {describe(device)}, threads={args.threads}")
     world, estimator = paper_models(device=device)

@@ -26,15 +26,7 @@ import copy
 import time
 
 import torch
-from _common import (
-    COST,
-    add_device_argument,
-    add_malloc_argument,
-    context,
-    describe,
-    paper_models,
-    set_up_cpu,
-)
+from _common import COST, add_device_argument, context, describe, paper_models, parse_args
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
@@ -57,9 +49,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=1)
     add_device_argument(parser)
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     device = resolve_device(args.device)
     print(f"device: {describe(device)}")
     world, estimator = paper_models(device=device)  # frozen weights, as the planner has them

@@ -18,15 +18,7 @@ import argparse
 from functools import partial
 
 import torch
-from _common import (
-    COST,
-    add_device_argument,
-    add_malloc_argument,
-    context,
-    describe,
-    paper_models,
-    set_up_cpu,
-)
+from _common import COST, add_device_argument, context, describe, paper_models, parse_args
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
@@ -85,9 +77,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     add_device_argument(parser)
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     device = resolve_device(args.device)
     print(f"device: {describe(device)}")
     world, estimator = paper_models(device=device)

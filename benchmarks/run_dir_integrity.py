@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import torch
-from _common import add_malloc_argument, set_up_cpu
+from _common import parse_args
 from tensordict import TensorDict
 
 from torchrl_recon.experiments.stages import Stages
@@ -84,9 +84,7 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of the paper's steps")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)

@@ -21,7 +21,7 @@ import argparse
 import os
 
 import torch
-from _common import ACTION_DIM, OBS_DIM, add_malloc_argument, set_up_cpu
+from _common import ACTION_DIM, OBS_DIM, parse_args
 from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
@@ -62,9 +62,7 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=10)
     parser.add_argument("--slice-len", type=int, default=40)
     parser.add_argument("--windows", type=int, default=32, help="sequences per batch per member")
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     device = resolve_device(args.device)
     rb = random_buffer(args)
     fit = dict(

@@ -13,11 +13,10 @@ from _common import (
     ACTION_DIM,
     COST,
     add_device_argument,
-    add_malloc_argument,
     context,
     describe,
     paper_models,
-    set_up_cpu,
+    parse_args,
 )
 
 from torchrl_recon.devices import resolve_device
@@ -32,9 +31,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     add_device_argument(parser)
-    add_malloc_argument(parser)
-    args = parser.parse_args()
-    print(set_up_cpu(args))
+    args = parse_args(parser)
     device = resolve_device(args.device)
     print(f"device: {describe(device)}")
     world, estimator = paper_models(device=device)

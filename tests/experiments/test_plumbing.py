@@ -122,25 +122,43 @@ def test_every_recipe_loads_and_validates(path):
     assert OmegaConf.to_container(again) == OmegaConf.to_container(cfg)
 
 
+def _own_settings(stem: str, settings: list[dict]) -> list[dict]:
+    """The settings an all_envs control recipe keeps from its env's control.yaml."""
+    by_name = {s["name"]: s for s in settings}
+    if stem == "control_bands":  # the baseline and the three u bands
+        return settings[:4]
+    if stem == "control_gradient":
+        return [by_name[n] for n in ("baseline", "gradient_beta_0.1", "gradient_beta_0.2")]
+    relative = []  # control_relative_beta: the gradient settings with their β read as relative
+    for beta in ("0.1", "0.2"):
+        setting = dict(by_name[f"gradient_beta_{beta}"])
+        setting.update(name=f"gradient_relative_beta_{beta}", beta_relative=True)
+        relative.append(setting)
+    return [by_name["baseline"], *relative]
+
+
 @pytest.mark.parametrize("path", SWEEP_RECIPES, ids=lambda p: p.name)
 def test_all_envs_sweep_runs_each_env_recipe(path):
     """Every job of recipes/all_envs/<kind>.yaml is its env's own recipe with the job's seed;
-    control_bands.yaml keeps only the first four settings (the baseline and the u bands)."""
+    the control_* ones keep only some of its settings (see ``_own_settings``)."""
     from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs
 
     jobs = sweep_jobs(compose_recipe(path, with_hydra=True), [])
     envs = {"drone", "industrial_benchmark", "minitaur"}
     kind = path.stem.split("_")[0]
-    assert len(jobs) == {"explore": 15, "control": 3, "control_bands": 15}[path.stem]
+    expected_jobs = {"explore": 15, "control": 3, "control_bands": 15}
+    expected_jobs.update(control_relative_beta=15, control_gradient=9)
+    assert len(jobs) == expected_jobs[path.stem]
     for job in jobs:
         values = dict(o.split("=") for o in job)
         env, seed = values[f"{kind}_env"], values["seed"]
         envs.discard(env)
         cfg = OmegaConf.to_container(load_recipe(path, job))
         own = OmegaConf.to_container(load_recipe(RECIPES / env / f"{kind}.yaml", [f"seed={seed}"]))
-        if path.stem == "control_bands":
-            assert cfg.pop("settings") == own.pop("settings")[:4]
-            assert cfg.pop("output_dir") == f"outputs/control_bands/{env}/seed{seed}"
+        if path.stem.startswith("control_"):
+            assert cfg.pop("settings") == _own_settings(path.stem, own.pop("settings"))
+            tree = path.stem + ("_seeds" if path.stem == "control_relative_beta" else "")
+            assert cfg.pop("output_dir") == f"outputs/{tree}/{env}/seed{seed}"
             own.pop("output_dir")
         assert cfg == own
     assert not envs

@@ -61,3 +61,19 @@ def test_validation_trajectories_from_a_batch_are_complete_and_spread_their_offs
     # trajectory k has offset magnitude (k % 4) / 3: magnitude 0 leaves actions in [-0.5, 0.5]
     assert val["action"][0].abs().max() <= 0.5 and val["action"][4].abs().max() <= 0.5
     assert val["action"][3].abs().max() > 0.5
+
+
+@pytest.mark.parametrize("num_envs", [1, 3])
+def test_every_trajectory_starts_where_its_env_was_reset_and_no_start_repeats(num_envs):
+    # Seeding after the collector's first reset used to put the env back at its seed's start
+    # while the collector kept the first reset's observation: the first transition jumped
+    # (0.17 in position where a step moves < 1e-3) and the next episode repeated that start.
+    env = make_env("drone", seed=0, max_episode_steps=30, num_envs=num_envs, parallel=False)
+    data = collect_random(env, frames=180 * num_envs, seed=0)
+    ids = data["collector", "traj_ids"]
+    position_step = (data["next", "observation"] - data["observation"])[:, :3].abs().amax(-1)
+    assert position_step.max() < 1e-2, position_step.argmax()
+    first = torch.cat([torch.tensor([True]), ids[1:] != ids[:-1]])
+    starts = data["observation"][first]
+    assert len(starts) >= 6 * num_envs
+    assert torch.unique(starts, dim=0).shape[0] == starts.shape[0]

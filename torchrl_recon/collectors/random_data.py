@@ -78,6 +78,10 @@ def collect(
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}.")
     torch.manual_seed(seed)
+    # Seeded before the collector exists: its constructor resets the env, and a seed set after
+    # that resets the env's state again while the collector keeps the first reset's
+    # observation (the first transition jumped, the next episode repeated the first's start).
+    env.set_seed(seed)
     envs = env.batch_size.numel()
     frames_per_batch = frames_per_batch or default_frames_per_batch(frames)
     if envs > 1:  # whole batched steps: every env takes the same number of steps
@@ -92,7 +96,6 @@ def collect(
         total_frames=total,
         split_trajs=False,
     )
-    collector.set_seed(seed)
     batches = []
     with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
         for batch in collector:

@@ -9,6 +9,8 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from torchrl_recon.envs.threads import keep_num_threads
+
 
 def default_frames_per_batch(frames: int, largest: int = 1000, smallest: int = 100) -> int:
     """The largest divisor of ``frames`` up to ``largest``, so no batch collects unused steps.
@@ -89,22 +91,24 @@ def collect(
         total = -(-frames // frames_per_batch) * frames_per_batch
     else:
         total = frames
-    collector = Collector(
-        env,
-        policy=policy,
-        frames_per_batch=frames_per_batch,
-        total_frames=total,
-        split_trajs=False,
-    )
-    batches = []
-    with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
-        for batch in collector:
-            if envs > 1:  # [envs, time]: kept apart until the end, then env-major
-                batches.append(batch.reshape(envs, -1).clone())
-            else:
-                batches.append(batch.reshape(-1).clone())
-            bar.update(min(batch.numel(), frames - bar.n))
-    collector.shutdown()
+    # TorchRL resets torch's thread count when the collector shuts a batched env down
+    with keep_num_threads():
+        collector = Collector(
+            env,
+            policy=policy,
+            frames_per_batch=frames_per_batch,
+            total_frames=total,
+            split_trajs=False,
+        )
+        batches = []
+        with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
+            for batch in collector:
+                if envs > 1:  # [envs, time]: kept apart until the end, then env-major
+                    batches.append(batch.reshape(envs, -1).clone())
+                else:
+                    batches.append(batch.reshape(-1).clone())
+                bar.update(min(batch.numel(), frames - bar.n))
+        collector.shutdown()
     if envs > 1:
         return torch.cat(batches, 1).reshape(-1)[:frames]
     return torch.cat(batches, 0)[:frames]

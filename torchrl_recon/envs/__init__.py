@@ -13,6 +13,7 @@ from torchrl_recon.envs.registry import (
     register_env,
     register_envs,
 )
+from torchrl_recon.envs.threads import close_env, keep_num_threads
 
 __all__ = [
     "ENVS",
@@ -20,7 +21,9 @@ __all__ = [
     "GymEntry",
     "get_entry",
     "gym_entry",
+    "close_env",
     "import_cost",
+    "keep_num_threads",
     "make_env",
     "register_env",
     "register_envs",

@@ -14,7 +14,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.devices import resolve_device
-from torchrl_recon.envs import get_entry, make_env
+from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
@@ -109,7 +109,7 @@ def planning_model(
     try:
         return PlanningModel.from_env(world, cost_fn(cfg), env, uncertainty=uncertainty)
     finally:
-        env.close()
+        close_env(env)
 
 
 def random_data_stage(
@@ -129,7 +129,7 @@ def random_data_stage(
         seed = ctx.stage_seed(name)
         env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps, num_envs=ctx.cfg.num_envs)
         data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
-        env.close(raise_if_closed=False)  # the collector closes a batched env
+        close_env(env)  # the collector has closed a batched env already
         ctx.stages.save_data(name, data if keys is None else data.select(*keys))
         return {"steps": data.numel()}
 

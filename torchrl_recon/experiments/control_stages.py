@@ -17,6 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.data import cut_sequences
+from torchrl_recon.envs import close_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.common import (
     build_env,
@@ -203,7 +204,7 @@ def episode_batch(
     else:
         td = env.rollout(steps, policy, break_when_all_done=True).cpu()
         tds = [td[i, :n] for i, n in enumerate(first_done_lengths(td))]
-    env.close()
+    close_env(env)
     return tds
 
 

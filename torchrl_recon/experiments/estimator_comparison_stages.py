@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.collectors import collect_random, validation_trajectories
 from torchrl_recon.data import cut_sequences
+from torchrl_recon.envs import close_env
 from torchrl_recon.evaluation import auroc, imagined_uncertainty_and_error, spearman
 from torchrl_recon.experiments.common import (
     build_env,
@@ -196,7 +197,7 @@ def evaluation_stage(
         )
         held_out = collect_random(env, frames=ev.ood_windows * window, seed=seed + 1)
         high = env.action_spec.high.to(torch.float32)
-        env.close()
+        close_env(env)
         windows = cut_sequences(held_out, window)
         out = {}
         for name, est in estimators.items():

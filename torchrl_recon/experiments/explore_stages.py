@@ -23,6 +23,7 @@ from torchrl_recon.collectors import (
     concat_trajectories,
     validation_trajectories,
 )
+from torchrl_recon.envs import close_env
 from torchrl_recon.evaluation import population_multi_step_errors
 from torchrl_recon.experiments.common import (
     build_env,
@@ -107,7 +108,7 @@ def validation_stage(ctx: RunContext) -> TensorDictBase:
             seed=seed,
             policy=cfg.validation.policy,
         )
-        env.close()
+        close_env(env)
         ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
         return {"trajectories": cfg.validation.trajectories, "length": length}
 
@@ -144,7 +145,7 @@ def guided_round_stage(
             progress=cfg.progress,
             desc=f"guided exploration {r + 1}/{rounds}",
         )
-        env.close(raise_if_closed=False)  # the collector closes a batched env
+        close_env(env)  # the collector has closed a batched env already
         planned = data[REPLANNED].squeeze(-1)
         ctx.stages.save_data(name, data.select(*DATA_KEYS))
         return {

@@ -53,6 +53,11 @@ BAD = [
         ["'training.slice_len'", "window"],
     ),
     ("industrial_benchmark/explore_smoke", "training.num_slices=0", ["'training.num_slices'"]),
+    (
+        "industrial_benchmark/explore_smoke",
+        "training.window_sampling=steps",
+        ["'training.window_sampling'", "steps"],
+    ),
     ("industrial_benchmark/explore_smoke", "models.window=0", ["'models.window'", ">= 1"]),
     ("industrial_benchmark/explore_smoke", "models.world_model.activation=gelu", ["activation"]),
     ("industrial_benchmark/explore_smoke", "guided.planner.lr=0", ["'guided.planner.lr'"]),

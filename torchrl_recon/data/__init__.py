@@ -13,10 +13,13 @@ from torchrl_recon.data.buffers import (
     save_buffer,
     split_by_trajectory,
 )
+from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
 
 __all__ = [
     "TRAJ_KEY",
     "GatherTensorStorage",
+    "StepUniformSliceSampler",
+    "WINDOW_SAMPLINGS",
     "buffer_contents",
     "cut_sequences",
     "load_buffer",

@@ -11,6 +11,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
 
+from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.files import read_json
 
@@ -81,11 +82,15 @@ def make_sequence_buffer(
     slice_len: int,
     num_slices: int,
     traj_key: NestedKey = TRAJ_KEY,
+    sampling: str = "trajectory",
 ) -> TensorDictReplayBuffer:
     """A ``TensorDictReplayBuffer`` whose samples are ``num_slices`` windows of ``slice_len`` steps.
 
     Samples come out flat (``[num_slices * slice_len]``); the losses reshape them with
     ``slice_len``. Trajectories are told apart by ``traj_key`` (TorchRL collectors write it).
+    ``sampling="trajectory"`` is TorchRL's ``SliceSampler`` (a trajectory uniformly, then a
+    window in it); ``"step"`` is :class:`StepUniformSliceSampler` (every window start alike, so
+    long and short trajectories count by their steps).
 
     Examples:
         >>> rb = make_sequence_buffer(1000, slice_len=20, num_slices=8)
@@ -96,9 +101,15 @@ def make_sequence_buffer(
         raise ValueError(
             f"max_size, slice_len and num_slices must be >= 1, got {max_size}, {slice_len}, {num_slices}."
         )
+    if sampling == "trajectory":
+        sampler = SliceSampler(slice_len=slice_len, traj_key=traj_key, strict_length=True)
+    elif sampling == "step":
+        sampler = StepUniformSliceSampler(slice_len=slice_len, traj_key=traj_key)
+    else:
+        raise ValueError(f"sampling must be one of {WINDOW_SAMPLINGS}, got {sampling!r}.")
     return TensorDictReplayBuffer(
         storage=GatherTensorStorage(max_size),
-        sampler=SliceSampler(slice_len=slice_len, traj_key=traj_key, strict_length=True),
+        sampler=sampler,
         batch_size=slice_len * num_slices,
     )
 

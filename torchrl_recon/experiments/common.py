@@ -181,11 +181,12 @@ def build_models(
 
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
     """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)
-    with the recipe's ``training`` sizes."""
+    with the recipe's ``training`` sizes and window sampling."""
     train, val = split_by_trajectory(data, cfg.training.val_fraction, seed=seed)
     t = cfg.training
-    rb = make_sequence_buffer(len(train), slice_len=t.slice_len, num_slices=t.num_slices)
-    val_rb = make_sequence_buffer(len(val), slice_len=t.slice_len, num_slices=t.num_slices)
+    sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
+    rb = make_sequence_buffer(len(train), **sizes)
+    val_rb = make_sequence_buffer(len(val), **sizes)
     rb.extend(train)
     val_rb.extend(val)
     return rb, val_rb

@@ -68,10 +68,15 @@ class FitConfig:
 
 @dataclass
 class TrainingConfig:
-    """How the networks are fitted: sequence windows of ``slice_len`` steps, ``num_slices`` a batch."""
+    """How the networks are fitted: sequence windows of ``slice_len`` steps, ``num_slices`` a batch.
+
+    ``window_sampling``: ``trajectory`` (TorchRL's ``SliceSampler``: a trajectory uniformly, then
+    a window in it) or ``step`` (every window start alike; see ``StepUniformSliceSampler``).
+    """
 
     slice_len: int = 40
     num_slices: int = 32
+    window_sampling: str = "trajectory"
     val_fraction: float = 0.1
     world_model_mode: str = "multi_step"
     world_model: FitConfig = field(default_factory=FitConfig)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
 from torchrl_recon.devices import check_device
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader
@@ -290,6 +291,7 @@ def _run_errors(cfg: DictConfig, errors: _Errors) -> None:
     )
     t = cfg.training
     errors.one_of(cfg, "training.world_model_mode", WORLD_MODEL_MODES)
+    errors.one_of(cfg, "training.window_sampling", WINDOW_SAMPLINGS)
     errors.at_least(cfg, ("training.slice_len", "training.num_slices"), 1)
     errors.need("training.val_fraction", t.val_fraction, 0 < t.val_fraction < 1, "in (0, 1)")
     multi = t.world_model_mode == "multi_step"

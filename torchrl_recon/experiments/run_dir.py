@@ -25,6 +25,10 @@ from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.files import read_json, write_atomically
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
+# Keys added to the schema since runs were first published, with the value that reproduces the
+# behaviour from before the key existed: a run directory without the key resumes when the new
+# config holds that value.
+KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 
 VERSION_PACKAGES = (
@@ -72,7 +76,8 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     """Keys (flattened) whose values differ between two configs, ignoring :data:`RESUME_IGNORED_KEYS`.
 
     A key the old config lacks and the new one holds as null (a schema key added since, at its
-    null default, e.g. ``env.id``) is no difference.
+    null default, e.g. ``env.id``), or at its value in :data:`KEYS_ADDED_SINCE`, is no
+    difference.
 
     Examples:
         >>> config_differences({"env": {"name": "drone"}}, {"env": {"name": "drone", "id": None}})
@@ -87,7 +92,7 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     diffs = []
     for key in sorted(set(a) | set(b)):
         if key not in a:
-            if b[key] is None:
+            if b[key] is None or (key in KEYS_ADDED_SINCE and b[key] == KEYS_ADDED_SINCE[key]):
                 continue
             diffs.append(f"{key}: (absent) -> {b[key]!r}")
         elif key not in b:

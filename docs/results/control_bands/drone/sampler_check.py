@@ -1,5 +1,6 @@
 """Refit a control run's autoencoder on its own random data, optionally with every trajectory
-cut into pieces of about ``--chunk`` steps, and print the re-planning threshold it gives.
+cut into pieces of about ``--chunk`` steps or with step-uniform windows (``--window-sampling
+step``), and print the re-planning threshold it gives.
 
 The check behind docs/reproduction.md ("Why: the fit's sampler weighs trajectories, not
 steps"): TorchRL's ``SliceSampler`` draws a trajectory uniformly, then a window inside it, so
@@ -9,6 +10,7 @@ Needs a run directory that has finished its ``models`` stage, e.g.
     torchrl-recon control recipes/all_envs/control_bands.yaml control_env=drone seed=1 \
         stop_after=models output_dir=runs/drone_seed1
     python docs/results/control_bands/drone/sampler_check.py runs/drone_seed1 --chunk 100
+    python docs/results/control_bands/drone/sampler_check.py runs/drone_seed1 --window-sampling step
 """
 
 from __future__ import annotations
@@ -43,10 +45,18 @@ def main() -> None:
         "--chunk", type=int, default=0, help="piece length; 0 keeps the trajectories"
     )
     parser.add_argument("--fit-seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument(
+        "--window-sampling",
+        choices=["trajectory", "step"],
+        default=None,
+        help="the fit's training.window_sampling (default: the run's)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     raw = OmegaConf.load(args.run_dir / "config.yaml")
     raw.stop_after = None
+    if args.window_sampling is not None:
+        raw.training.window_sampling = args.window_sampling
     ctx = RunContext.create(validate(raw), args.run_dir, None)
     data = ctx.stages.load_data("random_data")
     train = data.clone()
@@ -59,7 +69,11 @@ def main() -> None:
         val = fit_module(ctx, estimator, train, seed=seed, prefix="sampler_check/")
         u = control_stages.window_uncertainty(ctx, data, estimator)
         threshold = control_stages.replan_threshold(ctx.cfg, u)
-        print(f"chunk {args.chunk} fit seed {seed}: val loss {val:.4f}, threshold {threshold:.4f}")
+        sampling = ctx.cfg.training.window_sampling
+        print(
+            f"chunk {args.chunk} sampling {sampling} fit seed {seed}: val loss {val:.4f}, "
+            f"threshold {threshold:.4f}"
+        )
 
 
 if __name__ == "__main__":

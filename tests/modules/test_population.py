@@ -174,3 +174,24 @@ def test_reconstruction_population():
     for a, b in zip(pop.split(), estimators, strict=True):
         for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
             assert torch.equal(x, y)
+
+
+def test_predict_window_deltas_is_predict_delta_on_each_window():
+    pop = WorldModelPopulation.from_members(_world_models(3))
+    obs = torch.randn(3, 2, 11, N, requires_grad=True)
+    act = torch.randn(3, 2, 11, M)
+    got = pop.predict_window_deltas(obs, act, T)
+    assert got.shape == (3, 2, 11 - T + 1, N)
+    windows = [
+        pop.predict_delta(obs[:, :, w : w + T], act[:, :, w : w + T])[:, :, -1]
+        for w in range(11 - T + 1)
+    ]
+    want = torch.stack(windows, 2)
+    torch.testing.assert_close(got, want)
+    (grad,) = torch.autograd.grad(got.square().sum(), obs)
+    (want_grad,) = torch.autograd.grad(want.square().sum(), obs)
+    torch.testing.assert_close(grad, want_grad)
+    with pytest.raises(ValueError, match="at least window=12 steps"):
+        pop.predict_window_deltas(obs, act, 12)
+    with pytest.raises(ValueError, match="window must be an int >= 1, got 0"):
+        pop.predict_window_deltas(obs, act, 0)

@@ -155,6 +155,17 @@ def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.
     return out.reshape(*x.shape[:-1], weight.shape[-2])
 
 
+def _lstm_cell(
+    gates_x: torch.Tensor, h: torch.Tensor, c: torch.Tensor, w_hh_t: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One LSTM step of every member: input gates ``[P, B, 4·hid]`` and state ``[P, B, hid]``."""
+    gates = torch.baddbmm(gates_x, h, w_hh_t)
+    i, f, g, o = gates.chunk(4, -1)
+    c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
+    h = torch.sigmoid(o) * sigmoid_tanh(c)
+    return h, c
+
+
 class WorldModelPopulation(_Population):
     """R :class:`~torchrl_recon.modules.LSTMWorldModel` members with weights ``[R, ...]``, run as one batch.
 
@@ -227,20 +238,60 @@ class WorldModelPopulation(_Population):
             )
             return out[None], (h, c)
         h, c = (x.new_zeros(members, rows, hid),) * 2 if hx is None else hx
-        gates_x = torch.baddbmm(
-            (b_ih + b_hh).unsqueeze(-2), x.reshape(members, -1, x.shape[-1]), w_ih.transpose(-1, -2)
-        ).reshape(members, rows, length, 4 * hid)
+        gates_x = self._input_gates(x)
         w_hh_t = w_hh.transpose(-1, -2)
         outs = []
         # `unbind`, not `gates_x[:, :, t]`: a slice's backward zero-fills a full-size gradient
         # per step (O(L²) memory traffic); unbind's is one stack.
         for gates_t in gates_x.unbind(2):
-            gates = torch.baddbmm(gates_t, h, w_hh_t)
-            i, f, g, o = gates.chunk(4, -1)
-            c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
-            h = torch.sigmoid(o) * sigmoid_tanh(c)
+            h, c = _lstm_cell(gates_t, h, c, w_hh_t)
             outs.append(h)
         return torch.stack(outs, 2), (h, c)
+
+    def _input_gates(self, x: torch.Tensor) -> torch.Tensor:
+        """Each member's input part of the LSTM gates, ``x`` ``[P, B, L, F]`` → ``[P, B, L, 4·hid]``."""
+        members, rows, length, features = x.shape
+        bias = (self.lstm_bias_ih_l0 + self.lstm_bias_hh_l0).unsqueeze(-2)
+        flat = x.reshape(members, -1, features)
+        gates = torch.baddbmm(bias, flat, self.lstm_weight_ih_l0.transpose(-1, -2))
+        return gates.reshape(members, rows, length, -1)
+
+    def predict_window_deltas(
+        self, obs: torch.Tensor, action: torch.Tensor, window: int
+    ) -> torch.Tensor:
+        """Normalised Δs predicted after every ``window``-step window of the sequences, each
+        window read from a fresh LSTM state: ``[P, *B, L, N]``, ``[P, *B, L, M]`` →
+        ``[P, *B, L − window + 1, N]``.
+
+        The same as :meth:`predict_delta` on a copy of each window, last step (a sliding-window
+        score), without the copies: the input part of the gates is computed once per step and
+        only each window's last output goes through the head.
+
+        Examples:
+            >>> pop = WorldModelPopulation(6, 3, num_members=2, window=4)
+            >>> pop.predict_window_deltas(torch.randn(2, 5, 12, 6), torch.randn(2, 5, 12, 3), 4).shape
+            torch.Size([2, 5, 9, 6])
+        """
+        self._members_first("obs", obs, 3)
+        check_features("obs", obs, self.obs_dim, min_ndim=3)
+        check_features("action", action, self.action_dim, min_ndim=3)
+        check_int("window", window)
+        if obs.shape[:-1] != action.shape[:-1] or obs.shape[-2] < window:
+            raise ValueError(
+                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} must agree on batch/time "
+                f"dims and have at least window={window} steps."
+            )
+        x = self.normalize_inputs(obs, action)
+        members, length, hid = self.num_members, x.shape[-2], self.hidden_size
+        windows = length - window + 1
+        gates_x = self._input_gates(x.reshape(members, -1, length, x.shape[-1]))
+        gates_x = gates_x.unfold(2, window, 1)  # [P, B, W, 4·hid, window], a view
+        rows = gates_x.shape[1] * windows
+        h = c = x.new_zeros(members, rows, hid)
+        w_hh_t = self.lstm_weight_hh_l0.transpose(-1, -2)
+        for t in range(window):
+            h, c = _lstm_cell(gates_x[..., t].reshape(members, rows, -1), h, c, w_hh_t)
+        return self._head(h).reshape(*obs.shape[:-2], windows, self.obs_dim)
 
     def _head(self, out: torch.Tensor) -> torch.Tensor:
         z = ACTIVATIONS[self.activation](_linear(out, self.dense_weight, self.dense_bias))

@@ -32,8 +32,8 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
     members), or it trains its own with :func:`~torchrl_recon.training.fit_uncertainty`: each
     member fits the one-step change after every T-window of the batch's sequences, on its own
     bootstrap resample of those windows (as PETS' ensemble does). Scoring costs T LSTM steps per
-    window and member, several times the autoencoder's cost; it runs without autograd in
-    cache-sized row blocks.
+    window and member (the input projection once per step, the head once per window), several
+    times the autoencoder's cost; it runs without autograd in cache-sized row blocks.
 
     Args:
         obs_dim: state size N.
@@ -160,13 +160,15 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
         return windows[..., : self.obs_dim], windows[..., self.obs_dim :]
 
     def _standardised_change(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Each member's predicted change after each window, in units of σ_s: ``[E, R·W, N]``."""
-        members = self.members
-        pred = members.predict_delta(obs, action)[..., -1, :]
-        scale = members.delta_norm_scale[:, None] / self.input_norm.scale[: self.obs_dim]
-        return (
-            pred * scale + members.delta_norm_loc[:, None] / self.input_norm.scale[: self.obs_dim]
-        )
+        """Each member's predicted change after each window ``[E, R·W, T, *]``, in units of
+        σ_s: ``[E, R·W, N]``."""
+        return self._in_state_units(self.members.predict_delta(obs, action)[..., -1, :])
+
+    def _in_state_units(self, pred: torch.Tensor) -> torch.Tensor:
+        """Members' normalised changes ``[E, P, N]`` in units of σ_s."""
+        members, sigma = self.members, self.input_norm.scale[: self.obs_dim]
+        scale = members.delta_norm_scale[:, None] / sigma
+        return pred * scale + members.delta_norm_loc[:, None] / sigma
 
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         needs_grad = torch.is_grad_enabled() and (
@@ -176,7 +178,10 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
 
     def _score_rows(self, x: torch.Tensor) -> torch.Tensor:
         rows, length, _ = x.shape
-        pred = self._standardised_change(*self._windows(x))
+        n, members = self.obs_dim, self.num_members
+        x = x.expand(members, *x.shape)
+        pred = self.members.predict_window_deltas(x[..., :n], x[..., n:], self.window)
+        pred = self._in_state_units(pred.reshape(members, -1, n))
         return population_variance(pred).mean(-1).view(rows, length - self.window + 1)
 
     def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -38,6 +38,7 @@ lint: setup
 bench: setup
 	$(PY) benchmarks/env_throughput.py
 	$(PY) benchmarks/uncertainty_overhead.py
+	$(PY) benchmarks/window_scoring.py
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
 	$(PY) benchmarks/training_speed.py

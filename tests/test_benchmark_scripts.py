@@ -48,6 +48,13 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
             1,
         ),
         (
+            "window_scoring.py",
+            ["--candidates", "6", "--horizon", "3", "--obs-dim", "3", "--action-dim", "2"]
+            + ["--repeats", "1"],
+            r"^speed-up vs window copies: ([0-9.]+)x$",
+            1,
+        ),
+        (
             "uncertainty_overhead.py",
             ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
             r"ratio: ([0-9.]+)$",

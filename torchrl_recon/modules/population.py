@@ -272,19 +272,15 @@ class WorldModelPopulation(_Population):
             >>> pop.predict_window_deltas(torch.randn(2, 5, 12, 6), torch.randn(2, 5, 12, 3), 4).shape
             torch.Size([2, 5, 9, 6])
         """
-        self._members_first("obs", obs, 3)
-        check_features("obs", obs, self.obs_dim, min_ndim=3)
-        check_features("action", action, self.action_dim, min_ndim=3)
         check_int("window", window)
-        if obs.shape[:-1] != action.shape[:-1] or obs.shape[-2] < window:
+        x = self._lstm_inputs(obs, action)
+        if obs.shape[-2] < window:
             raise ValueError(
-                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} must agree on batch/time "
-                f"dims and have at least window={window} steps."
+                f"obs has shape {tuple(obs.shape)}; expected at least window={window} steps (dim -2)."
             )
-        x = self.normalize_inputs(obs, action)
         members, length, hid = self.num_members, x.shape[-2], self.hidden_size
         windows = length - window + 1
-        gates_x = self._input_gates(x.reshape(members, -1, length, x.shape[-1]))
+        gates_x = self._input_gates(x)
         gates_x = gates_x.unfold(2, window, 1)  # [P, B, W, 4·hid, window], a view
         rows = gates_x.shape[1] * windows
         h = c = x.new_zeros(members, rows, hid)
@@ -299,6 +295,12 @@ class WorldModelPopulation(_Population):
 
     def predict_delta(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Teacher-forced normalised Δs for ``[R, *B, L, N]``, ``[R, *B, L, M]`` → ``[R, *B, L, N]``."""
+        out, _ = self._lstm(self._lstm_inputs(obs, action))
+        return self._head(out).reshape(*obs.shape)
+
+    def _lstm_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Checked and normalised sequences ``[P, *B, L, N]``, ``[P, *B, L, M]`` as the LSTM's
+        input ``[P, B, L, N + M]``."""
         self._members_first("obs", obs, 3)
         check_features("obs", obs, self.obs_dim, min_ndim=3)
         check_features("action", action, self.action_dim, min_ndim=3)
@@ -307,9 +309,7 @@ class WorldModelPopulation(_Population):
                 f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
             )
         x = self.normalize_inputs(obs, action)
-        length = x.shape[-2]
-        out, _ = self._lstm(x.reshape(self.num_members, -1, length, x.shape[-1]))
-        return self._head(out).reshape(*obs.shape)
+        return x.reshape(self.num_members, -1, x.shape[-2], x.shape[-1])
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])

@@ -7,7 +7,7 @@ import argparse
 import torch
 
 from torchrl_recon.allocator import keep_freed_memory
-from torchrl_recon.devices import check_device, describe_device
+from torchrl_recon.devices import check_device, describe_device, resolve_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 
@@ -39,6 +39,18 @@ def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:
     malloc = "keeps freed memory (torchrl_recon.allocator)" if kept else "glibc defaults"
     print(f"threads={args.threads}, malloc: {malloc}")
     return args
+
+
+def parse_device_args(parser: argparse.ArgumentParser) -> tuple[argparse.Namespace, torch.device]:
+    """Add ``--device``, parse as :func:`parse_args` does, and print and return the device.
+
+    The device line reads ``device: cpu (<processor>)`` (or the GPU's name).
+    """
+    add_device_argument(parser)
+    args = parse_args(parser)
+    device = resolve_device(args.device)
+    print(f"device: {describe(device)}")
+    return args, device
 
 
 def describe(device: torch.device) -> str:

@@ -26,9 +26,8 @@ import copy
 import time
 
 import torch
-from _common import COST, add_device_argument, context, describe, paper_models, parse_args
+from _common import COST, context, paper_models, parse_device_args
 
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
 
@@ -48,10 +47,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=1)
-    add_device_argument(parser)
-    args = parse_args(parser)
-    device = resolve_device(args.device)
-    print(f"device: {describe(device)}")
+    args, device = parse_device_args(parser)
     world, estimator = paper_models(device=device)  # frozen weights, as the planner has them
     ctx = context(device=device)
     state = world.warmup(ctx[0], ctx[1])

@@ -18,12 +18,11 @@ import argparse
 from functools import partial
 
 import torch
-from _common import COST, add_device_argument, context, describe, paper_models, parse_args
+from _common import COST, context, paper_models, parse_device_args
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
 
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
@@ -76,10 +75,7 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    add_device_argument(parser)
-    args = parse_args(parser)
-    device = resolve_device(args.device)
-    print(f"device: {describe(device)}")
+    args, device = parse_device_args(parser)
     world, estimator = paper_models(device=device)
     ctx = context(device=device)
     plain = PlanningModel(world, COST)

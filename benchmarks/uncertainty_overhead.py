@@ -12,14 +12,11 @@ import torch
 from _common import (
     ACTION_DIM,
     COST,
-    add_device_argument,
     context,
-    describe,
     paper_models,
-    parse_args,
+    parse_device_args,
 )
 
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
 
@@ -30,10 +27,7 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    add_device_argument(parser)
-    args = parse_args(parser)
-    device = resolve_device(args.device)
-    print(f"device: {describe(device)}")
+    args, device = parse_device_args(parser)
     world, estimator = paper_models(device=device)
     rollout_only = PlanningModel(world, COST)
     with_u = PlanningModel(world, COST, uncertainty=estimator)

@@ -19,9 +19,8 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import WINDOW, add_device_argument, describe, parse_args
+from _common import WINDOW, parse_device_args
 
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.modules import ReconstructionUncertainty, WorldModelEnsembleUncertainty
 from torchrl_recon.modules.uncertainty import window_view
 from torchrl_recon.timing import interleaved_median_ms
@@ -70,10 +69,7 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    add_device_argument(parser)
-    args = parse_args(parser)
-    device = resolve_device(args.device)
-    print(f"device: {describe(device)}")
+    args, device = parse_device_args(parser)
     torch.manual_seed(0)
     n, m = args.obs_dim, args.action_dim
     sizes = dict(window=WINDOW, hidden_size=32, dense_size=32)

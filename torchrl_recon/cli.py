@@ -35,11 +35,11 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
 EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
 """Each experiment command and its help line (from the registry)."""
-RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
 _STATUS_ENV = "TORCHRL_RECON_STATUS"
 """A file each Hydra job appends its exit code to (jobs may run in other processes)."""
@@ -310,8 +310,14 @@ def run_recipe(
     directory), 130 (interrupted) or 1 (a bug). In a multirun, a job that fails does not stop
     the others; the worst code is returned. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
     """
+    from torchrl_recon.experiments.recipe import resolve_recipe_path
+
     with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
-        return _run_recipe(kind, Path(recipe), list(overrides), multirun)
+        try:
+            path = resolve_recipe_path(recipe)
+        except FileNotFoundError as e:
+            return report(e, EXIT_USER)
+        return _run_recipe(kind, path, list(overrides), multirun)
 
 
 def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -> int:
@@ -426,8 +432,10 @@ def _summarize(args: argparse.Namespace) -> int:
 def _recipes_epilog(kind: str) -> str:
     if not RECIPES_DIR.is_dir():
         return ""
-    files = sorted(p.relative_to(RECIPES_DIR.parent) for p in RECIPES_DIR.glob(f"*/{kind}*.yaml"))
-    return "recipes:\n" + "\n".join(f"  {p}" for p in files) if files else ""
+    files = sorted(
+        p.relative_to(RECIPES_DIR).with_suffix("") for p in RECIPES_DIR.glob(f"*/{kind}*.yaml")
+    )
+    return "recipes (by name, from any folder; or a path to your own):\n" + "\n".join(f"  {p}" for p in files) if files else ""
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -17,7 +17,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.errors import RecipeError
 
-RECIPES_DIR = Path(__file__).resolve().parents[2] / "recipes"
+RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
+"""The recipes shipped inside the package (the checkout's ``recipes/`` links here)."""
 """The shipped recipes (``recipes/<env>/<kind>.yaml``), on Hydra's search path of every recipe."""
 
 MAX_SWEEP_JOBS = 10_000

@@ -18,7 +18,12 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from torchrl_recon.errors import RecipeError
-from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
+from torchrl_recon.experiments.compose import (
+    RECIPES_DIR,
+    compose_recipe,
+    sweep_jobs,
+    with_additions,
+)
 from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.recipe_checks import recipe_errors
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -166,18 +171,26 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
 
 
 def resolve_recipe_path(path: str | os.PathLike[str]) -> Path:
-    """A recipe path as given (absolute or relative to the working directory), else relative
-    to the checkout this package runs from (where ``recipes/`` lives).
+    """A recipe path as given (absolute or relative to the working directory), else a recipe
+    shipped in the package, by name (``drone/explore``, ``.yaml`` optional; a leading
+    ``recipes/`` is allowed, so the checkout's paths work from any folder).
 
     Raises:
         FileNotFoundError: naming both places looked in.
+
+    Examples:
+        >>> resolve_recipe_path("drone/explore").relative_to(RECIPES_DIR).as_posix()
+        'drone/explore.yaml'
     """
-    candidates = [Path(path).expanduser(), Path(__file__).resolve().parents[2] / path]
+    given = Path(path).expanduser()
+    name = Path(*given.parts[1:]) if given.parts[:1] == ("recipes",) else given
+    candidates = [given, RECIPES_DIR / name, (RECIPES_DIR / name).with_suffix(".yaml")]
     for candidate in candidates:
         if candidate.is_file():
             return candidate
     raise FileNotFoundError(
-        f"no recipe file {str(path)!r} (looked in {Path.cwd()} and {candidates[1].parent})"
+        f"no recipe file {str(path)!r} (looked in {Path.cwd()} and among the shipped recipes, "
+        "listed by `torchrl-recon recipes`)"
     )
 
 

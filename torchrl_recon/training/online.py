@@ -1,0 +1,286 @@
+"""Online model-based RL (PETS's loop) composed from the library's parts.
+
+random warm-up data → fit world model and estimator → repeat {play steps with an
+:class:`~torchrl_recon.policies.MPCPolicy` through TorchRL's ``Collector``; append them to the
+data; refit, warm-started}. Each iteration is recorded: env return, the model's error on the
+new data before the refit, mean u, re-plans, and the wall time split into fit / plan / env.
+
+The pieces are public so that a run can be staged and resumed step by step (the ``online``
+experiment does); :func:`learn_online` chains them for a Python user.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
+
+from torchrl_recon.collectors import collect, collect_random, concat_trajectories
+from torchrl_recon.data import cut_sequences, make_sequence_buffer, split_by_trajectory
+from torchrl_recon.data.buffers import TRAJ_KEY
+from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
+from torchrl_recon.objectives import WorldModelPredictionLoss
+from torchrl_recon.planners import PlannerBase
+from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.policies.mpc import REPLANNED
+from torchrl_recon.training.fit import fit_uncertainty, fit_world_model
+
+
+@dataclass
+class FitSchedule:
+    """How the two networks are fitted online: the first fit from scratch (``steps``), every
+    later one warm-started from the current weights with the first fit's normalisation
+    (``refit_steps``). Windows of ``slice_len`` steps, ``num_slices`` a batch; ``val_fraction``
+    of the trajectories held out for early stopping."""
+
+    steps: int = 1000
+    refit_steps: int = 300
+    lr: float = 3e-3
+    eval_every: int = 100
+    patience: int = 10
+    slice_len: int = 40
+    num_slices: int = 32
+    val_fraction: float = 0.1
+    mode: str = "multi_step"
+
+
+@dataclass
+class IterationRecord:
+    """One iteration of :func:`learn_online` (iteration 0: the random warm-up data).
+
+    ``episode_returns``: the summed env reward of every episode that ended in this
+    iteration's steps. ``model_error``: the world model's one-step error (standardised Δs,
+    mean square) on this iteration's new data before it was refitted on them (NaN for the
+    random data). ``mean_uncertainty``: the estimator's mean u of the new data's windows.
+    """
+
+    iteration: int
+    env_steps: int
+    episode_returns: list[float]
+    model_error: float
+    mean_uncertainty: float
+    replans: int
+    fit_s: float
+    plan_s: float
+    env_s: float
+    extra: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def fit_models(
+    world_model: LSTMWorldModel,
+    estimator: UncertaintyEstimator | None,
+    data: TensorDictBase,
+    schedule: FitSchedule,
+    *,
+    seed: int,
+    warm: bool,
+    progress: bool = False,
+    logger: Logger | None = None,
+    log_prefix: str = "",
+) -> dict[str, float]:
+    """Fit (``warm=False``: normalisation and ``schedule.steps``) or refit (``warm=True``: the
+    current weights and normalisation, ``schedule.refit_steps``) both networks on ``data``,
+    split by trajectory with ``seed``; returns their best validation losses."""
+    s = schedule
+    train, val = split_by_trajectory(data, s.val_fraction, seed=seed)
+    buffers = []
+    for part in (train, val):
+        rb = make_sequence_buffer(len(part), slice_len=s.slice_len, num_slices=s.num_slices)
+        rb.extend(part)
+        buffers.append(rb)
+    common = dict(
+        val_buffer=buffers[1],
+        steps=s.refit_steps if warm else s.steps,
+        lr=s.lr,
+        eval_every=s.eval_every,
+        patience=s.patience,
+        seed=seed,
+        progress=progress,
+        logger=logger,
+        fit_normalization=not warm,
+        checkpoint_modules={},
+    )
+    out = {
+        "world_model": fit_world_model(
+            world_model, buffers[0], mode=s.mode, log_prefix=f"{log_prefix}world_model/", **common
+        ).best_val_loss
+    }
+    if estimator is not None:
+        out["uncertainty"] = fit_uncertainty(
+            estimator, buffers[0], log_prefix=f"{log_prefix}uncertainty/", **common
+        ).best_val_loss
+    return out
+
+
+def episode_returns(data: TensorDictBase) -> list[float]:
+    """The summed ``("next", "reward")`` of every trajectory in ``data`` that ends (done) in it.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({("next", "reward"): torch.ones(5, 1),
+        ...     ("next", "done"): torch.tensor([0, 1, 0, 0, 0]).bool()[:, None],
+        ...     ("collector", "traj_ids"): torch.tensor([0, 0, 1, 1, 1])}, [5])
+        >>> episode_returns(td)
+        [2.0]
+    """
+    ids = data.get(TRAJ_KEY)
+    reward = data["next", "reward"].reshape(len(data), -1).sum(-1).double()
+    done = data["next", "done"].reshape(len(data), -1).any(-1)
+    unique, inverse = torch.unique(ids, return_inverse=True)
+    sums = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, reward)
+    ended = torch.zeros(len(unique), dtype=torch.bool).index_put_((inverse,), done, accumulate=True)
+    return sums[ended].tolist()
+
+
+@torch.no_grad()
+def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) -> float:
+    """The world model's one-step (teacher-forced) error on ``data``: mean square of the
+    standardised Δs over non-overlapping windows of ``length`` steps (NaN when no trajectory
+    is that long)."""
+    try:
+        windows = cut_sequences(data, length)
+    except ValueError:
+        return float("nan")
+    loss = WorldModelPredictionLoss(world_model, mode="one_step")
+    device = next(world_model.parameters()).device
+    return float(loss(windows.to(device))["loss_world_model"])
+
+
+@torch.no_grad()
+def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBase) -> float:
+    """The estimator's mean u over the windows of ``data`` (NaN without an estimator or a
+    trajectory as long as its window)."""
+    if estimator is None:
+        return float("nan")
+    try:
+        windows = cut_sequences(data, estimator.window)
+    except ValueError:
+        return float("nan")
+    device = next(estimator.parameters()).device
+    return float(estimator.score(windows["observation"].to(device), windows["action"].to(device)).mean())
+
+
+class _Timed(TensorDictModuleBase):
+    """``policy`` with the wall time of its calls summed in ``seconds``."""
+
+    def __init__(self, policy: TensorDictModuleBase) -> None:
+        super().__init__()
+        self.policy, self.seconds = policy, 0.0
+        self.in_keys, self.out_keys = policy.in_keys, policy.out_keys
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        start = time.perf_counter()
+        out = self.policy(tensordict)
+        self.seconds += time.perf_counter() - start
+        return out
+
+
+def play(
+    env: EnvBase,
+    policy: MPCPolicy,
+    *,
+    frames: int,
+    seed: int,
+    progress: bool = False,
+) -> tuple[TensorDictBase, float]:
+    """``frames`` steps of ``policy`` on ``env`` (the policy's primer appended) through
+    TorchRL's collector; returns the steps and the seconds spent planning."""
+    timed = _Timed(policy)
+    data = collect(env, timed, frames=frames, seed=seed, progress=progress, desc="mpc")
+    return data, timed.seconds
+
+
+def learn_online(
+    env: EnvBase,
+    world_model: LSTMWorldModel,
+    estimator: UncertaintyEstimator | None,
+    make_planner: Callable[[], PlannerBase],
+    *,
+    iterations: int,
+    steps_per_iteration: int,
+    random_steps: int,
+    schedule: FitSchedule | None = None,
+    policy_kwargs: dict | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    logger: Logger | None = None,
+    on_iteration: Callable[[IterationRecord], None] | None = None,
+) -> tuple[list[IterationRecord], TensorDictBase]:
+    """Learn a task online: ``random_steps`` random steps, then ``iterations`` rounds of
+    ``steps_per_iteration`` MPC steps, refitting both networks after each round.
+
+    Args:
+        env: the TorchRL env (episodes of its own length; terminations end them early).
+        world_model, estimator: the networks the planner's model holds (``estimator`` may be
+            None for β = 0).
+        make_planner: returns the planner (its model built on ``world_model`` and
+            ``estimator``); called once, after the first fit.
+
+    Keyword Args:
+        policy_kwargs: keywords of :class:`~torchrl_recon.policies.MPCPolicy` (re-planning).
+        on_iteration: called with each record as it is made (e.g. to log or save).
+
+    Returns:
+        The records (iteration 0 is the random data) and all data collected.
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+        >>> env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
+        >>> world = LSTMWorldModel(3, 1, window=4)
+        >>> cost = lambda s, a, s1: s1[..., 2].pow(2) + (1 - s1[..., 0])
+        >>> model = PlanningModel.from_env(world, cost, env)
+        >>> records, data = learn_online(env, world, None,
+        ...     lambda: CEMPlanner(model, Objective(), horizon=5, num_candidates=16, iterations=2,
+        ...                        num_elites=4),
+        ...     iterations=1, steps_per_iteration=20, random_steps=60,
+        ...     schedule=FitSchedule(steps=4, refit_steps=2, eval_every=2, slice_len=8, num_slices=4,
+        ...                          val_fraction=0.34))
+        >>> [r.iteration for r in records], [r.env_steps for r in records], len(data)
+        ([0, 1], [60, 80], 80)
+    """
+    schedule = schedule or FitSchedule()
+    start = time.perf_counter()
+    data = collect_random(env, frames=random_steps, seed=seed, progress=progress)
+    env_s = time.perf_counter() - start
+    start = time.perf_counter()
+    fit_models(world_model, estimator, data, schedule, seed=seed, warm=False, progress=progress,
+               logger=logger, log_prefix="iteration_0/")
+    record = IterationRecord(
+        0, len(data), episode_returns(data), float("nan"), mean_uncertainty(estimator, data),
+        0, time.perf_counter() - start, 0.0, env_s,
+    )
+    records = [record]
+    if on_iteration is not None:
+        on_iteration(record)
+    policy = MPCPolicy(make_planner(), **(policy_kwargs or {}))
+    env.append_transform(policy.make_tensordict_primer())
+    for i in range(1, iterations + 1):
+        start = time.perf_counter()
+        new, plan_s = play(env, policy, frames=steps_per_iteration, seed=seed + i, progress=progress)
+        env_s = time.perf_counter() - start - plan_s
+        error = model_error(world_model, new, schedule.slice_len)
+        u = mean_uncertainty(estimator, new)
+        replans = int(new[REPLANNED].sum())
+        data = concat_trajectories(data, new.select(*data.keys(True, True)))  # the env's keys
+        start = time.perf_counter()
+        fit_models(world_model, estimator, data, schedule, seed=seed + i, warm=True,
+                   progress=progress, logger=logger, log_prefix=f"iteration_{i}/")
+        record = IterationRecord(
+            i, len(data), episode_returns(new), error, u, replans,
+            time.perf_counter() - start, plan_s, env_s,
+        )
+        records.append(record)
+        if on_iteration is not None:
+            on_iteration(record)
+    return records, data

@@ -166,7 +166,9 @@ def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBas
     except ValueError:
         return float("nan")
     device = next(estimator.parameters()).device
-    return float(estimator.score(windows["observation"].to(device), windows["action"].to(device)).mean())
+    return float(
+        estimator.score(windows["observation"].to(device), windows["action"].to(device)).mean()
+    )
 
 
 class _Timed(TensorDictModuleBase):
@@ -254,11 +256,27 @@ def learn_online(
     data = collect_random(env, frames=random_steps, seed=seed, progress=progress)
     env_s = time.perf_counter() - start
     start = time.perf_counter()
-    fit_models(world_model, estimator, data, schedule, seed=seed, warm=False, progress=progress,
-               logger=logger, log_prefix="iteration_0/")
+    fit_models(
+        world_model,
+        estimator,
+        data,
+        schedule,
+        seed=seed,
+        warm=False,
+        progress=progress,
+        logger=logger,
+        log_prefix="iteration_0/",
+    )
     record = IterationRecord(
-        0, len(data), episode_returns(data), float("nan"), mean_uncertainty(estimator, data),
-        0, time.perf_counter() - start, 0.0, env_s,
+        0,
+        len(data),
+        episode_returns(data),
+        float("nan"),
+        mean_uncertainty(estimator, data),
+        0,
+        time.perf_counter() - start,
+        0.0,
+        env_s,
     )
     records = [record]
     if on_iteration is not None:
@@ -267,18 +285,36 @@ def learn_online(
     env.append_transform(policy.make_tensordict_primer())
     for i in range(1, iterations + 1):
         start = time.perf_counter()
-        new, plan_s = play(env, policy, frames=steps_per_iteration, seed=seed + i, progress=progress)
+        new, plan_s = play(
+            env, policy, frames=steps_per_iteration, seed=seed + i, progress=progress
+        )
         env_s = time.perf_counter() - start - plan_s
         error = model_error(world_model, new, schedule.slice_len)
         u = mean_uncertainty(estimator, new)
         replans = int(new[REPLANNED].sum())
         data = concat_trajectories(data, new.select(*data.keys(True, True)))  # the env's keys
         start = time.perf_counter()
-        fit_models(world_model, estimator, data, schedule, seed=seed + i, warm=True,
-                   progress=progress, logger=logger, log_prefix=f"iteration_{i}/")
+        fit_models(
+            world_model,
+            estimator,
+            data,
+            schedule,
+            seed=seed + i,
+            warm=True,
+            progress=progress,
+            logger=logger,
+            log_prefix=f"iteration_{i}/",
+        )
         record = IterationRecord(
-            i, len(data), episode_returns(new), error, u, replans,
-            time.perf_counter() - start, plan_s, env_s,
+            i,
+            len(data),
+            episode_returns(new),
+            error,
+            u,
+            replans,
+            time.perf_counter() - start,
+            plan_s,
+            env_s,
         )
         records.append(record)
         if on_iteration is not None:

@@ -1,0 +1,89 @@
+"""The online loop (torchrl_recon.training.online) on a real gymnasium env, at smoke scale."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchrl_recon.data import split_by_trajectory
+from torchrl_recon.envs import make_env
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.training.online import FitSchedule, learn_online
+
+SCHEDULE = FitSchedule(
+    steps=6, refit_steps=3, eval_every=3, slice_len=8, num_slices=4, val_fraction=0.34
+)
+
+
+def pendulum_cost(obs, action, next_obs):
+    theta = torch.atan2(next_obs[..., 1], next_obs[..., 0])
+    return theta.pow(2) + 0.1 * next_obs[..., 2].pow(2)
+
+
+def _learn(seed: int, with_u: bool = True):
+    torch.manual_seed(seed)
+    env = make_env("Pendulum-v1", seed=seed, max_episode_steps=15)
+    world = LSTMWorldModel(3, 1, window=4)
+    estimator = ReconstructionUncertainty(3, 1, window=4) if with_u else None
+    model = PlanningModel.from_env(world, pendulum_cost, env, uncertainty=estimator)
+    seen = []
+    records, data = learn_online(
+        env,
+        world,
+        estimator,
+        lambda: CEMPlanner(
+            model,
+            Objective(beta=0.1 if with_u else 0.0),
+            horizon=4,
+            num_candidates=16,
+            iterations=2,
+            num_elites=4,
+        ),
+        iterations=2,
+        steps_per_iteration=30,
+        random_steps=45,
+        schedule=SCHEDULE,
+        seed=seed,
+        on_iteration=seen.append,
+    )
+    return records, data, seen, world
+
+
+def test_records_data_and_callbacks():
+    records, data, seen, _ = _learn(0)
+    assert seen == records
+    assert [r.iteration for r in records] == [0, 1, 2]
+    assert [r.env_steps for r in records] == [45, 75, 105]
+    assert len(data) == 105
+    # 15-step episodes: 3 random ones, then 2 per iteration, each with a return
+    assert [len(r.episode_returns) for r in records] == [3, 2, 2]
+    assert math.isnan(records[0].model_error)
+    for r in records[1:]:
+        assert math.isfinite(r.model_error) and r.model_error > 0
+        assert math.isfinite(r.mean_uncertainty)
+        assert 0 < r.replans <= 30  # every step re-plans, less the random warm-up steps
+        assert r.plan_s > 0 and r.fit_s > 0
+    ids = data["collector", "traj_ids"]
+    assert torch.unique(ids).numel() == 7  # trajectory ids stay distinct across iterations
+
+
+def test_same_seed_same_numbers():
+    a, data_a, _, _ = _learn(1)
+    b, data_b, _, _ = _learn(1)
+    assert [r.episode_returns for r in a] == [r.episode_returns for r in b]
+    assert [r.model_error for r in a[1:]] == [r.model_error for r in b[1:]]
+    assert torch.equal(data_a["action"], data_b["action"])
+
+
+def test_refits_keep_the_first_normalisation():
+    torch.manual_seed(2)
+    records, data, _, world = _learn(2, with_u=False)
+    # the normalisation is fitted once, on the random data's training split (its first 45 steps)
+    train, _ = split_by_trajectory(data[:45], SCHEDULE.val_fraction, seed=2)
+    first = LSTMWorldModel(3, 1, window=4)
+    first.fit_normalization(train["observation"], train["action"], train["next", "observation"])
+    assert torch.equal(world.obs_norm.loc, first.obs_norm.loc)
+    assert torch.equal(world.obs_norm.scale, first.obs_norm.scale)
+    assert math.isnan(records[1].mean_uncertainty)  # no estimator

@@ -260,3 +260,31 @@ def test_nan_action_raises_minitaur(build):
     td["action"] = torch.full((ACT_DIM["minitaur"],), math.nan)
     with pytest.raises(ValueError, match="NaN"):
         env.step(td)
+
+
+class _DictObsEnv(gym.Env):
+    """A gymnasium env whose observation is a Dict: make_env must refuse it by name."""
+
+    def __init__(self):
+        import numpy as np
+
+        self.observation_space = gym.spaces.Dict(
+            {"position": gym.spaces.Box(-1, 1, (2,), np.float32)}
+        )
+        self.action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return {"position": self.observation_space["position"].sample()}, {}
+
+    def step(self, action):
+        return {"position": self.observation_space["position"].sample()}, 0.0, False, False, {}
+
+
+def test_make_env_refuses_dict_observations_and_discrete_actions():
+    if "DictObsTest-v0" not in gym.registry:
+        gym.register(id="DictObsTest-v0", entry_point=_DictObsEnv)
+    with pytest.raises(ValueError, match=r"'DictObsTest-v0' has observations .*FlattenObservation"):
+        make_env("DictObsTest-v0", seed=0)
+    with pytest.raises(ValueError, match=r"'CartPole-v1' has a discrete action space"):
+        make_env("CartPole-v1", seed=0)

@@ -19,6 +19,7 @@ from torchrl.envs import (
 )
 
 from torchrl_recon.envs.registry import get_entry, register_envs
+from torchrl_recon.envs.spaces import space_errors
 
 
 def _make_gym_env(gym_id: str, seed: int | None = None, **kwargs) -> GymEnv:
@@ -83,6 +84,13 @@ def make_env(
         >>> batch.reset()["observation"].shape
         torch.Size([2, 12])
         >>> batch.close()
+        >>> make_env("CartPole-v1", seed=0)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ValueError: environment 'CartPole-v1' has a discrete action space ...
+
+    Raises:
+        ValueError: the env's observation is not one flat float vector, or its action not a
+            bounded continuous vector (the message says how to wrap it).
     """
     register_envs()
     entry = get_entry(name)
@@ -117,6 +125,10 @@ def make_env(
         base = batched(num_envs, create, device=device)
     else:
         base = create()
+    errors = space_errors(base, name)
+    if errors:
+        base.close()
+        raise ValueError("; ".join(errors) + ".")
     env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker()))
     if seeds is None or num_envs == 1:
         env.set_seed(seed if seeds is None else seeds[0])

@@ -14,7 +14,12 @@ from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.planning_model import (
+    PlanningModel,
+    Prediction,
+    TerminationFn,
+    check_step_fn,
+)
 from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
@@ -28,10 +33,12 @@ __all__ = [
     "PlanningModel",
     "Prediction",
     "RandomShootingPlanner",
+    "TerminationFn",
     "UncertaintyBand",
     "WorldModelPlanningEnv",
     "bounds_from_spec",
     "check_bounds_match",
+    "check_step_fn",
     "cost_to_u_ratio",
     "relative_beta",
     "window_uncertainty",

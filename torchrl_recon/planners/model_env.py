@@ -13,9 +13,9 @@ from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.planners.planning_model import CostFn
+from torchrl_recon.planners.planning_model import CostFn, TerminationFn, check_step_fn
 
-H_KEY, C_KEY, U_HISTORY = "wm_h", "wm_c", "u_history"
+H_KEY, C_KEY, U_HISTORY, ENDED = "wm_h", "wm_c", "u_history", "wm_ended"
 
 
 class _InputModule(TensorDictModuleBase):
@@ -40,6 +40,7 @@ class _StepModule(TensorDictModuleBase):
         cost_fn: CostFn,
         estimator: UncertaintyEstimator | None,
         beta: float,
+        termination_fn: TerminationFn | None = None,
     ):
         super().__init__()
         self.world_model, self.cost_fn, self.estimator, self.beta = (
@@ -48,12 +49,12 @@ class _StepModule(TensorDictModuleBase):
             estimator,
             beta,
         )
-        self.in_keys = ["wm_features", "observation", "action"] + (
-            [U_HISTORY] if estimator is not None else []
+        self.termination_fn = termination_fn
+        state = ([U_HISTORY] if estimator is not None else []) + (
+            [ENDED] if termination_fn is not None else []
         )
-        self.out_keys = ["observation", "reward", "is_init"] + (
-            [U_HISTORY] if estimator is not None else []
-        )
+        self.in_keys = ["wm_features", "observation", "action", *state]
+        self.out_keys = ["observation", "reward", "is_init", *state]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
@@ -65,6 +66,10 @@ class _StepModule(TensorDictModuleBase):
             window = torch.cat([td.get(U_HISTORY), torch.cat([obs, action], -1).unsqueeze(-2)], -2)
             reward = reward - self.beta * self.estimator.score_windows(window)
             td.set(U_HISTORY, window[..., 1:, :])
+        if self.termination_fn is not None:  # nothing accrues after a predicted end
+            ended = td.get(ENDED).squeeze(-1)
+            reward = reward.masked_fill(ended, 0.0)
+            td.set(ENDED, (ended | self.termination_fn(obs, action, next_obs)).unsqueeze(-1))
         td.set("observation", next_obs)
         td.set("reward", reward.unsqueeze(-1))
         return td.set("is_init", torch.zeros_like(reward, dtype=torch.bool).unsqueeze(-1))
@@ -77,7 +82,9 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
     TorchRL's ``LSTMModule`` sharing the world model's ``nn.LSTM`` weights; its state
     (``wm_h``, ``wm_c``), ``is_init`` and, with an estimator, the last ``T − 1`` (s, a) pairs
     (``u_history``) are part of the observation spec, so they are carried through rollouts.
-    The reward is ``−cost − beta·u`` of each imagined transition. Start a rollout from
+    The reward is ``−cost − beta·u`` of each imagined transition, and 0 after the first
+    transition ``termination_fn`` says ends the episode (its flag ``wm_ended`` is carried
+    like the LSTM state). Start a rollout from
     :meth:`initial_state`, which warms the LSTM up on a real context. The env's device is the
     world model's (it is not moved).
 
@@ -88,6 +95,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
     Keyword Args:
         uncertainty: optional estimator; with it the reward is penalised by ``beta·u``.
         beta: uncertainty weight.
+        termination_fn: optional ``termination(obs, action, next_obs) -> bool [...]``.
         action_low, action_high: action bounds.
 
     Examples:
@@ -107,21 +115,36 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         *,
         uncertainty: UncertaintyEstimator | None = None,
         beta: float = 0.0,
+        termination_fn: TerminationFn | None = None,
         action_low: float = -1.0,
         action_high: float = 1.0,
     ) -> None:
+        n, m = world_model.obs_dim, world_model.action_dim
+        check_step_fn("cost_fn", cost_fn, n, m, device=module_device(world_model))
+        if termination_fn is not None:
+            check_step_fn(
+                "termination_fn",
+                termination_fn,
+                n,
+                m,
+                device=module_device(world_model),
+                boolean=True,
+            )
         lstm = LSTMModule(
             lstm=world_model.lstm,
             in_keys=["wm_input", H_KEY, C_KEY],
             out_keys=["wm_features", H_KEY, C_KEY],
         )
         module = TensorDictSequential(
-            _InputModule(world_model), lstm, _StepModule(world_model, cost_fn, uncertainty, beta)
+            _InputModule(world_model),
+            lstm,
+            _StepModule(world_model, cost_fn, uncertainty, beta, termination_fn),
         )
         device = module_device(world_model)
         super().__init__(module, device=device)
         self.lstm_world_model, self.estimator = world_model, uncertainty
-        n, m, hid = world_model.obs_dim, world_model.action_dim, world_model.hidden_size
+        self.termination_fn = termination_fn
+        hid = world_model.hidden_size
         observation = {
             "observation": Unbounded((n,), device=device),
             H_KEY: Unbounded((1, hid), device=device),
@@ -130,6 +153,8 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         }
         if uncertainty is not None:
             observation[U_HISTORY] = Unbounded((uncertainty.window - 1, n + m), device=device)
+        if termination_fn is not None:
+            observation[ENDED] = Categorical(2, (1,), dtype=torch.bool, device=device)
         self.observation_spec = Composite(observation, device=device)
         self.state_spec = self.observation_spec.clone()
         self.action_spec = Bounded(action_low, action_high, (m,), device=device)
@@ -152,6 +177,8 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
             },
             batch,
         )
+        if self.termination_fn is not None:
+            td.set(ENDED, torch.zeros(*batch, 1, dtype=torch.bool, device=observation.device))
         if self.estimator is not None:
             past = self.estimator.window - 1
             td.set(

@@ -16,6 +16,47 @@ from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
 
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+TerminationFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+"""``termination(obs, action, next_obs) -> bool [...]``: whether the step ends the episode."""
+
+
+def check_step_fn(
+    name: str,
+    fn: Callable,
+    obs_dim: int,
+    action_dim: int,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+    boolean: bool = False,
+) -> None:
+    """Call a user's per-step function (a cost or a termination) once on zeros ``[2, 3, .]``
+    and check it returns one value per step, ``[2, 3]`` (bools for a termination).
+
+    Raises:
+        ValueError: naming the function, the shapes it was given and what it returned.
+
+    Examples:
+        >>> check_step_fn("cost_fn", lambda s, a, s1: s1.pow(2).sum(-1), 3, 1)
+        >>> check_step_fn("cost_fn", lambda s, a, s1: s1, 3, 1)
+        Traceback (most recent call last):
+        ValueError: cost_fn(obs [2, 3, 3], action [2, 3, 1], next_obs [2, 3, 3]) must return one value per step, a tensor [2, 3], got [2, 3, 3].
+    """
+    obs = torch.zeros(2, 3, obs_dim, dtype=dtype, device=device)
+    action = torch.zeros(2, 3, action_dim, dtype=dtype, device=device)
+    call = f"{name}(obs [2, 3, {obs_dim}], action [2, 3, {action_dim}], next_obs [2, 3, {obs_dim}])"
+    try:
+        with torch.no_grad():
+            out = fn(obs, action, obs)
+    except Exception as e:  # the user's function: any error is theirs to fix
+        raise ValueError(f"{call} failed: {e!r}") from e
+    if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2, 3):
+        got = list(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise ValueError(f"{call} must return one value per step, a tensor [2, 3], got {got}.")
+    if boolean and out.dtype != torch.bool:
+        raise ValueError(
+            f"{call} must return bools (True where the step ends the episode), got {out.dtype}."
+        )
 
 
 def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -111,6 +152,11 @@ class PlanningModel(nn.Module):
 
     Keyword Args:
         uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
+        termination_fn: batched torch ``termination(obs, action, next_obs) -> bool [...]``
+            (the env's own rule, e.g. a pole past its limit), or None (episodes never end in
+            the model). A candidate stops accruing cost and u after the first step predicted
+            to end the episode (that step's cost counts): with a reward, an early end forgoes
+            the reward of the steps left; with an alive bonus, falling costs it.
         action_low, action_high: action bounds (floats or ``[M]`` tensors); must be finite.
             Stored as buffers on the world model's device and dtype (``.to()`` moves them
             with the rest); planners draw their candidates there. The defaults (−1, 1) fit
@@ -133,11 +179,13 @@ class PlanningModel(nn.Module):
         cost_fn: CostFn,
         *,
         uncertainty: UncertaintyEstimator | None = None,
+        termination_fn: TerminationFn | None = None,
         action_low: float | torch.Tensor = -1.0,
         action_high: float | torch.Tensor = 1.0,
     ) -> None:
         super().__init__()
         self.world_model, self.cost_fn, self.uncertainty = world_model, cost_fn, uncertainty
+        self.termination_fn = termination_fn
         self.obs_dim, self.action_dim = world_model.obs_dim, world_model.action_dim
         if uncertainty is not None and (uncertainty.obs_dim, uncertainty.action_dim) != (
             self.obs_dim,
@@ -166,6 +214,17 @@ class PlanningModel(nn.Module):
             )
         self.register_buffer("action_low", low.to(device).clone())
         self.register_buffer("action_high", high.to(device).clone())
+        check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)
+        if termination_fn is not None:
+            check_step_fn(
+                "termination_fn",
+                termination_fn,
+                self.obs_dim,
+                self.action_dim,
+                dtype=dtype,
+                device=device,
+                boolean=True,
+            )
 
     @classmethod
     def from_env(
@@ -175,6 +234,7 @@ class PlanningModel(nn.Module):
         env: EnvBase,
         *,
         uncertainty: UncertaintyEstimator | None = None,
+        termination_fn: TerminationFn | None = None,
     ) -> PlanningModel:
         """A planning model whose action bounds are the env's (its ``Bounded`` action spec).
 
@@ -196,7 +256,14 @@ class PlanningModel(nn.Module):
                 f"the env's action spec has {low.numel()} dims but the world model's action_dim "
                 f"is {world_model.action_dim}; build the world model for this env's actions."
             )
-        return cls(world_model, cost_fn, uncertainty=uncertainty, action_low=low, action_high=high)
+        return cls(
+            world_model,
+            cost_fn,
+            uncertainty=uncertainty,
+            termination_fn=termination_fn,
+            action_low=low,
+            action_high=high,
+        )
 
     @property
     def context_length(self) -> int:
@@ -290,9 +357,8 @@ class PlanningModel(nn.Module):
         )
         if self.uncertainty is not None and not blocks_u:
             entering = _entering(observation, prediction.states)
-            prediction.uncertainty = self._score_uncertainty(
-                context_obs, context_action, entering, actions
-            )
+            u = self._score_uncertainty(context_obs, context_action, entering, actions)
+            prediction.uncertainty = self._until_end(u, entering, actions, prediction.states)
         return prediction
 
     @property
@@ -316,11 +382,23 @@ class PlanningModel(nn.Module):
             context_obs, context_action, observation, actions, **kwargs
         )
         entering = _entering(observation, states)  # s_k for k = 0..H-1
-        cost = self.cost_fn(entering, actions, states)
+        cost = self._until_end(self.cost_fn(entering, actions, states), entering, actions, states)
         uncertainty = None
         if self.uncertainty is not None and with_u:
-            uncertainty = self._score_uncertainty(context_obs, context_action, entering, actions)
+            u = self._score_uncertainty(context_obs, context_action, entering, actions)
+            uncertainty = self._until_end(u, entering, actions, states)
         return Prediction(states=states, cost=cost, uncertainty=uncertainty)
+
+    def _until_end(
+        self, x: torch.Tensor, entering: torch.Tensor, actions: torch.Tensor, states: torch.Tensor
+    ) -> torch.Tensor:
+        """``x`` ``[*B, K, H]`` zeroed after each candidate's first predicted termination (the
+        terminating step kept); ``x`` itself without a termination function."""
+        if self.termination_fn is None:
+            return x
+        ended = self.termination_fn(entering, actions, states).cumsum(-1) > 0  # [*B, K, H]
+        ended_before = torch.cat([torch.zeros_like(ended[..., :1]), ended[..., :-1]], -1)
+        return x.masked_fill(ended_before, 0.0)
 
     def _score_uncertainty(
         self,

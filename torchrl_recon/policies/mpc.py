@@ -21,6 +21,8 @@ from torchrl_recon.policies.env_checks import (
 )
 
 ReplanMode = Literal["every_step", "every_n", "uncertainty"]
+WarmupMode = Literal["random", "zeros", "plan"]
+WARMUP_MODES = ("random", "zeros", "plan")
 
 # State keys carried step to step (primed by make_tensordict_primer, reset where is_init is set).
 OBS_HISTORY, ACTION_HISTORY = "mpc_obs_history", "mpc_action_history"
@@ -102,7 +104,13 @@ class MPCPolicy(TensorDictModuleBase):
         error_threshold: also re-plan when the observed state is further than this from the
             plan's prediction (RMS in normalised units); ``None`` (default) never.
         warm_start: pass the unexecuted rest of the previous plan to the planner as ``init``.
-        warmup_steps: random actions after each reset (at least the context length ``C``).
+        warmup_steps: steps after each reset before the first plan (at least the context
+            length ``C``; 0 with ``warmup="plan"``).
+        warmup: what those steps do: ``"random"`` (uniform random actions, the paper's),
+            ``"zeros"`` (the zero action, clamped into the bounds: a task that must not be
+            shaken at its start, e.g. a balanced pole), or ``"plan"`` (no warm-up: plan from
+            the first step, the context before the episode's start filled with its first
+            observation and the zero action, as if the system had been at rest).
         obs_key, action_key: TensorDict keys.
 
     Examples:
@@ -130,6 +138,7 @@ class MPCPolicy(TensorDictModuleBase):
         error_threshold: float | None = None,
         warm_start: bool = True,
         warmup_steps: int | None = None,
+        warmup: WarmupMode = "random",
         obs_key: str = "observation",
         action_key: str = "action",
     ) -> None:
@@ -163,11 +172,21 @@ class MPCPolicy(TensorDictModuleBase):
             planner.horizon,
         )
         self.context = model.context_length
-        if warmup_steps is not None and warmup_steps < self.context:
+        if warmup not in WARMUP_MODES:
+            raise ValueError(f"warmup must be one of {list(WARMUP_MODES)}, got {warmup!r}.")
+        self.warmup = warmup
+        if warmup == "plan":
+            if warmup_steps not in (None, 0):
+                raise ValueError(
+                    f"warmup='plan' plans from the first step: warmup_steps must be 0 or None, "
+                    f"got {warmup_steps}."
+                )
+            warmup_steps = 0
+        elif warmup_steps is not None and warmup_steps < self.context:
             raise ValueError(
                 f"warmup_steps={warmup_steps} is shorter than the context the planner needs ({self.context})."
             )
-        self.warmup_steps = warmup_steps or self.context
+        self.warmup_steps = self.context if warmup_steps is None else warmup_steps
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys = [obs_key, IS_INIT, *STATE_KEYS]
         self.out_keys = [
@@ -313,9 +332,10 @@ class MPCPolicy(TensorDictModuleBase):
             idx = replanned.nonzero().squeeze(-1)
             with warnings.catch_warnings():  # recorded per step in mpc_feasible instead
                 warnings.simplefilter("ignore", InfeasiblePlanWarning)
+                context_obs, context_action = self._context(state, obs, seen)
                 result = self.planner.plan(
-                    state[OBS_HISTORY][idx],
-                    state[ACTION_HISTORY][idx],
+                    context_obs[idx],
+                    context_action[idx],
                     obs[idx],
                     init=self._warm_start(plan[idx], step[idx]),
                 )
@@ -330,9 +350,12 @@ class MPCPolicy(TensorDictModuleBase):
             feasible[idx] = result.feasible
 
         low, high = self.planner.model.action_low, self.planner.model.action_high
-        random_action = low + (high - low) * torch.rand(
-            rows, self.action_dim, dtype=low.dtype, device=device
-        )
+        if self.warmup == "random":
+            random_action = low + (high - low) * torch.rand(
+                rows, self.action_dim, dtype=low.dtype, device=device
+            )
+        else:
+            random_action = self._rest_action().expand(rows, -1)
         at = step.clamp(max=self.horizon - 1)
         planned = ready[:, None]
         action = torch.where(planned, _at_step(state[PLAN], at), random_action)
@@ -355,6 +378,28 @@ class MPCPolicy(TensorDictModuleBase):
             value = state[key].reshape(*batch, *state[key].shape[1:])
             tensordict.set(("next", key), value.to(out_device))
         return tensordict
+
+    def _rest_action(self) -> torch.Tensor:
+        """The zero action, clamped into the planner's bounds, ``[M]``."""
+        low, high = self.planner.model.action_low, self.planner.model.action_high
+        return torch.zeros_like(low).clamp(low, high)
+
+    def _context(
+        self, state: TensorDictBase, obs: torch.Tensor, seen: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The real context to plan from, ``[R, C, N]``, ``[R, C, M]``; with ``warmup="plan"``
+        the slots before the episode's start hold its first observation and the rest action."""
+        obs_h, act_h = state[OBS_HISTORY], state[ACTION_HISTORY]
+        if self.warmup != "plan":
+            return obs_h, act_h
+        c = obs_h.shape[1]
+        missing = c - seen.clamp(max=c)  # slots before the episode's start, [R]
+        before = torch.arange(c, device=obs.device) < missing[:, None]  # [R, C]
+        first_index = missing.clamp(max=c - 1)[:, None, None].expand(-1, 1, obs_h.shape[-1])
+        first = torch.where((seen > 0)[:, None], obs_h.gather(1, first_index).squeeze(1), obs)
+        obs_h = torch.where(before[..., None], first[:, None], obs_h)
+        act_h = torch.where(before[..., None], self._rest_action(), act_h)
+        return obs_h, act_h
 
     def _warm_start(self, plan: torch.Tensor, step: torch.Tensor) -> torch.Tensor | None:
         """The unexecuted rest of each plan, padded with its last action; zeros when a plan ran out."""

@@ -91,7 +91,7 @@ BENCHMARK_STEPS = [
         "planner_speed.py",
         150,
         ["--horizons", "30", "200", "--repeats", "5", "--compile"],
-        ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1"],
+        ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
     ),
     benchmark(
         "population fits",
@@ -231,9 +231,12 @@ def figures_of(step: Step, output: str) -> list[str]:
         results = step.run_dir / "results.json"
         if results.is_file():
             data = json.loads(results.read_text())
-            meta = data.get("meta", {})
+            device = data.get("meta", {}).get("device", {})
+            stages = data.get("wall_time_s", {})
+            total = sum(stages.values()) if isinstance(stages, dict) else stages
             shown.append(
-                f"results.json: device {meta.get('device')}, wall_time_s {data.get('wall_time_s')}"
+                f"results.json: device {device.get('device')} ({device.get('name')}), "
+                f"stages' wall time {total:.1f} s"
             )
     return shown
 

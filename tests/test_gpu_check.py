@@ -100,4 +100,5 @@ def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     report = (tmp_path / "gpu_check.md").read_text()
     assert set(_sections(report).values()) == {"passed"}, report
     assert "its arithmetic limit" in report and "speed-up" in report
-    assert report.count("results.json: device {'device': 'cpu'") == 3, report
+    assert report.count("results.json: device cpu (") == 3, report
+    assert "torch.compile (default) vs eager" in report, report

@@ -6,7 +6,7 @@ PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-all test-faults lint bench mutation
+.PHONY: setup demo test test-all test-faults lint bench mutation gpu-check
 
 setup: $(VENV)/.installed
 
@@ -42,6 +42,14 @@ bench: setup
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
 	$(PY) benchmarks/training_speed.py
+
+# One command for a GPU machine (docs/benchmarks.md#gpu-check): the CUDA tests, every benchmark
+# with --device cuda and a smoke run of each experiment kind on device=cuda, within 8 minutes;
+# the report is $(GPU_CHECK_OUT)/gpu_check.md. Without a GPU it runs the test steps and skips the rest.
+GPU_CHECK_OUT ?= outputs/gpu_check
+
+gpu-check: setup
+	$(PY) benchmarks/gpu_check.py --out $(GPU_CHECK_OUT)
 
 # Mutation testing (docs/testing.md); not part of `make test`. It runs in a copy of the work
 # tree under MUTATION_DIR. MUTANTS: mutmut mutant-name globs (default: the sample in

@@ -1,15 +1,19 @@
-"""Shared pieces of the benchmarks: paper-size models, a start context and the IB cost."""
+"""Shared pieces of the benchmarks: paper-size models, a start context, the IB cost, and the
+arithmetic limit (FLOPs counted from the weights over the GEMM rate measured in the same run)."""
 
 from __future__ import annotations
 
 import argparse
 
 import torch
+from torch import nn
 
 from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_device, describe_device, resolve_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import CEMPlanner, GradientPlanner, RandomShootingPlanner
+from torchrl_recon.timing import interleaved_median_ms
 
 OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
 
@@ -87,3 +91,103 @@ def context(
 
 
 COST = industrial_benchmark_cost
+
+
+# ----------------------------------------------------------------------------------------------
+# Arithmetic limits: FLOPs (2 per multiply-add, GEMMs only) over the measured GEMM rate
+
+
+def gemm_gflops(
+    device: torch.device | str,
+    shape: tuple[int, int, int, int] = (1, 1024, 1024, 1024),
+    repeats: int = 5,
+) -> float:
+    """Measured GFLOP/s of one float32 ``baddbmm`` ``[b, m, k] @ [b, k, n]`` on ``device``.
+
+    The default shape is one large matrix product (the device's GEMM rate); a benchmark may
+    pass the shape of its own hot product instead. Timed with
+    :func:`~torchrl_recon.timing.interleaved_median_ms` (synchronised on CUDA).
+
+    Examples:
+        >>> gemm_gflops("cpu", (1, 64, 64, 64), repeats=1) > 0
+        True
+    """
+    b, m, k, n = shape
+    x, y, c = (torch.rand(*s, device=device) for s in ((b, m, k), (b, k, n), (b, m, n)))
+    calls = {"gemm": lambda: torch.baddbmm(c, x, y)}
+    ms = interleaved_median_ms(calls, repeats, device=device)["gemm"]
+    return 2 * b * m * k * n / (ms * 1e-3) / 1e9
+
+
+def gemm_line(gflops: float, shape: tuple[int, int, int, int] = (1, 1024, 1024, 1024)) -> str:
+    """The line that prints the GEMM rate above a benchmark's table."""
+    b, m, k, n = shape
+    product = f"{m}x{k} @ {k}x{n}" + (f", {b} batched" if b > 1 else "")
+    return f"GEMM rate (float32 {product}, measured now): {gflops:.1f} GFLOP/s"
+
+
+def matmul_flops(module: nn.Module) -> int:
+    """FLOPs of one input row through every weight matrix of ``module`` once (2 per weight).
+
+    For :class:`LSTMWorldModel` that is one imagined step (LSTM gates, dense, head); for
+    :class:`ReconstructionUncertainty` the score of one window (encoder and decoder).
+
+    Examples:
+        >>> matmul_flops(nn.Linear(3, 4))
+        24
+    """
+    return 2 * sum(p.numel() for p in module.parameters() if p.dim() == 2)
+
+
+def lstm_step_flops(world: LSTMWorldModel) -> int:
+    """FLOPs of one LSTM step of ``world`` alone (a teacher-forced warm-up step)."""
+    return 2 * (world.lstm.weight_ih_l0.numel() + world.lstm.weight_hh_l0.numel())
+
+
+def plan_flops(planner: CEMPlanner | RandomShootingPlanner | GradientPlanner, envs: int = 1) -> int:
+    """FLOPs of one ``plan`` call over ``envs`` contexts: candidate rows × H × a row-step.
+
+    A row-step is a world-model step plus, with an estimator, its score of the window ending
+    there (:func:`matmul_flops`). CEM evaluates K rows per iteration, random shooting K once,
+    the gradient planner its restarts at each of ``steps`` forward + backward passes (a
+    backward ≈ 2 forwards) and once more forward at the end.
+    """
+    model = planner.model
+    step = matmul_flops(model.world_model)
+    if model.uncertainty is not None:
+        step += matmul_flops(model.uncertainty)
+    if isinstance(planner, CEMPlanner):
+        rows = planner.num_candidates * planner.iterations
+    elif isinstance(planner, RandomShootingPlanner):
+        rows = planner.num_candidates
+    elif isinstance(planner, GradientPlanner):
+        rows = planner.restarts * (3 * planner.steps + 1)
+    else:
+        raise TypeError(f"no FLOP count for {type(planner).__name__}")
+    return envs * rows * planner.horizon * step
+
+
+def fit_step_flops(world: LSTMWorldModel, sequences: int, slice_len: int) -> int:
+    """FLOPs of one multi-step fit step of ``world`` on ``sequences`` slices of ``slice_len``.
+
+    The forward is a teacher-forced warm-up over the window (LSTM only) and ``slice_len -
+    window`` imagined steps; forward + backward ≈ 3 × forward.
+    """
+    imagined = slice_len - world.window
+    forward = world.window * lstm_step_flops(world) + imagined * matmul_flops(world)
+    return 3 * sequences * forward
+
+
+def limit_ms(flops: float, gflops: float) -> float:
+    """Time in ms that ``flops`` take at ``gflops`` GFLOP/s."""
+    return flops / (gflops * 1e9) * 1e3
+
+
+def limit_text(measured_ms: float, limit: float) -> str:
+    """``N.Nx its arithmetic limit``: how far a measured time is from its limit (both in ms).
+
+    Examples:
+        >>> limit_text(40.0, 11.0)
+        '3.6x its arithmetic limit'
+    """
+    return f"{measured_ms / limit:.1f}x its arithmetic limit"

@@ -14,7 +14,7 @@ machine load hits both alike.
 For each planner the script also prints the arithmetic limit of the one-call plan: its
 multiply-add FLOPs (rollout, autoencoder, and for the gradient planner their backward) over
 the measured rate of a large matrix product on this device and thread count, and how far the
-measured time is from it. It ends with the two lines
+measured time is from it (``N.Nx its arithmetic limit``; ``_common.plan_flops``). It ends with the two lines
 ``speed-up of 10 episodes in one call (gradient): X.Xx`` and
 ``speed-up of 10 episodes in one call (CEM, K=1000): X.Xx``.
 """
@@ -27,34 +27,21 @@ from functools import partial
 import torch
 from _common import (
     COST,
-    OBS_DIM,
-    WINDOW,
     add_device_argument,
     context,
     describe,
+    gemm_gflops,
+    gemm_line,
+    limit_ms,
+    limit_text,
     paper_models,
     parse_args,
+    plan_flops,
 )
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import CEMPlanner, GradientPlanner, Objective, PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
-
-ACTION_DIM, HIDDEN, DENSE, AE_HIDDEN = 3, 32, 32, 100
-
-
-def row_step_flops() -> tuple[int, int]:
-    """Forward FLOPs of one candidate row per imagined step: (world model, autoencoder window)."""
-    world = 2 * ((ACTION_DIM + OBS_DIM + HIDDEN) * 4 * HIDDEN + HIDDEN * DENSE + DENSE * OBS_DIM)
-    size = WINDOW * (OBS_DIM + ACTION_DIM)
-    return world, 2 * 2 * size * AE_HIDDEN
-
-
-def gemm_gflops(device: torch.device, repeats: int = 5) -> float:
-    """Measured GFLOP/s of a 1024 × 1024 × 1024 float32 matrix product (the device's GEMM rate)."""
-    a, b = (torch.rand(1024, 1024, device=device) for _ in range(2))
-    ms = interleaved_median_ms({"mm": lambda: a @ b}, repeats, device=device)["mm"]
-    return 2 * 1024**3 / (ms * 1e-3) / 1e9
 
 
 def batched_contexts(envs: int, device: torch.device) -> tuple[torch.Tensor, ...]:
@@ -110,13 +97,8 @@ def main() -> None:
         for name, planner in planners.items()
         if ("cem" if name == cem_name else name) in args.planners
     }
-    world_flops, ae_flops = row_step_flops()
     rate = gemm_gflops(device)
-    print(f"GEMM rate (1024^3 float32 matmul): {rate:.1f} GFLOP/s")
-    rows = {
-        "gradient": args.restarts * (args.steps + 1),
-        cem_name: args.candidates * args.iterations,
-    }
+    print(gemm_line(rate))
     speed_ups = {}
     for name, planner in planners.items():
         times = interleaved_median_ms(
@@ -127,16 +109,14 @@ def main() -> None:
             args.repeats,
             device=device,
         )
-        # Forward FLOPs per candidate row of the whole plan; a backward costs about twice its forward.
-        per_row = args.horizon * (world_flops + ae_flops) * (3 if name == "gradient" else 1)
-        flops = args.envs * rows[name] * per_row
-        limit_ms = flops / (rate * 1e9) * 1e3
+        flops = plan_flops(planner, envs=args.envs)
+        limit = limit_ms(flops, rate)
         one, separate = times["one call"], times["separate calls"]
         print(
             f"{name}: {args.envs} envs, H={args.horizon}, median of {args.repeats} round-robin "
             f"rounds: one call {one:.0f} ms, {args.envs} separate calls {separate:.0f} ms; "
-            f"arithmetic limit {limit_ms:.0f} ms ({flops / 1e9:.1f} GFLOP), one call at "
-            f"{one / limit_ms:.1f}x of it"
+            f"arithmetic limit {limit:.0f} ms ({flops / 1e9:.1f} GFLOP), one call "
+            f"{limit_text(one, limit)}"
         )
         speed_ups[name] = separate / one
     for name, ratio in speed_ups.items():

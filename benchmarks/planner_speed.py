@@ -1,6 +1,7 @@
 """Planning time per call: TorchRL's CEMPlanner vs ours (CEM, with and without u; gradient; shooting).
 
 Run: python benchmarks/planner_speed.py [--candidates 1000] [--horizons 30 200] [--threads N]
+     [--device cuda] [--compile]
 All planners use the same paper-size world model (state 6, action 3, LSTM 32, dense 32) and
 autoencoder (90 → 100 → 90, T = 10) and the Industrial Benchmark torch cost. The baseline is
 TorchRL's own ``CEMPlanner`` on a ``ModelBasedEnvBase`` whose world model is TorchRL's
@@ -10,6 +11,14 @@ TorchRL's own ``CEMPlanner`` on a ``ModelBasedEnvBase`` whose world model is Tor
 the latter, the issue's baseline ("the plain way a TorchRL user would plan today"); the line
 before them gives the speed-ups against the former, which is ~15% faster because our adapter's
 step modules skip ``TensorDictModule``'s key handling.
+
+Above the table it prints the GEMM rate measured in this run (one 1024 × 1024 × 1024 float32
+product); each of our rows ends with its arithmetic limit (the call's FLOPs, counted from the
+weights by ``_common.plan_flops``, over that rate) and ``N.Nx its arithmetic limit``.
+
+``--compile`` adds, at the first horizon, our two CEM rows with the planning model's one-block
+pass (rollout, cost, u) under ``torch.compile`` (``--compile-mode``), timed round-robin with
+the eager rows; the first (compiling) call is the untimed warm-up.
 """
 
 from __future__ import annotations
@@ -18,7 +27,17 @@ import argparse
 from functools import partial
 
 import torch
-from _common import COST, context, paper_models, parse_device_args
+from _common import (
+    COST,
+    context,
+    gemm_gflops,
+    gemm_line,
+    limit_ms,
+    limit_text,
+    paper_models,
+    parse_device_args,
+    plan_flops,
+)
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
@@ -62,6 +81,13 @@ def plain_model_env(world) -> WorldModelPlanningEnv:
     return env
 
 
+def compiled(model: PlanningModel, mode: str) -> PlanningModel:
+    """A planning model sharing ``model``'s networks whose one-block pass is ``torch.compile``d."""
+    twin = PlanningModel(model.world_model, model.cost_fn, uncertainty=model.uncertainty)
+    twin._predict = torch.compile(twin._predict, mode=mode, dynamic=False)
+    return twin
+
+
 def _plan_no_grad(planner: TorchRLCEMPlanner, start) -> object:
     with torch.no_grad():
         return planner(start.clone())
@@ -75,6 +101,12 @@ def main() -> None:
     parser.add_argument("--horizons", type=int, nargs="+", default=[30, 200])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="also time our CEM rows with torch.compile at the first horizon",
+    )
+    parser.add_argument("--compile-mode", default="default", help="torch.compile's mode")
     args, device = parse_device_args(parser)
     world, estimator = paper_models(device=device)
     ctx = context(device=device)
@@ -88,6 +120,8 @@ def main() -> None:
         f"K={args.candidates}, {args.iterations} iterations, top-k {args.elites}, threads={args.threads}, "
         f"median of {args.repeats} round-robin calls (at H>30: of {max(1, args.repeats // 2)})"
     )
+    rate = gemm_gflops(device)
+    print(gemm_line(rate))
     first = {}
     for horizon in args.horizons:
         baselines = {
@@ -115,13 +149,27 @@ def main() -> None:
                 with_u, Objective(beta=0.1), horizon=horizon, restarts=16, steps=20
             ),
         }
+        if args.compile and not first:
+            for name, model in (
+                ("ours CEM (no u)", plain),
+                ("ours CEM (with u, beta=0.1)", with_u),
+            ):
+                objective = ours[name].objective
+                twin = CEMPlanner(
+                    compiled(model, args.compile_mode), objective, horizon=horizon, **cem
+                )
+                ours[f"{name}, torch.compile"] = twin
         repeats = args.repeats if horizon <= 30 else max(1, args.repeats // 2)
         calls = {name: partial(_plan_no_grad, b, start) for name, b in baselines.items()}
         calls |= {name: partial(planner.plan, *ctx) for name, planner in ours.items()}
         times = interleaved_median_ms(calls, repeats, device=device)
         print(f"H={horizon}")
         for name, ms in times.items():
-            print(f"  {name:<56}{ms:9.1f} ms")
+            row = f"  {name:<56}{ms:9.1f} ms"
+            if name in ours:
+                limit = limit_ms(plan_flops(ours[name]), rate)
+                row += f"   limit {limit:8.2f} ms   {limit_text(ms, limit)}"
+            print(row)
         first = first or times
     adapter = first["TorchRL CEMPlanner (no u)"]
     print(
@@ -129,6 +177,12 @@ def main() -> None:
         f"{adapter / first['ours CEM (no u)']:.1f}x without u, "
         f"{adapter / first['ours CEM (with u, beta=0.1)']:.1f}x with u)"
     )
+    for name in ("ours CEM (no u)", "ours CEM (with u, beta=0.1)"):
+        if f"{name}, torch.compile" in first:
+            print(
+                f"torch.compile ({args.compile_mode}) vs eager, {name}: "
+                f"{first[name] / first[f'{name}, torch.compile']:.2f}x"
+            )
     base = first["TorchRL CEMPlanner (no u), plain TensorDictModule env"]
     print(
         f"speed-up vs TorchRL CEMPlanner (no uncertainty): {base / first['ours CEM (no u)']:.1f}x"

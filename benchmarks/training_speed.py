@@ -11,6 +11,12 @@ its separate fit's) and with ``shared_sampling=True`` (one sample per step for a
 statistically equivalent). The headline is the shared one's: it is how the explore experiment
 fits Table 1's retrainings (``explore_stages.retrain_stage``).
 
+Above the table it prints the GEMM rate measured in this run (one 1024 × 1024 × 1024 float32
+product) and the arithmetic limit of one member's fit step (``_common.fit_step_flops``: the
+teacher-forced warm-up's LSTM steps and the imagined steps' LSTM, dense and head products,
+forward + backward ≈ 3 × forward, over that rate); each row, one per R and way of fitting,
+ends with ``N.Nx its arithmetic limit`` (its time per step over R × that limit).
+
 Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20]
 Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R.
 """
@@ -21,11 +27,19 @@ import argparse
 import os
 
 import torch
-from _common import ACTION_DIM, OBS_DIM, parse_args
+from _common import (
+    ACTION_DIM,
+    OBS_DIM,
+    fit_step_flops,
+    gemm_gflops,
+    gemm_line,
+    limit_ms,
+    limit_text,
+    parse_device_args,
+)
 from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.timing import interleaved_median_ms
 from torchrl_recon.training import fit_population, fit_world_model
@@ -52,7 +66,6 @@ def random_buffer(args: argparse.Namespace, trajectories: int = 16, length: int 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--members", type=int, nargs="+", default=[1, 10, 20])
     parser.add_argument("--steps", type=int, default=30, help="fit steps per timed call")
@@ -62,8 +75,7 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=10)
     parser.add_argument("--slice-len", type=int, default=40)
     parser.add_argument("--windows", type=int, default=32, help="sequences per batch per member")
-    args = parse_args(parser)
-    device = resolve_device(args.device)
+    args, device = parse_device_args(parser)
     rb = random_buffer(args)
     fit = dict(
         steps=args.steps,
@@ -98,6 +110,15 @@ def main() -> None:
         f"{args.steps} steps per call, median of {args.repeats} interleaved calls, "
         f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs"
     )
+    rate = gemm_gflops(device)
+    print(gemm_line(rate))
+    template = models(1)[0]
+    flops = fit_step_flops(template, args.windows, args.slice_len)
+    member_limit = limit_ms(flops, rate)
+    print(
+        f"arithmetic limit of one member's fit step: {member_limit:.3f} ms "
+        f"({flops / 1e9:.4f} GFLOP, forward + backward = 3 x forward)"
+    )
     speed_up = {}
     for count in args.members:
         sequential, population = models(count), models(count)
@@ -117,15 +138,21 @@ def main() -> None:
                 "shared": lambda: run_population(shared=True),
             },
             args.repeats,
+            device=device,
         )
         seq, pop, shared = (ms[k] / args.steps for k in ("sequential", "population", "shared"))
         speed_up[count] = seq / shared
-        print(
-            f"R={count:3d}  sequential {seq:8.2f} ms/step ({seq / count:6.2f} per member)   "
-            f"population {pop:8.2f} ms/step ({pop / count:6.2f} per member, speed-up "
-            f"{seq / pop:.2f}x)   with shared_sampling {shared:8.2f} ms/step (speed-up "
-            f"{speed_up[count]:.2f}x)"
-        )
+        limit = count * member_limit
+        for name, step, ratio in (
+            ("sequential", seq, ""),
+            ("population", pop, f", speed-up {seq / pop:.2f}x"),
+            ("population, shared_sampling", shared, f", speed-up {speed_up[count]:.2f}x"),
+        ):
+            per_member = f"({step / count:6.2f} per member{ratio})"
+            print(
+                f"R={count:3d}  {name:<28}{step:9.2f} ms/step {per_member:<38}"
+                f"limit {limit:7.2f} ms   {limit_text(step, limit)}"
+            )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     largest = max(args.members)
     print(f"speed-up of {largest} vectorised retrainings vs sequential: {speed_up[largest]:.1f}x")

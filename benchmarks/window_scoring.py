@@ -6,8 +6,8 @@ the head on all T steps of every window, the code before ``predict_window_deltas
 ``WorldModelEnsembleUncertainty.score_sequence`` (``predict_window_deltas``: the input
 projection once per sequence step, the head once per window). Both give the same scores; the
 autoencoder's score of the same windows is timed beside them. Also prints the new path's
-arithmetic limit: its FLOPs over the GEMM rate measured here (one ``bmm`` of the recurrence's
-shape).
+arithmetic limit: its FLOPs over the GEMM rate measured here (one ``baddbmm`` of the
+recurrence's shape), as ``N.Nx its arithmetic limit``.
 
 Run: python benchmarks/window_scoring.py [--candidates 1000] [--horizon 50] [--obs-dim 34]
      [--action-dim 8] [--repeats 5]
@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import WINDOW, parse_device_args
+from _common import WINDOW, gemm_gflops, gemm_line, limit_ms, limit_text, parse_device_args
 
 from torchrl_recon.modules import ReconstructionUncertainty, WorldModelEnsembleUncertainty
 from torchrl_recon.modules.uncertainty import window_view
@@ -49,15 +49,6 @@ def new_path_flops(est: WorldModelEnsembleUncertainty, rows: int, length: int) -
     h, d, windows = m.hidden_size, m.dense_size, length - t + 1
     per_member = rows * (length * f * 4 * h + windows * t * h * 4 * h + windows * (h * d + d * n))
     return 2.0 * est.num_members * per_member
-
-
-def gemm_rate(members: int, rows: int, hidden: int, device: torch.device, repeats: int) -> float:
-    """FLOP/s of one ``baddbmm`` of the recurrence's shape ``[E, rows, hid] @ [E, hid, 4·hid]``."""
-    a = torch.randn(members, rows, hidden, device=device)
-    b = torch.randn(members, hidden, 4 * hidden, device=device)
-    c = torch.randn(members, rows, 4 * hidden, device=device)
-    ms = interleaved_median_ms({"gemm": lambda: torch.baddbmm(c, a, b)}, repeats * 20)["gemm"]
-    return 2.0 * members * rows * hidden * 4 * hidden / (ms / 1000)
 
 
 def main() -> None:
@@ -90,6 +81,7 @@ def main() -> None:
                 "autoencoder": lambda: ae.score_sequence(x),
             },
             args.repeats,
+            device=device,
         )
     print(
         f"K={args.candidates}, L={length}, N+M={n + m}, E={args.members}, "
@@ -97,12 +89,14 @@ def main() -> None:
     )
     for name, value in ms.items():
         print(f"{name}: {value:.1f} ms")
-    block_rows = max(1, 2048 // length) * args.horizon
-    rate = gemm_rate(args.members, block_rows, 32, device, args.repeats)
-    limit_ms = new_path_flops(est, args.candidates, length) / rate * 1000
+    # The GEMM rate of the recurrence's own product: [E, rows, hid] @ [E, hid, 4·hid].
+    shape = (args.members, max(1, 2048 // length) * args.horizon, 32, 4 * 32)
+    rate = gemm_gflops(device, shape, args.repeats * 20)
+    print(gemm_line(rate, shape))
+    limit = limit_ms(new_path_flops(est, args.candidates, length), rate)
     print(
-        f"arithmetic limit of score_sequence: {limit_ms:.1f} ms "
-        f"(GEMM rate {rate / 1e9:.1f} GFLOP/s); measured {ms['score_sequence'] / limit_ms:.1f}x it"
+        f"arithmetic limit of score_sequence: {limit:.1f} ms; measured "
+        f"{limit_text(ms['score_sequence'], limit)}"
     )
     print(f"speed-up vs window copies: {ms['window_copies'] / ms['score_sequence']:.2f}x")
     print(f"x AE: {ms['score_sequence'] / ms['autoencoder']:.1f}")

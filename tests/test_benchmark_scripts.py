@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import re
 import subprocess
 import sys
@@ -14,7 +15,30 @@ from torchrl_recon.timing import interleaved_median_ms
 BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 
 
+@functools.cache
+def _run(script: str, *args: str) -> str:
+    """A script's stdout at one thread (each script and argument list runs once per session)."""
+    return subprocess.run(
+        [sys.executable, script, *args, "--threads", "1"],
+        cwd=BENCHMARKS,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    ).stdout
+
+
 SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
+LIMIT = r"([0-9.]+)x its arithmetic limit$"
+"""The end of each of our rows in the scripts that print how far a call is from its FLOPs."""
+TINY_PLANNER = ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1"]
+TINY_FIT = ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
+TINY_FIT += ["--steps", "1", "--repeats", "1", "--members", "1", "3"]
+TINY_EPISODES = ["--envs", "2", "--horizon", "5", "--restarts", "2", "--steps", "1"]
+TINY_EPISODES += ["--candidates", "8", "--elites", "2", "--iterations", "1", "--repeats", "1"]
+TINY_WINDOWS = ["--candidates", "6", "--horizon", "3", "--obs-dim", "3", "--action-dim", "2"]
+TINY_WINDOWS += ["--repeats", "1"]
+GEMM = r"^GEMM rate \(float32 [^)]+\): ([0-9.]+) GFLOP/s$"
 
 
 @pytest.mark.parametrize(
@@ -23,7 +47,7 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
         ("gradient_planning.py", ["--rows", "2", "--horizon", "5", "--repeats", "2"], SPEED_UP, 2),
         (
             "planner_speed.py",
-            ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1"],
+            TINY_PLANNER,
             SPEED_UP,
             2,
         ),
@@ -36,8 +60,7 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
         ),
         (
             "episode_batching.py",
-            ["--envs", "2", "--horizon", "5", "--restarts", "2", "--steps", "1"]
-            + ["--candidates", "8", "--elites", "2", "--iterations", "1", "--repeats", "1"],
+            TINY_EPISODES,
             r"^speed-up of 2 episodes in one call \((?:gradient|CEM, K=8)\): ([0-9.]+)x$",
             2,
         ),
@@ -49,8 +72,7 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
         ),
         (
             "window_scoring.py",
-            ["--candidates", "6", "--horizon", "3", "--obs-dim", "3", "--action-dim", "2"]
-            + ["--repeats", "1"],
+            TINY_WINDOWS,
             r"^speed-up vs window copies: ([0-9.]+)x$",
             1,
         ),
@@ -63,18 +85,64 @@ SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"
     ],
 )
 def test_benchmark_prints_measured_ratios(script, args, pattern, count):
-    out = subprocess.run(
-        [sys.executable, script, *args, "--threads", "1"],
-        cwd=BENCHMARKS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=True,
-    ).stdout
+    out = _run(script, *args)
     if pattern.startswith(r"\A"):  # a pattern of the exact last line
         out = out.strip().splitlines()[-1]
     ratios = re.findall(pattern, out, flags=re.MULTILINE)
     assert len(ratios) >= count and all(float(r) > 0 for r in ratios), out
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "rows"),
+    [
+        (
+            # our four planners at the one horizon; TorchRL's two rows have no limit
+            "planner_speed.py",
+            TINY_PLANNER,
+            [
+                "ours CEM (no u)",
+                "ours CEM (with u, beta=0.1)",
+                "ours random shooting (with u)",
+                "ours gradient (with u, 16 restarts x 20 steps)",
+            ],
+        ),
+        (
+            "training_speed.py",
+            TINY_FIT,
+            [
+                f"R={r:3d}  {way}"
+                for r in (1, 3)
+                for way in ("sequential", "population", "population, shared_sampling")
+            ],
+        ),
+        (
+            "episode_batching.py",
+            TINY_EPISODES,
+            ["gradient:", "CEM, K=8:"],
+        ),
+    ],
+)
+def test_benchmark_prints_each_rows_arithmetic_limit(script, args, rows):
+    """The GEMM rate of this run above the table, and every one of our rows ending in its
+    multiple of the arithmetic limit (``N.Nx its arithmetic limit``)."""
+    out = _run(script, *args)
+    lines = out.splitlines()
+    gemm = [i for i, line in enumerate(lines) if re.match(GEMM, line)]
+    assert len(gemm) == 1 and float(re.match(GEMM, lines[gemm[0]])[1]) > 0, out
+    for row in rows:
+        found = [line for line in lines if re.match(rf"\s*{re.escape(row)}(?![,\w])", line)]
+        assert len(found) == 1, (row, out)
+        multiple = re.search(LIMIT, found[0])
+        assert multiple and float(multiple[1]) > 0, (row, out)
+        assert lines.index(found[0]) > gemm[0], (row, out)  # the rate is printed above the table
+    assert sum(bool(re.search(LIMIT, line)) for line in lines) == len(rows), out
+
+
+def test_window_scoring_prints_its_arithmetic_limit():
+    out = _run("window_scoring.py", *TINY_WINDOWS)
+    assert re.search(GEMM, out, flags=re.MULTILINE), out
+    line = re.search(r"^arithmetic limit of score_sequence: .*$", out, flags=re.MULTILINE)
+    assert line and float(re.search(LIMIT, line[0])[1]) > 0, out
 
 
 def test_interleaved_timer_refuses_zero_repeats():

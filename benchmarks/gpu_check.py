@@ -1,0 +1,404 @@
+"""One command for a GPU machine: the CUDA tests, every benchmark and a smoke run of each
+experiment kind on the GPU, and one report with the GPU's name and every step's figures.
+
+Run (``make gpu-check`` does the first)::
+
+    python benchmarks/gpu_check.py --out outputs/gpu_check
+    python benchmarks/gpu_check.py --out /tmp/check --dry-run           # wiring only, no GPU needed
+    python benchmarks/gpu_check.py --out /tmp/check --device cpu --tiny # every step, tiny, on the CPU
+
+Steps, in this order (each a subprocess with its own time limit; all of them together within
+``--budget-s``, 450 s by default, so the whole check stays under 8 minutes: a step whose turn
+comes when less than ``MIN_STEP_S`` is left is reported as not run):
+
+1. the CUDA tests of ``tests/test_device.py`` (``pytest -k cuda``: the tests that skip
+   without a GPU);
+2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
+   GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
+   run), population fits, episode batching, window scoring, uncertainty overhead, gradient
+   planning and control batching;
+3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control`` and
+   ``calibrate`` on the Industrial Benchmark smoke recipes;
+4. the CUDA smoke-recipe tests of the other environments (``tests/experiments/test_recipes.py
+   -k "cuda and not industrial_benchmark"``; IB's are step 3).
+
+The report, ``<out>/gpu_check.md``, gives the GPU's name (``torch.cuda.get_device_name``),
+the torch / CUDA / cuDNN / torchrl versions, and for each step its command, exit status, wall
+time and printed figures; each step's whole output is in ``<out>/logs/``, the experiments'
+run directories in ``<out>/runs/``. Without a CUDA device the report says "no CUDA device":
+the test steps still run (their CUDA tests skip) and the GPU steps are reported as skipped.
+``--dry-run`` runs nothing heavy: it checks that every step is wired (the tests are
+collected, each benchmark script accepts the flags passed to it, each recipe resolves with
+its overrides) and writes the report with every section. Exit status: 0 when no step failed,
+timed out or was found unwired, else 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = ROOT / "benchmarks"
+BUDGET_S = 450
+"""The whole check's time, in seconds (under the 8 minutes it is meant to take on one GPU)."""
+MIN_STEP_S = 20
+"""A step is not started with less than this left of the budget."""
+NOISE = re.compile(r"\[torchrl\]\[INFO\]|^\s*$")
+
+
+@dataclass
+class Step:
+    """One step of the check: a command, the time it may take and what its report shows."""
+
+    name: str
+    kind: str  # "tests", "benchmark" or "experiment"
+    argv: list[str]
+    timeout_s: int
+    needs_cuda: bool = True
+    tail: int = 40  # last lines of stdout shown as its figures
+    recipe: str | None = None  # experiments: the recipe name
+    overrides: list[str] = field(default_factory=list)  # experiments: key=value overrides
+    run_dir: Path | None = None  # experiments: the run directory
+    status: str = "not run"
+    exit_code: int | None = None
+    wall_s: float | None = None
+    figures: list[str] = field(default_factory=list)
+
+
+def benchmark(name: str, script: str, timeout_s: int, full: list[str], tiny: list[str]):
+    """A benchmark step's ``(name, script, timeout, full-size args, tiny args)``."""
+    return name, script, timeout_s, full, tiny
+
+
+BENCHMARK_STEPS = [
+    benchmark(
+        "planners vs TorchRL's CEMPlanner (eager and torch.compile)",
+        "planner_speed.py",
+        150,
+        ["--horizons", "30", "200", "--repeats", "5", "--compile"],
+        ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
+    ),
+    benchmark(
+        "population fits",
+        "training_speed.py",
+        120,
+        ["--members", "1", "10", "20"],
+        ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
+        + ["--steps", "1", "--repeats", "1", "--members", "1", "3"],
+    ),
+    benchmark(
+        "episode batching",
+        "episode_batching.py",
+        90,
+        ["--steps", "10", "--repeats", "2"],
+        ["--envs", "2", "--horizon", "5", "--restarts", "2", "--steps", "1"]
+        + ["--candidates", "8", "--elites", "2", "--iterations", "1", "--repeats", "1"],
+    ),
+    benchmark(
+        "window scoring",
+        "window_scoring.py",
+        45,
+        [],
+        ["--candidates", "6", "--horizon", "3", "--obs-dim", "3", "--action-dim", "2"]
+        + ["--repeats", "1"],
+    ),
+    benchmark(
+        "uncertainty overhead",
+        "uncertainty_overhead.py",
+        45,
+        [],
+        ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
+    ),
+    benchmark(
+        "gradient planning",
+        "gradient_planning.py",
+        60,
+        ["--repeats", "5"],
+        ["--rows", "2", "--horizon", "5", "--repeats", "2"],
+    ),
+    benchmark(
+        "control batching",
+        "control_batching.py",
+        90,
+        ["--steps", "20"],
+        ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
+    ),
+]
+EXPERIMENT_KINDS = ("explore", "control", "calibrate")
+EXTRA_OVERRIDES = {"calibrate": ["outcomes.control_recipe=null", "outcomes.explore_recipe=null"]}
+
+
+def build_steps(device: str, tiny: bool, out: Path) -> list[Step]:
+    """Every step of the check, in order, for ``device`` (``cuda``, ``cuda:N`` or ``cpu``)."""
+    python = sys.executable
+    pytest = [python, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider"]
+    steps = [
+        Step(
+            "CUDA tests (tests/test_device.py -k cuda)",
+            "tests",
+            pytest + ["tests/test_device.py", "-k", "cuda"],
+            180,
+            needs_cuda=False,
+            tail=15,
+        )
+    ]
+    for name, script, timeout_s, full, small in BENCHMARK_STEPS:
+        args = small if tiny else full
+        argv = [python, str(BENCHMARKS / script), *args, "--device", device]
+        steps.append(Step(f"benchmark: {name} ({script})", "benchmark", argv, timeout_s))
+    for kind in EXPERIMENT_KINDS:
+        recipe = f"industrial_benchmark/{kind}_smoke"
+        run_dir = out / "runs" / kind
+        overrides = [f"device={device}", f"output_dir={run_dir}", "progress=false"]
+        overrides += EXTRA_OVERRIDES.get(kind, [])
+        argv = [python, "-m", "torchrl_recon.cli", kind, recipe, *overrides]
+        steps.append(
+            Step(
+                f"experiment: {kind} smoke run ({recipe})",
+                "experiment",
+                argv,
+                150 if kind == "calibrate" else 90,
+                tail=15,
+                recipe=recipe,
+                overrides=overrides,
+                run_dir=run_dir,
+            )
+        )
+    selection = "cuda and not industrial_benchmark"
+    steps.append(
+        Step(
+            f'CUDA smoke-recipe tests, other envs (tests/experiments/test_recipes.py -k "{selection}")',
+            "tests",
+            pytest + ["tests/experiments/test_recipes.py", "-k", selection],
+            300,
+            needs_cuda=False,
+            tail=15,
+        )
+    )
+    return steps
+
+
+# ----------------------------------------------------------------------------------------------
+# Running a step
+
+
+def run_command(argv: list[str], timeout_s: float, log: Path) -> tuple[int | None, str]:
+    """Run ``argv`` in the repository root; ``(exit code or None on timeout, stdout)``.
+
+    The whole process group is killed at the timeout; stdout and stderr go to ``log``.
+    """
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+        code = proc.returncode
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        code = None
+    log.write_text(f"$ {' '.join(argv)}\n\n--- stdout\n{out}\n--- stderr\n{err}")
+    return code, out + ("" if code == 0 else err)
+
+
+def figures_of(step: Step, output: str) -> list[str]:
+    """The lines a step's report shows: its last ``tail`` lines of output, log noise left out."""
+    lines = [line for line in output.splitlines() if not NOISE.search(line)]
+    shown = lines[-step.tail :]
+    if step.kind == "experiment" and step.exit_code == 0:
+        results = step.run_dir / "results.json"
+        if results.is_file():
+            data = json.loads(results.read_text())
+            device = data.get("meta", {}).get("device", {})
+            stages = data.get("wall_time_s", {})
+            total = sum(stages.values()) if isinstance(stages, dict) else stages
+            shown.append(
+                f"results.json: device {device.get('device')} ({device.get('name')}), "
+                f"stages' wall time {total:.1f} s"
+            )
+    return shown
+
+
+def accepted_flags(script: Path, argv: list[str]) -> list[str]:
+    """The ``--flags`` of ``argv`` that ``script``'s source does not define (empty: all wired)."""
+    source = script.read_text()
+    device = "parse_device_args" in source or "add_device_argument" in source
+    missing = []
+    for arg in argv:
+        if arg.startswith("--") and f'"{arg}"' not in source:
+            if not (arg == "--device" and device):
+                missing.append(arg)
+    return missing
+
+
+def dry_run(step: Step, log: Path) -> None:
+    """Check that ``step`` is wired without running it; set its status."""
+    start = time.perf_counter()
+    if step.kind == "tests":
+        argv = [*step.argv, "--collect-only"]
+        code, out = run_command(argv, step.timeout_s, log)
+        found = re.search(r"(\d+)(?:/\d+)? tests? collected", out)
+        count = int(found[1]) if found else 0
+        wired = code == 0 and count > 0
+        step.status = f"dry run: {'wired' if wired else 'NOT wired'} ({count} tests collected)"
+        step.figures = [line for line in out.splitlines() if "collected" in line][-1:]
+    elif step.kind == "benchmark":
+        script = Path(step.argv[1])
+        missing = accepted_flags(script, step.argv[2:]) if script.is_file() else ["script"]
+        if not missing:
+            compile(script.read_text(), str(script), "exec")  # a syntax error fails the check
+        step.status = "dry run: wired (script and flags found)"
+        if missing:
+            step.status = f"dry run: NOT wired ({script.name} lacks {', '.join(missing)})"
+    else:
+        from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path
+
+        try:
+            cfg = load_recipe(resolve_recipe_path(step.recipe), step.overrides)
+            step.status = f"dry run: wired (recipe resolves, device={cfg.device})"
+        except Exception as error:  # noqa: BLE001 - reported in the step's line
+            step.status = f"dry run: NOT wired ({type(error).__name__}: {error})"
+    step.wall_s = time.perf_counter() - start
+
+
+def run_step(step: Step, log: Path, left_s: float) -> None:
+    """Run ``step`` within ``min(its timeout, left_s)`` seconds; set its status and figures."""
+    limit = min(step.timeout_s, left_s)
+    start = time.perf_counter()
+    code, out = run_command(step.argv, limit, log)
+    step.wall_s = time.perf_counter() - start
+    step.exit_code = code
+    if code is None:
+        step.status = f"timed out after {limit:.0f} s"
+    else:
+        step.status = "passed" if code == 0 else f"failed (exit {code})"
+    step.figures = figures_of(step, out)
+
+
+# ----------------------------------------------------------------------------------------------
+# The report
+
+
+def machine_lines(device: str) -> list[str]:
+    """The report's header: GPU name (or "no CUDA device"), versions, host, commit."""
+    import torchrl
+
+    cuda = torch.cuda.is_available()
+    if cuda:
+        index = (torch.device(device).index or 0) if device.startswith("cuda") else 0
+        props = torch.cuda.get_device_properties(index)
+        gpu = (
+            f"{torch.cuda.get_device_name(index)} ({props.total_memory / 2**30:.0f} GiB, "
+            f"compute capability {props.major}.{props.minor}, {torch.cuda.device_count()} visible)"
+        )
+    else:
+        gpu = "no CUDA device (torch.cuda.is_available() is False)"
+    lines = [
+        f"- GPU: {gpu}",
+        f"- torch {torch.__version__}, CUDA {torch.version.cuda or 'none'}, cuDNN "
+        f"{torch.backends.cudnn.version() if cuda else 'n/a'}, torchrl {torchrl.__version__}, "
+        f"Python {platform.python_version()}",
+        f"- host: {platform.node()}, {os.cpu_count()} CPUs, {platform.processor() or platform.machine()}",
+    ]
+    smi = shutil.which("nvidia-smi")
+    if smi:
+        query = [smi, "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"]
+        done = subprocess.run(query, capture_output=True, text=True, timeout=30)
+        if done.returncode == 0:
+            lines.append(f"- nvidia-smi: {done.stdout.strip()}")
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    )
+    if commit.returncode == 0:
+        lines.append(f"- commit: {commit.stdout.strip()}")
+    return lines
+
+
+def shown_command(argv: list[str]) -> str:
+    """``argv`` as the report shows it: ``python`` for this interpreter, paths from the root."""
+    parts = ["python" if arg == sys.executable else arg.replace(f"{ROOT}/", "") for arg in argv]
+    return shlex.join(parts)
+
+
+def write_report(path: Path, header: list[str], steps: list[Step], mode: str, wall_s: float):
+    """Write the markdown report: machine, a summary table, then one section per step."""
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = ["# gpu-check report", "", f"{stamp}, mode: {mode}, total {wall_s:.0f} s", ""]
+    lines += [*header, "", "| # | step | status | wall s |", "|---:|---|---|---:|"]
+    for i, step in enumerate(steps, 1):
+        wall = "" if step.wall_s is None else f"{step.wall_s:.1f}"
+        lines.append(f"| {i} | {step.name} | {step.status} | {wall} |")
+    for i, step in enumerate(steps, 1):
+        lines += ["", f"## {i}. {step.name}", "", "```", shown_command(step.argv), "```", ""]
+        exit_code = "none" if step.exit_code is None else str(step.exit_code)
+        lines += [f"status: {step.status}; exit status: {exit_code}", ""]
+        if step.figures:
+            lines += ["```", *step.figures, "```"]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder of the report and logs")
+    parser.add_argument("--device", default="cuda", help="cuda, cuda:N or cpu (default cuda)")
+    parser.add_argument("--tiny", action="store_true", help="the benchmarks at tiny sizes")
+    parser.add_argument("--dry-run", action="store_true", help="check the wiring, run nothing")
+    parser.add_argument("--budget-s", type=float, default=BUDGET_S, help="the whole check's time")
+    args = parser.parse_args(argv)
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", args.device):
+        parser.error(f"--device must be cpu, cuda or cuda:N, got {args.device!r}")
+    out = args.out.resolve()
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    cuda = torch.cuda.is_available()
+    gpu_missing = args.device.startswith("cuda") and not cuda
+    if gpu_missing:
+        print(
+            "no CUDA device: the test steps run (their CUDA tests skip), the GPU steps are skipped"
+        )
+    steps = build_steps(args.device, args.tiny, out)
+    mode = "dry run" if args.dry_run else ("tiny" if args.tiny else "full")
+    start = time.perf_counter()
+    for i, step in enumerate(steps, 1):
+        log = out / "logs" / f"{i:02d}_{re.sub(r'[^a-z0-9]+', '_', step.name.lower())[:40]}.log"
+        left = args.budget_s - (time.perf_counter() - start)
+        if args.dry_run:
+            dry_run(step, log)
+        elif step.needs_cuda and gpu_missing:
+            step.status = "skipped: no CUDA device"
+        elif left < MIN_STEP_S:
+            step.status = f"not run: the {args.budget_s:.0f} s budget was spent"
+        else:
+            run_step(step, log, left)
+        print(f"[{i}/{len(steps)}] {step.name}: {step.status}", flush=True)
+    wall = time.perf_counter() - start
+    report = out / "gpu_check.md"
+    write_report(report, machine_lines(args.device), steps, mode, wall)
+    print(f"report: {report}")
+    bad = ("failed", "timed out", "dry run: NOT wired")
+    return 1 if any(step.status.startswith(bad) for step in steps) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
 from torchrl_recon.planners.sampling import (
     WARM_START_STD,
     BestSeen,
@@ -74,7 +76,29 @@ class CEMPlanner(SamplingPlanner):
         )
         check_num_elites(num_elites, num_candidates)
         check_smoothing(smoothing)
+        if not 0.0 <= min_std < math.inf:
+            raise ValueError(f"min_std must be a finite number >= 0, got {min_std}.")
         self.num_elites, self.smoothing, self.min_std = num_elites, smoothing, min_std
+
+    def _elite_update(
+        self,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        bounds,
+        mean: torch.Tensor | None,
+        std: torch.Tensor | None,
+        seen: BestSeen,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rank the candidates, keep the best in ``seen`` and refit the Gaussian to the top
+        ``num_elites`` (std floored at ``min_std``·range): the new mean and std ``[*B, 1, H, M]``
+        and the elites ``[*B, num_elites, H, M]``, best first."""
+        elite_idx = self._rank(prediction, bounds).topk(self.num_elites, dim=-1).indices
+        elites = gather_candidates(candidates, elite_idx)
+        mean, std = refit_gaussian(elites, mean, std, self.smoothing)
+        std = torch.maximum(std, self.min_std * self._span)
+        # Keep each iteration's best sample; the final choice is made among them.
+        seen.add(candidates, prediction, elite_idx[..., :1])
+        return mean, std, elites
 
     @torch.inference_mode()
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
@@ -92,10 +116,5 @@ class CEMPlanner(SamplingPlanner):
             prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
-            elite_idx = self._rank(prediction, bounds).topk(self.num_elites, dim=-1).indices
-            elites = gather_candidates(candidates, elite_idx)
-            mean, std = refit_gaussian(elites, mean, std, self.smoothing)
-            std = torch.maximum(std, self.min_std * self._span)
-            # Keep each iteration's best sample; the final choice is made among them.
-            seen.add(candidates, prediction, elite_idx[..., :1])
+            mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
         return *seen.result(), bounds

@@ -7,26 +7,21 @@ import math
 import torch
 
 from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlanResult
+from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
-from torchrl_recon.planners.sampling import (
-    WARM_START_STD,
-    BestSeen,
-    SamplingPlanner,
-    check_num_elites,
-    check_smoothing,
-    refit_gaussian,
-)
+from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.sampling import WARM_START_STD, BestSeen
 
 
-class ICEMPlanner(SamplingPlanner):
+class ICEMPlanner(CEMPlanner):
     """iCEM: CEM with colored noise, elites kept across iterations and time steps, and a
     shrinking population; returns the best sample seen.
 
     Pinneri et al. 2020, "Sample-efficient Cross-Entropy Method for Real-time Planning" (CoRL),
-    as mbrl-lib's ``ICEMOptimizer``; candidates are scored by the same batched
+    as mbrl-lib's ``ICEMOptimizer``. A :class:`CEMPlanner` with CEM's arguments and these
+    additions; candidates are scored by the same batched
     :class:`Objective` as :class:`CEMPlanner`'s (u term, uncertainty bands, cost threshold),
     ranked feasible-first, and every batch element ``*B`` is planned in the same calls.
 
@@ -44,7 +39,7 @@ class ICEMPlanner(SamplingPlanner):
       the horizon, :func:`colored_noise`), clipped to the bounds, plus the best
       ⌈keep_elites·num_elites⌉ elites of the previous iteration; the last adds the mean;
     * ``mean ← smoothing·mean + (1 − smoothing)·elite_mean`` (likewise std, floored at
-      ``min_std``·range), from mean = ``init`` (or the middle of the bounds) and std =
+      ``min_std``·range), from mean = ``init`` clipped (or the middle of the bounds) and std =
       0.25·range.
 
     The budget is Σ_i K_i plus the kept elites and the mean, at most K × iterations +
@@ -103,10 +98,12 @@ class ICEMPlanner(SamplingPlanner):
             horizon=horizon,
             num_candidates=num_candidates,
             iterations=iterations,
+            num_elites=num_elites,
+            smoothing=smoothing,
+            min_std=min_std,
             block_rows=block_rows,
             on_infeasible=on_infeasible,
         )
-        check_num_elites(num_elites, num_candidates)
         if not 1.0 <= population_decay < math.inf:
             raise ValueError(
                 f"population_decay must be a finite number >= 1 (1 = no decay), got {population_decay}."
@@ -115,12 +112,11 @@ class ICEMPlanner(SamplingPlanner):
             raise ValueError(f"keep_elites must be in [0, 1], got {keep_elites}.")
         if not 0.0 <= noise_beta < math.inf:
             raise ValueError(f"noise_beta must be a finite number >= 0, got {noise_beta}.")
-        check_smoothing(smoothing)
-        if not 0.0 <= min_std < math.inf:
-            raise ValueError(f"min_std must be a finite number >= 0, got {min_std}.")
-        self.num_elites, self.population_decay = num_elites, population_decay
-        self.keep_elites, self.noise_beta = keep_elites, noise_beta
-        self.smoothing, self.min_std = smoothing, min_std
+        self.population_decay, self.keep_elites, self.noise_beta = (
+            population_decay,
+            keep_elites,
+            noise_beta,
+        )
         self.num_kept = math.ceil(keep_elites * num_elites)
         self.memory = EliteMemory()
         self._last_elites: torch.Tensor | None = None
@@ -178,7 +174,7 @@ class ICEMPlanner(SamplingPlanner):
         batch = observation.shape[:-1]
         low, high = self.model.action_low, self.model.action_high
         shape = (*batch, 1, self.horizon, self.model.action_dim)
-        mean = ((low + high) / 2).expand(shape) if init is None else init.unsqueeze(-3)
+        mean = ((low + high) / 2).expand(shape) if init is None else self._clamp(init.unsqueeze(-3))
         std = (WARM_START_STD * self._span).expand(shape)
         bounds = kept = None
         seen = BestSeen()
@@ -197,16 +193,12 @@ class ICEMPlanner(SamplingPlanner):
                 candidates = self._clamp(mean + std * noise)
                 extra = [kept] if self.num_kept else []
                 if it == self.iterations - 1:
-                    extra.append(mean)
+                    extra.append(self._clamp(mean))
             candidates = torch.cat([candidates, *extra], -3)
             prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
-            elite_idx = self._rank(prediction, bounds).topk(self.num_elites, dim=-1).indices
-            elites = gather_candidates(candidates, elite_idx)  # best first
-            mean, std = refit_gaussian(elites, mean, std, self.smoothing)
-            std = torch.maximum(std, self.min_std * self._span)
+            mean, std, elites = self._elite_update(candidates, prediction, bounds, mean, std, seen)
             kept = elites[..., : self.num_kept, :, :]
-            seen.add(candidates, prediction, elite_idx[..., :1])
         self._last_elites = kept
         return *seen.result(), bounds

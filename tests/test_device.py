@@ -49,6 +49,8 @@ from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
@@ -340,6 +342,12 @@ PLANNERS = {
     "gradient": lambda model, objective: GradientPlanner(
         model, objective, horizon=4, restarts=3, steps=2
     ),
+    "mppi": lambda model, objective: MPPIPlanner(
+        model, objective, horizon=4, num_candidates=8, iterations=2
+    ),
+    "icem": lambda model, objective: ICEMPlanner(
+        model, objective, horizon=4, num_candidates=8, num_elites=3, iterations=2
+    ),
 }
 
 
@@ -388,11 +396,9 @@ def test_world_model_planning_env(device):
 
 
 def _policies() -> dict[str, Callable[[], MPCPolicy]]:
-    def mpc():
+    def mpc(kind: str = "cem"):
         model = _planning_model("reconstruction")
-        planner = CEMPlanner(
-            model, Objective(beta=0.1), horizon=4, num_candidates=8, num_elites=3, iterations=2
-        )
+        planner = PLANNERS[kind](model, Objective(beta=0.1))
         return MPCPolicy(planner, replan="uncertainty", threshold=0.5, error_threshold=1.0)
 
     def explore():
@@ -402,10 +408,16 @@ def _policies() -> dict[str, Callable[[], MPCPolicy]]:
         )
         return ExplorationPolicy(planner, replan_every=2)
 
-    return {"mpc": mpc, "exploration": explore}
+    return {
+        "mpc": mpc,
+        # iCEM's elites carried from plan to plan through the policy's warm start, on the device
+        "mpc_icem": lambda: mpc("icem"),
+        "mpc_mppi": lambda: mpc("mppi"),
+        "exploration": explore,
+    }
 
 
-@pytest.mark.parametrize("policy", ["mpc", "exploration"])
+@pytest.mark.parametrize("policy", ["mpc", "mpc_icem", "mpc_mppi", "exploration"])
 @pytest.mark.parametrize("device", DEVICES)
 def test_policy_steps(device, policy):
     """Seven env steps (three random, then plans); the env on the CPU, the policy on ``device``.
@@ -649,7 +661,8 @@ def test_plan_with_a_generator_is_reproducible(planner):
 def test_plan_agrees_on_cpu_and_cuda(planner):
     """One plan from the same seed on the CPU and on CUDA: the candidates come from one CPU
     ``torch.Generator`` (drawn on the CPU, then moved), so both devices score the same
-    candidates; the chosen plan agrees within float32 tolerance (rtol 1e-4, atol 1e-4)."""
+    candidates; the chosen plan agrees within float32 tolerance (rtol 1e-4, atol 1e-4; MPPI's
+    1e-3: its mean is a smooth function of every score, so their rounding reaches the plan)."""
     results = {}
     for device in ("cpu", "cuda"):
         p = PLANNERS[planner](_planning_model("reconstruction"), Objective(beta=0.1)).to(device)
@@ -657,7 +670,8 @@ def test_plan_agrees_on_cpu_and_cuda(planner):
         results[device] = p.plan(*ctx, generator=torch.Generator().manual_seed(7))
     cpu, cuda = results["cpu"], results["cuda"]
     assert cuda.actions.device.type == "cuda"
+    tol = 1e-3 if planner == "mppi" else 1e-4
     for name in ("actions", "states", "cost", "uncertainty", "objective"):
         torch.testing.assert_close(
-            getattr(cuda, name).cpu(), getattr(cpu, name), rtol=1e-4, atol=1e-4
+            getattr(cuda, name).cpu(), getattr(cpu, name), rtol=tol, atol=tol
         )

@@ -11,6 +11,8 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
@@ -132,9 +134,15 @@ def test_the_primer_checks_when_its_compose_joins_an_env():
         TransformedEnv(GymEnv("Pendulum-v1"), policy.make_tensordict_primer())
 
 
-def test_cem_on_pendulum_bounds():
+@pytest.mark.parametrize(
+    "planner_cls, kwargs",
+    [(CEMPlanner, {"num_elites": 4}), (MPPIPlanner, {}), (ICEMPlanner, {"num_elites": 4})],
+    ids=["cem", "mppi", "icem"],
+)
+def test_cem_on_pendulum_bounds(planner_cls, kwargs):
     env = GymEnv("Pendulum-v1")
     pm = PlanningModel.from_env(_world(), pendulum_cost, env)
-    planner = CEMPlanner(pm, Objective(), horizon=4, num_candidates=32, num_elites=4, iterations=2)
-    result = planner.plan(torch.randn(2, 3), torch.rand(2, 1), torch.randn(3))
-    assert result.actions.abs().max() <= 2.0
+    planner = planner_cls(pm, Objective(), horizon=4, num_candidates=32, iterations=2, **kwargs)
+    for init in (None, torch.full((4, 1), 1.9)):
+        result = planner.plan(torch.randn(2, 3), torch.rand(2, 1), torch.randn(3), init=init)
+        assert result.actions.abs().max() <= 2.0

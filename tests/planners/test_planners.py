@@ -7,7 +7,9 @@ from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
+    ICEMPlanner,
     InfeasiblePlanError,
+    MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
@@ -28,7 +30,30 @@ def _planners(model, objective, budget: int = 1000):
         "gradient": GradientPlanner(
             model, objective, horizon=H, restarts=4, steps=budget // 4 - 1, lr=0.05
         ),
+        # 5 x 200 candidates and the final mean
+        "mppi": MPPIPlanner(
+            model, objective, horizon=H, num_candidates=budget // 5, iterations=5, noise_std=0.1
+        ),
+        # 250 + 200 + 160 + 128 + 103 candidates, 6 kept elites in 4 iterations and the mean
+        "icem": ICEMPlanner(
+            model, objective, horizon=H, num_candidates=budget // 4, num_elites=20, iterations=5
+        ),
     }
+
+
+# The sampling planners that take a warm start, a band and a batch as CEM does, with the
+# arguments of a small budget (K candidates, a few elites).
+SAMPLING = {
+    "cem": lambda model, objective, k, **kw: CEMPlanner(
+        model, objective, horizon=H, num_candidates=k, num_elites=max(1, k // 10), **kw
+    ),
+    "mppi": lambda model, objective, k, **kw: MPPIPlanner(
+        model, objective, horizon=H, num_candidates=k, **kw
+    ),
+    "icem": lambda model, objective, k, **kw: ICEMPlanner(
+        model, objective, horizon=H, num_candidates=k, num_elites=max(1, k // 10), **kw
+    ),
+}
 
 
 def test_each_optimiser_approaches_the_closed_form_optimum(context):
@@ -46,7 +71,8 @@ def test_each_optimiser_approaches_the_closed_form_optimum(context):
     assert gaps["gradient"] < 0.005
     assert gaps["cem"] < 0.01
     assert gaps["shooting"] < 0.25
-    assert gaps["cem"] < gaps["shooting"] and gaps["gradient"] < gaps["shooting"]
+    assert gaps["mppi"] < 0.05 and gaps["icem"] < 0.01
+    assert all(gaps[name] < gaps["shooting"] for name in ("cem", "gradient", "mppi", "icem"))
 
 
 def test_cem_converges_near_the_closed_form_optimum(context):
@@ -89,23 +115,20 @@ def _ae_model(seed: int = 0):
     return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)
 
 
-@pytest.mark.parametrize("planner_cls", [RandomShootingPlanner, CEMPlanner])
-def test_beta_lowers_the_chosen_plans_uncertainty(planner_cls):
+@pytest.mark.parametrize("kind", ["shooting", *SAMPLING])
+def test_beta_lowers_the_chosen_plans_uncertainty(kind):
     model = _ae_model()
     ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
-    kwargs = (
-        {"num_candidates": 200}
-        if planner_cls is RandomShootingPlanner
-        else {"num_candidates": 200, "num_elites": 20}
-    )
+
+    def build(objective):
+        if kind == "shooting":
+            return RandomShootingPlanner(model, objective, horizon=H, num_candidates=200)
+        return SAMPLING[kind](model, objective, 200)
+
     u = {}
     for beta in (0.0, 10.0):
         torch.manual_seed(1)
-        u[beta] = float(
-            planner_cls(model, Objective(beta=beta), horizon=H, **kwargs)
-            .plan(*ctx)
-            .uncertainty.sum()
-        )
+        u[beta] = float(build(Objective(beta=beta)).plan(*ctx).uncertainty.sum())
     assert u[10.0] < u[0.0]
 
 
@@ -145,20 +168,17 @@ def test_band_is_respected(kind, low, high):
     assert lo.item() - 1e-5 <= float(result.uncertainty.sum()) <= hi.item() + 1e-5
 
 
-@pytest.mark.parametrize("planner_cls", [CEMPlanner, GradientPlanner])
-def test_relative_band_with_warm_start_is_resolved_on_uniform_candidates(planner_cls):
+@pytest.mark.parametrize("kind", [*SAMPLING, "gradient"])
+def test_relative_band_with_warm_start_is_resolved_on_uniform_candidates(kind):
     model = _ae_model()
     ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
     band = UncertaintyBand(low=0.4, high=0.6, kind="quantile")
-    kwargs = (
-        {"num_candidates": 200, "num_elites": 20}
-        if planner_cls is CEMPlanner
-        else {"restarts": 32, "steps": 2}
-    )
     torch.manual_seed(4)
-    result = planner_cls(model, Objective(band=band), horizon=H, **kwargs).plan(
-        *ctx, init=torch.zeros(H, 2)
-    )
+    if kind == "gradient":
+        planner = GradientPlanner(model, Objective(band=band), horizon=H, restarts=32, steps=2)
+    else:
+        planner = SAMPLING[kind](model, Objective(band=band), 200)
+    result = planner.plan(*ctx, init=torch.zeros(H, 2))
     torch.manual_seed(5)
     reference = model(*ctx, torch.rand(2000, H, 2) * 2 - 1).cumulative_uncertainty
     assert result.feasible
@@ -204,14 +224,9 @@ def test_no_feasible_candidate_is_reported_or_raised():
         RandomShootingPlanner(
             model, Objective(band=band), horizon=H, num_candidates=50, on_infeasible="raise"
         ),
-        CEMPlanner(
-            model,
-            Objective(band=band),
-            horizon=H,
-            num_candidates=20,
-            num_elites=4,
-            iterations=2,
-            on_infeasible="raise",
+        *(
+            build(model, Objective(band=band), 20, iterations=2, on_infeasible="raise")
+            for build in SAMPLING.values()
         ),
     ):
         with pytest.raises(InfeasiblePlanError, match="No candidate"):
@@ -234,9 +249,7 @@ def test_batched_contexts(batch):
     ctx = torch.zeros(*batch, 4, 3), torch.zeros(*batch, 4, 2), torch.zeros(*batch, 3)
     for planner in (
         RandomShootingPlanner(model, Objective(beta=1.0), horizon=H, num_candidates=20),
-        CEMPlanner(
-            model, Objective(beta=1.0), horizon=H, num_candidates=20, num_elites=4, iterations=2
-        ),
+        *(build(model, Objective(beta=1.0), 20, iterations=2) for build in SAMPLING.values()),
         GradientPlanner(model, Objective(beta=1.0), horizon=H, restarts=2, steps=2),
     ):
         result = planner.plan(*ctx)
@@ -265,8 +278,11 @@ def test_bad_input_is_a_clear_error():
         planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.tensor([0.0, float("nan"), 0.0]))
     with pytest.raises(ValueError, match="band low"):
         UncertaintyBand(low=2.0, high=1.0)
-    with pytest.raises(ValueError, match="num_elites"):
-        CEMPlanner(model, Objective(), horizon=3, num_candidates=4, num_elites=5)
+    for planner_cls in (CEMPlanner, ICEMPlanner):
+        with pytest.raises(ValueError, match="num_elites"):
+            planner_cls(model, Objective(), horizon=3, num_candidates=4, num_elites=5)
+    with pytest.raises(ValueError, match="^temperature must be a positive finite number, got 0"):
+        MPPIPlanner(model, Objective(), horizon=3, temperature=0)
     with pytest.raises(ValueError, match="on_infeasible must be 'fallback' or 'raise', got 'skip'"):
         RandomShootingPlanner(model, Objective(), horizon=3, on_infeasible="skip")
     with pytest.raises(ValueError, match=r"init has shape \(2, 2\); expected \(3, 2\)"):
@@ -288,11 +304,13 @@ def test_bad_input_is_a_clear_error():
         ({"smoothing": -0.1}, r"smoothing must be in \[0, 1\), got -0.1"),
     ],
 )
-def test_cem_argument_checks(kwargs, message):
+@pytest.mark.parametrize("planner_cls", [CEMPlanner, ICEMPlanner])
+def test_cem_argument_checks(planner_cls, kwargs, message):
+    """CEM's arguments, and iCEM's that are CEM's (MPPI's and iCEM's own: test_mppi_icem.py)."""
     model = PlanningModel(integrator_model(), integrator_cost)
     args = {"horizon": 3, "num_candidates": 8, "num_elites": 2, **kwargs}
-    with pytest.raises(ValueError, match=message):
-        CEMPlanner(model, Objective(), **args)
+    with pytest.raises(ValueError, match=f"^{message}"):
+        planner_cls(model, Objective(), **args)
 
 
 def test_defaults_are_the_documented_ones():
@@ -304,9 +322,23 @@ def test_defaults_are_the_documented_ones():
     shooting = RandomShootingPlanner(model, Objective(), horizon=3)
     assert (shooting.num_candidates, shooting.on_infeasible) == (1000, "fallback")
     assert cem.block_rows == shooting.block_rows == 1024
+    mppi = MPPIPlanner(model, Objective(), horizon=3)
+    assert (mppi.num_candidates, mppi.iterations, mppi.temperature, mppi.noise_std) == (
+        1000,
+        5,
+        1.0,
+        0.25,
+    )
+    assert (mppi.block_rows, mppi.on_infeasible) == (1024, "fallback")
+    icem = ICEMPlanner(model, Objective(), horizon=3)
+    assert (icem.num_candidates, icem.iterations, icem.num_elites) == (1000, 5, 100)
+    assert (icem.population_decay, icem.keep_elites, icem.noise_beta) == (1.25, 0.3, 2.0)
+    assert (icem.smoothing, icem.min_std, icem.block_rows) == (0.1, 0.02, 1024)
+    assert icem.population_sizes() == [1000, 800, 640, 512, 410]
 
 
-def test_cem_accepts_the_edges_of_its_ranges(context):
+@pytest.mark.parametrize("planner_cls", [CEMPlanner, ICEMPlanner])
+def test_cem_accepts_the_edges_of_its_ranges(planner_cls, context):
     model = PlanningModel(integrator_model(), integrator_cost)
     for kwargs in (
         {"num_elites": 1},
@@ -314,7 +346,7 @@ def test_cem_accepts_the_edges_of_its_ranges(context):
         {"num_elites": 2, "smoothing": 0.0},
         {"num_elites": 2, "smoothing": 0.99},
     ):
-        planner = CEMPlanner(
+        planner = planner_cls(
             model, Objective(), horizon=3, num_candidates=8, iterations=2, **kwargs
         )
         assert planner.plan(*context).actions.shape == (3, 1), kwargs

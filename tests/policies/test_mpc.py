@@ -10,6 +10,8 @@ from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel, Reconstructi
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
@@ -294,6 +296,41 @@ def test_rows_of_an_env_batch_replan_on_their_own_state():
     env.close()
 
 
+@pytest.mark.parametrize("planner_cls", [MPPIPlanner, ICEMPlanner])
+def test_mppi_and_icem_drive_the_policy_in_an_env_batch(planner_cls):
+    """Two drones re-planning on their own uncertainty, as with CEM; iCEM finds the elites of
+    each row's previous plan from the policy's warm start (shifted by the steps executed)."""
+    kwargs = {"num_elites": 4} if planner_cls is ICEMPlanner else {}
+    planner = planner_cls(
+        _small_drone_model(), Objective(beta=0.1), horizon=PLAN_H, num_candidates=16, **kwargs
+    )
+    found = []
+    if planner_cls is ICEMPlanner:
+        recall = planner.memory.recall
+
+        def spy(init):
+            recalled = recall(init)
+            found.append(0 if recalled is None else int(recalled[1].sum()))
+            return recalled
+
+        planner.memory.recall = spy
+    policy = MPCPolicy(planner, replan="uncertainty", threshold=5.0, threshold_on="cumulative")
+    env = make_env("drone", seed=[0, 1], parallel=False)
+    env.append_transform(policy.make_tensordict_primer())
+    torch.manual_seed(0)
+    td = env.rollout(20, policy)
+    replanned = td["mpc_replanned"].squeeze(-1)
+    assert replanned.sum() > 2 and torch.isfinite(td["action"]).all()
+    assert (td["action"].abs() <= 1).all()
+    if planner_cls is ICEMPlanner:
+        # every re-planned row is found but those with a zero warm start: the first plan of each
+        # row and those whose previous plan ran out (plan step H, as after a reset)
+        zero_start = (td["mpc_plan_step"].squeeze(-1) >= PLAN_H) & replanned
+        assert sum(found) > 0
+        assert sum(found) == int(replanned.sum()) - int(zero_start.sum())
+    env.close()
+
+
 def test_rows_a_partial_step_leaves_out_are_not_planned():
     policy = _small_drone_policy(replan="every_step")
     td = _make_drone(policy).reset().expand(3).clone()
@@ -312,16 +349,21 @@ def ib_policy_factory(trained_models):
         uncertainty=trained["estimator"],
     )
 
-    def build(threshold: float) -> MPCPolicy:
-        planner = CEMPlanner(
-            model, Objective(beta=0.1), horizon=30, num_candidates=200, num_elites=20, iterations=3
-        )
+    def build(threshold: float, kind: str = "cem") -> MPCPolicy:
+        budget = dict(horizon=30, num_candidates=200, iterations=3)
+        if kind == "cem":
+            planner = CEMPlanner(model, Objective(beta=0.1), num_elites=20, **budget)
+        elif kind == "mppi":
+            planner = MPPIPlanner(model, Objective(beta=0.1), **budget)
+        else:
+            planner = ICEMPlanner(model, Objective(beta=0.1), num_elites=20, **budget)
         return MPCPolicy(planner, replan="uncertainty", threshold=threshold)
 
     return trained, build
 
 
-def test_uncertainty_triggered_replanning_on_a_trained_model(ib_policy_factory):
+@pytest.mark.parametrize("kind", ["cem", "mppi", "icem"])
+def test_uncertainty_triggered_replanning_on_a_trained_model(ib_policy_factory, kind):
     trained, build = ib_policy_factory
     held_out = trained["held_out"]
     with torch.no_grad():
@@ -333,14 +375,14 @@ def test_uncertainty_triggered_replanning_on_a_trained_model(ib_policy_factory):
     counts = {}
     for factor in (0.5, 1.0, 2.0, 4.0):
         torch.manual_seed(0)
-        policy = build(threshold=factor * in_dist_u)
+        policy = build(threshold=factor * in_dist_u, kind=kind)
         env = make_env("industrial_benchmark", seed=3).append_transform(
             policy.make_tensordict_primer()
         )
         td = env.rollout(60, policy)
         counts[factor] = int(td["mpc_replanned"].sum())
         assert torch.isfinite(td["action"]).all()
-    print("re-plans in 50 planned steps by threshold factor:", counts)
+    print(f"{kind}: re-plans in 50 planned steps by threshold factor:", counts)
     assert counts[4.0] < 50  # fewer re-plans than classic every-step MPC
     assert counts[0.5] >= counts[1.0] >= counts[2.0] >= counts[4.0]
     assert counts[0.5] > counts[4.0]

@@ -11,8 +11,12 @@ from torchrl_recon.planners.base import (
 from torchrl_recon.planners.beta import cost_to_u_ratio, relative_beta, window_uncertainty
 from torchrl_recon.planners.bounds import bounds_from_spec, check_bounds_match
 from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.gradient import GradientPlanner
+from torchrl_recon.planners.icem import ICEMPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
+from torchrl_recon.planners.mppi import MPPIPlanner
+from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
@@ -24,9 +28,12 @@ from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
     "CEMPlanner",
+    "EliteMemory",
     "GradientPlanner",
+    "ICEMPlanner",
     "InfeasiblePlanError",
     "InfeasiblePlanWarning",
+    "MPPIPlanner",
     "Objective",
     "PlanResult",
     "PlannerBase",
@@ -39,6 +46,7 @@ __all__ = [
     "bounds_from_spec",
     "check_bounds_match",
     "check_step_fn",
+    "colored_noise",
     "cost_to_u_ratio",
     "relative_beta",
     "window_uncertainty",

@@ -89,11 +89,17 @@ class PlannerBase(nn.Module):
     def _draw(
         self, sample, batch: torch.Size, k: int, generator: torch.Generator | None
     ) -> torch.Tensor:
-        """``sample`` (``torch.rand`` or ``torch.randn``) of shape ``[*B, k, H, M]`` on the model's
-        device and dtype: from the global RNG of that device, or from ``generator`` on its own
-        device, then moved."""
+        """``sample`` (``torch.rand`` or ``torch.randn``) of shape ``[*B, k, H, M]`` (see
+        :meth:`_draw_shape`)."""
+        return self._draw_shape(sample, (*batch, k, self.horizon, self.model.action_dim), generator)
+
+    def _draw_shape(
+        self, sample, shape: tuple[int, ...], generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """``sample`` (``torch.rand`` or ``torch.randn``) of ``shape`` on the model's device and
+        dtype: from the global RNG of that device, or from ``generator`` on its own device, then
+        moved."""
         like = self.model.action_low
-        shape = (*batch, k, self.horizon, self.model.action_dim)
         if generator is None:
             return sample(shape, dtype=like.dtype, device=like.device)
         drawn = sample(shape, generator=generator, dtype=like.dtype, device=generator.device)

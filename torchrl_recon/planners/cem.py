@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from torchrl_recon.modules.checks import check_int
-from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlannerBase
-from torchrl_recon.planners.objective import Objective, rank_key
-from torchrl_recon.planners.planning_model import PlanningModel, gather_candidates
+from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible
+from torchrl_recon.planners.objective import Objective
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
+from torchrl_recon.planners.sampling import (
+    WARM_START_STD,
+    BestSeen,
+    SamplingPlanner,
+    check_num_elites,
+    check_smoothing,
+    refit_gaussian,
+)
 
 
-class CEMPlanner(PlannerBase):
+class CEMPlanner(SamplingPlanner):
     """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen.
 
     The first iteration samples uniformly within the bounds (with a warm start ``init``, half
@@ -56,83 +65,56 @@ class CEMPlanner(PlannerBase):
         block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
-        super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
-        check_int("num_candidates", num_candidates)
-        if block_rows is not None:
-            check_int("block_rows", block_rows)
-        self.block_rows = block_rows
-        check_int("iterations", iterations)
-        if not 1 <= num_elites <= num_candidates:
-            raise ValueError(
-                f"num_elites must be in [1, num_candidates={num_candidates}], got {num_elites}."
-            )
-        if not 0.0 <= smoothing < 1.0:
-            raise ValueError(f"smoothing must be in [0, 1), got {smoothing}.")
-        self.num_candidates, self.iterations, self.num_elites = (
-            num_candidates,
-            iterations,
-            num_elites,
+        super().__init__(
+            model,
+            objective,
+            horizon=horizon,
+            num_candidates=num_candidates,
+            iterations=iterations,
+            block_rows=block_rows,
+            on_infeasible=on_infeasible,
         )
-        self.smoothing, self.min_std = smoothing, min_std
+        check_num_elites(num_elites, num_candidates)
+        check_smoothing(smoothing)
+        if not 0.0 <= min_std < math.inf:
+            raise ValueError(f"min_std must be a finite number >= 0, got {min_std}.")
+        self.num_elites, self.smoothing, self.min_std = num_elites, smoothing, min_std
+
+    def _elite_update(
+        self,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        bounds,
+        mean: torch.Tensor | None,
+        std: torch.Tensor | None,
+        seen: BestSeen,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rank the candidates, keep the best in ``seen`` and refit the Gaussian to the top
+        ``num_elites`` (std floored at ``min_std``·range): the new mean and std ``[*B, 1, H, M]``
+        and the elites ``[*B, num_elites, H, M]``, best first."""
+        elite_idx = self._rank(prediction, bounds).topk(self.num_elites, dim=-1).indices
+        elites = gather_candidates(candidates, elite_idx)
+        mean, std = refit_gaussian(elites, mean, std, self.smoothing)
+        std = torch.maximum(std, self.min_std * self._span)
+        # Keep each iteration's best sample; the final choice is made among them.
+        seen.add(candidates, prediction, elite_idx[..., :1])
+        return mean, std, elites
 
     @torch.inference_mode()
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
-        low, high = self.model.action_low, self.model.action_high
-        span = high - low
-        mean = std = None
-        best_candidates = best_prediction = bounds = None
+        mean = std = bounds = None
+        seen = BestSeen()
         for it in range(self.iterations):
-            if mean is None and init is None:
-                candidates = self._uniform(batch, self.num_candidates, generator)
-            elif mean is None:
-                # Warm start: half uniform (the reference for relative bands), half around `init`.
-                half = self.num_candidates // 2
-                uniform = self._uniform(batch, self.num_candidates - half, generator)
-                noise = self._normal(batch, half, generator)
-                candidates = torch.cat(
-                    [uniform, self._clamp(init.unsqueeze(-3) + 0.25 * span * noise)], -3
+            if mean is None:
+                candidates, uniform = self._first_candidates(
+                    batch, init, WARM_START_STD, self._normal, generator
                 )
             else:
                 noise = self._normal(batch, self.num_candidates, generator)
                 candidates = self._clamp(mean + std * noise)
-            prediction = self.model(
-                context_obs,
-                context_action,
-                observation,
-                candidates,
-                state=state,
-                block_rows=self.block_rows,
-            )
-            if it == 0 and self.objective.band is not None:
-                reference = torch.arange(
-                    self.num_candidates - (self.num_candidates // 2 if init is not None else 0),
-                    device=candidates.device,
-                )
-                bounds = self._bounds(prediction.take(reference.expand(*batch, -1)))
-            key = rank_key(
-                self.objective.score(prediction), self.objective.violation(prediction, bounds)
-            )
-            elite_idx = key.topk(self.num_elites, dim=-1).indices
-            elites = gather_candidates(candidates, elite_idx)
-            new_mean, new_std = (
-                elites.mean(-3, keepdim=True),
-                elites.std(-3, keepdim=True, correction=0),
-            )
-            if mean is None:
-                mean, std = new_mean, new_std
-            else:
-                mean = self.smoothing * mean + (1 - self.smoothing) * new_mean
-                std = self.smoothing * std + (1 - self.smoothing) * new_std
-            std = torch.maximum(std, self.min_std * span)
-            # Keep each iteration's best sample; the final choice is made among them.
-            top = elite_idx[..., :1]
-            kept_candidates, kept_prediction = (
-                gather_candidates(candidates, top),
-                prediction.take(top),
-            )
-            if best_candidates is not None:
-                kept_candidates = torch.cat([best_candidates, kept_candidates], -3)
-                kept_prediction = best_prediction.cat(kept_prediction)
-            best_candidates, best_prediction = kept_candidates, kept_prediction
-        return best_candidates, best_prediction, bounds
+            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it == 0:
+                bounds = self._reference_bounds(prediction, uniform, batch)
+            mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
+        return *seen.result(), bounds

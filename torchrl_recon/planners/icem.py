@@ -1,0 +1,204 @@
+"""Improved cross-entropy method (iCEM) over action sequences, on the shared planning model."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlanResult
+from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.elite_memory import EliteMemory
+from torchrl_recon.planners.noise import colored_noise
+from torchrl_recon.planners.objective import Objective
+from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.sampling import WARM_START_STD, BestSeen
+
+
+class ICEMPlanner(CEMPlanner):
+    """iCEM: CEM with colored noise, elites kept across iterations and time steps, and a
+    shrinking population; returns the best sample seen.
+
+    Pinneri et al. 2020, "Sample-efficient Cross-Entropy Method for Real-time Planning" (CoRL),
+    as mbrl-lib's ``ICEMOptimizer``. A :class:`CEMPlanner` with CEM's arguments and these
+    additions; candidates are scored by the same batched
+    :class:`Objective` as :class:`CEMPlanner`'s (u term, uncertainty bands, cost threshold),
+    ranked feasible-first, and every batch element ``*B`` is planned in the same calls.
+
+    Iteration i scores ``[*B, K_i + extra, H, M]`` candidates (K × H × A per batch element) in
+    one call to the planning model:
+
+    * K_i = max(⌈K / population_decay^i⌉, 2·num_elites), at most K: the population shrinks;
+    * the first iteration draws CEM's first batch (uniform; with a warm start ``init``, half
+      uniform, which also resolves relative bands, and half ``init`` + 0.25·range·colored
+      noise). With ``init``, ⌈keep_elites·num_elites⌉ more candidates are the elites this
+      planner kept from the plan that ``init`` continues, shifted as ``init`` is (see
+      :class:`EliteMemory`; e.g. :class:`~torchrl_recon.policies.MPCPolicy`'s warm start),
+      or, for rows it does not continue, more draws around ``init``;
+    * later ones draw ``mean + std·colored noise`` (power spectrum ∝ 1/f^``noise_beta`` along
+      the horizon, :func:`colored_noise`), clipped to the bounds, plus the best
+      ⌈keep_elites·num_elites⌉ elites of the previous iteration; the last adds the mean;
+    * ``mean ← smoothing·mean + (1 − smoothing)·elite_mean`` (likewise std, floored at
+      ``min_std``·range), from mean = ``init`` clipped (or the middle of the bounds) and std =
+      0.25·range.
+
+    The budget is Σ_i K_i plus the kept elites and the mean, at most K × iterations +
+    ⌈keep_elites·num_elites⌉ × iterations + 1 rows per batch element.
+
+    Args:
+        model: the :class:`PlanningModel`.
+        objective: the :class:`Objective`.
+
+    Keyword Args:
+        horizon: H.
+        num_candidates: K, the first iteration's population.
+        iterations: number of iterations.
+        num_elites: elites per iteration (at most ``num_candidates``).
+        population_decay: γ >= 1 of K_i = K / γ^i (1: no decay).
+        keep_elites: fraction in [0, 1] of the elites kept into the next iteration and the next
+            plan (0: none).
+        noise_beta: exponent β >= 0 of the colored noise (0: white noise as CEM's).
+        smoothing: momentum α in [0, 1) of the mean/std update.
+        min_std: floor on the standard deviation, as a fraction of the action range.
+        block_rows: evaluate candidate rows in blocks of about this many (see
+            :class:`CEMPlanner`). None: one pass.
+        on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
+
+    Examples:
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> planner = ICEMPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost), Objective(),
+        ...                       horizon=20, num_candidates=64, num_elites=8, iterations=3)
+        >>> planner.population_sizes()
+        [64, 52, 41]
+        >>> planner.plan(torch.zeros(10, 12), torch.zeros(10, 4), torch.zeros(12)).actions.shape
+        torch.Size([20, 4])
+    """
+
+    def __init__(
+        self,
+        model: PlanningModel,
+        objective: Objective,
+        *,
+        horizon: int,
+        num_candidates: int = 1000,
+        iterations: int = 5,
+        num_elites: int = 100,
+        population_decay: float = 1.25,
+        keep_elites: float = 0.3,
+        noise_beta: float = 2.0,
+        smoothing: float = 0.1,
+        min_std: float = 0.02,
+        block_rows: int | None = BLOCK_ROWS,
+        on_infeasible: OnInfeasible = "fallback",
+    ) -> None:
+        super().__init__(
+            model,
+            objective,
+            horizon=horizon,
+            num_candidates=num_candidates,
+            iterations=iterations,
+            num_elites=num_elites,
+            smoothing=smoothing,
+            min_std=min_std,
+            block_rows=block_rows,
+            on_infeasible=on_infeasible,
+        )
+        if not 1.0 <= population_decay < math.inf:
+            raise ValueError(
+                f"population_decay must be a finite number >= 1 (1 = no decay), got {population_decay}."
+            )
+        if not 0.0 <= keep_elites <= 1.0:
+            raise ValueError(f"keep_elites must be in [0, 1], got {keep_elites}.")
+        if not 0.0 <= noise_beta < math.inf:
+            raise ValueError(f"noise_beta must be a finite number >= 0, got {noise_beta}.")
+        self.population_decay, self.keep_elites, self.noise_beta = (
+            population_decay,
+            keep_elites,
+            noise_beta,
+        )
+        self.num_kept = math.ceil(keep_elites * num_elites)
+        self.memory = EliteMemory()
+        self._last_elites: torch.Tensor | None = None
+
+    def population_sizes(self) -> list[int]:
+        """K_i of every iteration, before the kept elites and the mean are added."""
+        floor = min(2 * self.num_elites, self.num_candidates)
+        return [
+            max(math.ceil(self.num_candidates / self.population_decay**i), floor)
+            for i in range(self.iterations)
+        ]
+
+    def _colored(
+        self, batch: torch.Size, k: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Unit-variance colored noise ``[*B, k, H, M]``, correlated along H."""
+        shape = (*batch, k, self.model.action_dim, 2, self.horizon // 2 + 1)
+        white = self._draw_shape(torch.randn, shape, generator)
+        return colored_noise(white, self.horizon, self.noise_beta).transpose(-1, -2)
+
+    def _carried(
+        self, init: torch.Tensor, batch: torch.Size, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """The kept elites of the plan each row's ``init`` continues, else draws around ``init``."""
+        spread = WARM_START_STD * self._span * self._colored(batch, self.num_kept, generator)
+        drawn = self._clamp(init.unsqueeze(-3) + spread)
+        recalled = self.memory.recall(init.reshape(-1, *init.shape[-2:]))
+        if recalled is None:
+            return drawn
+        elites, found = recalled
+        return torch.where(found.view(*batch, 1, 1, 1), elites.view_as(drawn), drawn)
+
+    def plan(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        *,
+        init: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> PlanResult:
+        """Plan as :meth:`PlannerBase.plan` does, then remember the last iteration's kept elites
+        under the returned plan, for the next call whose ``init`` continues it."""
+        result = super().plan(
+            context_obs, context_action, observation, init=init, generator=generator
+        )
+        if self.num_kept:
+            rows = result.actions.reshape(-1, *result.actions.shape[-2:])
+            self.memory.remember(rows, self._last_elites.reshape(len(rows), -1, *rows.shape[-2:]))
+        self._last_elites = None
+        return result
+
+    @torch.inference_mode()
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
+        batch = observation.shape[:-1]
+        low, high = self.model.action_low, self.model.action_high
+        shape = (*batch, 1, self.horizon, self.model.action_dim)
+        mean = ((low + high) / 2).expand(shape) if init is None else self._clamp(init.unsqueeze(-3))
+        std = (WARM_START_STD * self._span).expand(shape)
+        bounds = kept = None
+        seen = BestSeen()
+        for it, size in enumerate(self.population_sizes()):
+            if it == 0:
+                candidates, uniform = self._first_candidates(
+                    batch, init, WARM_START_STD, self._colored, generator
+                )
+                extra = (
+                    []
+                    if init is None or not self.num_kept
+                    else [self._carried(init, batch, generator)]
+                )
+            else:
+                noise = self._colored(batch, size, generator)
+                candidates = self._clamp(mean + std * noise)
+                extra = [kept] if self.num_kept else []
+                if it == self.iterations - 1:
+                    extra.append(self._clamp(mean))
+            candidates = torch.cat([candidates, *extra], -3)
+            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it == 0:
+                bounds = self._reference_bounds(prediction, uniform, batch)
+            mean, std, elites = self._elite_update(candidates, prediction, bounds, mean, std, seen)
+            kept = elites[..., : self.num_kept, :, :]
+        self._last_elites = kept
+        return *seen.result(), bounds

@@ -1,0 +1,124 @@
+"""Model Predictive Path Integral control over action sequences, on the shared planning model."""
+
+from __future__ import annotations
+
+import torch
+
+from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible
+from torchrl_recon.planners.objective import Objective
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.sampling import BestSeen, SamplingPlanner, check_positive
+
+
+class MPPIPlanner(SamplingPlanner):
+    """MPPI: perturb the mean plan with Gaussian noise, average the samples weighted by
+    softmax(J / temperature), repeat; return the best of the final mean and the samples seen.
+
+    Williams et al. 2017, "Information Theoretic MPC for Model-Based Reinforcement Learning"
+    (ICRA): the path-integral update makes the new mean plan the expectation of the sampled
+    sequences under weights ∝ exp(J / λ), with λ the ``temperature``. As TorchRL's
+    ``MPPIPlanner`` and mbrl-lib's ``MPPIOptimizer``, several updates (``iterations``) may run
+    per plan; unlike them, the noise is fixed (no refit of its std) and the candidates are
+    scored by the same batched :class:`Objective` as :class:`CEMPlanner`'s, so the u term,
+    uncertainty bands and cost thresholds apply.
+
+    Per iteration, K candidates ``[*B, K, H, M]`` (K × H × A per batch element) are scored in
+    one call to the planning model:
+
+    * the first iteration draws CEM's first batch: uniform within the bounds, or with a warm
+      start ``init`` ``[*B, H, M]`` (e.g. the previous plan shifted by one step, which
+      :class:`~torchrl_recon.policies.MPCPolicy` passes) half uniformly (the reference of
+      relative bands) and half ``init + noise_std·range·ε``, ε ~ N(0, I);
+    * later ones draw ``mean + noise_std·range·ε``; all are clipped to the action bounds;
+    * weights are softmax(J / temperature) over the feasible candidates of each batch
+      element; where none is feasible, softmax(−violation / temperature), so the mean moves
+      towards the constraints first. The new mean is Σ_k w_k·a_k (inside the bounds).
+
+    After the last iteration the final mean is scored too (one more row per batch element);
+    the plan returned is the best, feasible-first, of that mean and each iteration's best
+    sample (TorchRL and mbrl-lib return the mean unconditionally).
+
+    The temperature is in units of J (cost summed over the horizon, plus β·u): with
+    λ far below the spread of the candidates' J, MPPI keeps the best sample; far above it,
+    it averages them all. Scale it with the task's cost.
+
+    Args:
+        model: the :class:`PlanningModel`.
+        objective: the :class:`Objective`.
+
+    Keyword Args:
+        horizon: H.
+        num_candidates: K per iteration.
+        iterations: number of updates of the mean.
+        temperature: λ > 0 of the weights softmax(J / λ).
+        noise_std: std of the perturbations, as a fraction of the action range (> 0).
+        block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
+            :class:`CEMPlanner`). None: one pass.
+        on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
+
+    Examples:
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> planner = MPPIPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost), Objective(),
+        ...                       horizon=20, num_candidates=64, iterations=3, temperature=0.5)
+        >>> planner.plan(torch.zeros(10, 12), torch.zeros(10, 4), torch.zeros(12)).actions.shape
+        torch.Size([20, 4])
+    """
+
+    def __init__(
+        self,
+        model: PlanningModel,
+        objective: Objective,
+        *,
+        horizon: int,
+        num_candidates: int = 1000,
+        iterations: int = 5,
+        temperature: float = 1.0,
+        noise_std: float = 0.25,
+        block_rows: int | None = BLOCK_ROWS,
+        on_infeasible: OnInfeasible = "fallback",
+    ) -> None:
+        super().__init__(
+            model,
+            objective,
+            horizon=horizon,
+            num_candidates=num_candidates,
+            iterations=iterations,
+            block_rows=block_rows,
+            on_infeasible=on_infeasible,
+        )
+        check_positive("temperature", temperature)
+        check_positive("noise_std", noise_std)
+        self.temperature, self.noise_std = temperature, noise_std
+
+    def _weights(self, prediction: Prediction, bounds) -> torch.Tensor:
+        """softmax(J / λ) over the feasible candidates, ``[*B, K]`` (−violation where none is)."""
+        violation = self.objective.violation(prediction, bounds)
+        feasible = violation <= 0
+        score = self.objective.score(prediction).masked_fill(~feasible, -torch.inf)
+        key = torch.where(feasible.any(-1, keepdim=True), score, -violation)
+        return torch.softmax(key / self.temperature, dim=-1)
+
+    @torch.inference_mode()
+    def _optimise(self, context_obs, context_action, observation, init, state, generator):
+        batch = observation.shape[:-1]
+        bounds = mean = None
+        seen = BestSeen()
+        for it in range(self.iterations):
+            if mean is None:
+                candidates, uniform = self._first_candidates(
+                    batch, init, self.noise_std, self._normal, generator
+                )
+            else:
+                noise = self._normal(batch, self.num_candidates, generator)
+                candidates = self._clamp(mean + self.noise_std * self._span * noise)
+            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it == 0:
+                bounds = self._reference_bounds(prediction, uniform, batch)
+            weights = self._weights(prediction, bounds)
+            mean = (weights[..., None, None] * candidates).sum(-3, keepdim=True)
+            seen.add(candidates, prediction, self._rank(prediction, bounds).argmax(-1, True))
+        final = self._evaluate(context_obs, context_action, observation, mean, state)
+        first = torch.zeros(*batch, 1, dtype=torch.long, device=mean.device)
+        seen.add(mean, final, first)
+        return *seen.result(), bounds

@@ -12,7 +12,14 @@ from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_device, describe_device, resolve_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import CEMPlanner, GradientPlanner, RandomShootingPlanner
+from torchrl_recon.planners import (
+    CEMPlanner,
+    GradientPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
+    PlannerBase,
+    RandomShootingPlanner,
+)
 from torchrl_recon.timing import interleaved_median_ms
 
 OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
@@ -144,11 +151,12 @@ def lstm_step_flops(world: LSTMWorldModel) -> int:
     return 2 * (world.lstm.weight_ih_l0.numel() + world.lstm.weight_hh_l0.numel())
 
 
-def plan_flops(planner: CEMPlanner | RandomShootingPlanner | GradientPlanner, envs: int = 1) -> int:
+def plan_flops(planner: PlannerBase, envs: int = 1) -> int:
     """FLOPs of one ``plan`` call over ``envs`` contexts: candidate rows × H × a row-step.
 
     A row-step is a world-model step plus, with an estimator, its score of the window ending
     there (:func:`matmul_flops`). CEM evaluates K rows per iteration, random shooting K once,
+    iCEM its shrinking populations, MPPI K per iteration and its final mean once,
     the gradient planner its restarts at each of ``steps`` forward + backward passes (a
     backward ≈ 2 forwards) and once more forward at the end.
     """
@@ -156,8 +164,12 @@ def plan_flops(planner: CEMPlanner | RandomShootingPlanner | GradientPlanner, en
     step = matmul_flops(model.world_model)
     if model.uncertainty is not None:
         step += matmul_flops(model.uncertainty)
-    if isinstance(planner, CEMPlanner):
+    if isinstance(planner, ICEMPlanner):  # a CEMPlanner whose population shrinks
+        rows = sum(planner.population_sizes())
+    elif isinstance(planner, CEMPlanner):
         rows = planner.num_candidates * planner.iterations
+    elif isinstance(planner, MPPIPlanner):  # and the final mean, scored once
+        rows = planner.num_candidates * planner.iterations + 1
     elif isinstance(planner, RandomShootingPlanner):
         rows = planner.num_candidates
     elif isinstance(planner, GradientPlanner):

@@ -1,4 +1,5 @@
-"""Planning time per call: TorchRL's CEMPlanner vs ours (CEM, with and without u; gradient; shooting).
+"""Planning time per call: TorchRL's CEMPlanner and MPPIPlanner vs ours (CEM, MPPI, iCEM, with
+and without u; gradient; shooting).
 
 Run: python benchmarks/planner_speed.py [--candidates 1000] [--horizons 30 200] [--threads N]
      [--device cuda] [--compile]
@@ -15,6 +16,10 @@ step modules skip ``TensorDictModule``'s key handling.
 Above the table it prints the GEMM rate measured in this run (one 1024 × 1024 × 1024 float32
 product); each of our rows ends with its arithmetic limit (the call's FLOPs, counted from the
 weights by ``_common.plan_flops``, over that rate) and ``N.Nx its arithmetic limit``.
+
+TorchRL's ``MPPIPlanner`` runs on the plain env at the same budget (K candidates × iterations,
+top-k = the elites) with the reward-to-go as its advantage (no value network: what MPPI
+optimises without one); the line ``speed-up vs TorchRL MPPIPlanner`` compares ours (no u) with it.
 
 ``--compile`` adds, at the first horizon, our two CEM rows with the planning model's one-block
 pass (rollout, cost, u) under ``torch.compile`` (``--compile-mode``), timed round-robin with
@@ -41,10 +46,13 @@ from _common import (
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules import LSTMModule
+from torchrl.modules import MPPIPlanner as TorchRLMPPIPlanner
 
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
@@ -93,6 +101,15 @@ def _plan_no_grad(planner: TorchRLCEMPlanner, start) -> object:
         return planner(start.clone())
 
 
+def reward_to_go() -> TensorDictModule:
+    """TorchRL MPPI's advantage without a value network: Σ of the rewards from each step on."""
+    return TensorDictModule(
+        lambda r: r.flip(-2).cumsum(-2).flip(-2),
+        in_keys=[("next", "reward")],
+        out_keys=["advantage"],
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--candidates", type=int, default=1000)
@@ -116,6 +133,7 @@ def main() -> None:
     plain_env = plain_model_env(world)
     start = env.initial_state(*ctx)
     cem = dict(num_candidates=args.candidates, iterations=args.iterations, num_elites=args.elites)
+    mppi = dict(num_candidates=args.candidates, iterations=args.iterations)
     print(
         f"K={args.candidates}, {args.iterations} iterations, top-k {args.elites}, threads={args.threads}, "
         f"median of {args.repeats} round-robin calls (at H>30: of {max(1, args.repeats // 2)})"
@@ -137,9 +155,25 @@ def main() -> None:
                 ("TorchRL CEMPlanner (no u), plain TensorDictModule env", plain_env),
             )
         }
+        baselines["TorchRL MPPIPlanner (no u), plain TensorDictModule env"] = TorchRLMPPIPlanner(
+            plain_env,
+            reward_to_go(),
+            temperature=1.0,
+            planning_horizon=horizon,
+            optim_steps=args.iterations,
+            num_candidates=args.candidates,
+            top_k=args.elites,
+        )
         ours = {
             "ours CEM (no u)": CEMPlanner(plain, Objective(), horizon=horizon, **cem),
             "ours CEM (with u, beta=0.1)": CEMPlanner(
+                with_u, Objective(beta=0.1), horizon=horizon, **cem
+            ),
+            "ours MPPI (no u)": MPPIPlanner(plain, Objective(), horizon=horizon, **mppi),
+            "ours MPPI (with u, beta=0.1)": MPPIPlanner(
+                with_u, Objective(beta=0.1), horizon=horizon, **mppi
+            ),
+            "ours iCEM (with u, beta=0.1)": ICEMPlanner(
                 with_u, Objective(beta=0.1), horizon=horizon, **cem
             ),
             "ours random shooting (with u)": RandomShootingPlanner(
@@ -183,6 +217,8 @@ def main() -> None:
                 f"torch.compile ({args.compile_mode}) vs eager, {name}: "
                 f"{first[name] / first[f'{name}, torch.compile']:.2f}x"
             )
+    mppi_base = first["TorchRL MPPIPlanner (no u), plain TensorDictModule env"]
+    print(f"speed-up vs TorchRL MPPIPlanner: {mppi_base / first['ours MPPI (no u)']:.1f}x")
     base = first["TorchRL CEMPlanner (no u), plain TensorDictModule env"]
     print(
         f"speed-up vs TorchRL CEMPlanner (no uncertainty): {base / first['ours CEM (no u)']:.1f}x"

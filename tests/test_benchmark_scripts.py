@@ -49,7 +49,7 @@ GEMM = r"^GEMM rate \(float32 [^)]+\): ([0-9.]+) GFLOP/s$"
             "planner_speed.py",
             TINY_PLANNER,
             SPEED_UP,
-            2,
+            3,
         ),
         (
             "training_speed.py",
@@ -96,12 +96,15 @@ def test_benchmark_prints_measured_ratios(script, args, pattern, count):
     ("script", "args", "rows"),
     [
         (
-            # our four planners at the one horizon; TorchRL's two rows have no limit
+            # our seven planners at the one horizon; TorchRL's three rows have no limit
             "planner_speed.py",
             TINY_PLANNER,
             [
                 "ours CEM (no u)",
                 "ours CEM (with u, beta=0.1)",
+                "ours MPPI (no u)",
+                "ours MPPI (with u, beta=0.1)",
+                "ours iCEM (with u, beta=0.1)",
                 "ours random shooting (with u)",
                 "ours gradient (with u, 16 restarts x 20 steps)",
             ],

@@ -151,3 +151,14 @@ def test_window_scoring_prints_its_arithmetic_limit():
 def test_interleaved_timer_refuses_zero_repeats():
     with pytest.raises(ValueError, match="repeats must be at least 1, got 0"):
         interleaved_median_ms({"a": lambda: None}, 0)
+
+
+def test_planner_quality_prints_each_planners_cost_and_the_difference_from_cem():
+    out = _run(
+        "planner_quality.py",
+        *["--envs", "drone", "--frames", "600", "--fit-steps", "2", "--contexts", "3"],
+        *["--candidates", "16", "--iterations", "2", "--horizon", "4", "--seeds", "2"],
+    )
+    for label in ("random shooting", "CEM", "MPPI", "iCEM"):
+        assert re.search(rf"^\s+{label}\s+mean predicted cost\s+-?[0-9.]+", out, re.M), out
+    assert len(re.findall(r"vs CEM\s+[+-][0-9.]+ ± [0-9.]+$", out, re.M)) == 2, out

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
-from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
+from torchrl_recon.modules.population import ReconstructionPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
@@ -248,6 +248,11 @@ def fit_world_model(
         >>> [h["step"] for h in result.history], bool(model.obs_norm.fitted)
         ([5, 10], True)
     """
+    if getattr(model, "num_members", None) is not None:
+        raise ValueError(
+            f"fit_world_model fits one model; this one has num_members={model.num_members} "
+            "(fit members with fit_population(model.split(), ...))."
+        )
     if fit_normalization:
         data = buffer_contents(buffer)
         model.fit_normalization(data["observation"], data["action"], data["next", "observation"])
@@ -375,7 +380,7 @@ def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
             loss_module = UncertaintyLoss(first, slice_len=slice_len)
         return loss_module, lambda batches: _loss_value(loss_module, batches[0]).reshape(1)
     if isinstance(first, LSTMWorldModel):
-        pop = WorldModelPopulation.from_members(models)
+        pop = LSTMWorldModel.from_members(models)
         keys = ("observation", "action", ("next", "observation"))
 
         def losses(batches):

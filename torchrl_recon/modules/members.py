@@ -133,7 +133,7 @@ class StackedMembers:
             >>> [m.num_members for m in LSTMWorldModel(6, 3, num_members=2).split()]
             [None, None]
         """
-        return [self.member(i) for i in range(self.num_members or 0)]
+        return [self.member(i) for i in range(len(self._stacked()))]
 
     @torch.no_grad()
     def load_member(self, index: int, model: nn.Module) -> None:
@@ -146,7 +146,10 @@ class StackedMembers:
         stacked[index].update_(TensorDict.from_module(model))
 
     def _members_first(self, name: str, x: torch.Tensor, min_ndim: int) -> None:
-        """Raise unless ``x`` has the member dim first and at least ``min_ndim`` dims in all."""
+        """Raise unless ``x`` has the member dim first and at least ``min_ndim`` dims in all
+        (nothing to check for one model)."""
+        if self.num_members is None:
+            return
         if x.dim() < min_ndim or x.shape[0] != self.num_members:
             raise ValueError(
                 f"{name} has shape {tuple(x.shape)}; a population of {self.num_members} expects "

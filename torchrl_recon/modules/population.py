@@ -57,7 +57,9 @@ class ReconstructionPopulation(StackedMembers, TensorDictModuleBase):
         super().__init__()
         check_int("num_members", num_members)
         self._register_member_hooks()
-        members = [ReconstructionUncertainty(obs_dim, action_dim, **kwargs) for _ in range(num_members)]
+        members = [
+            ReconstructionUncertainty(obs_dim, action_dim, **kwargs) for _ in range(num_members)
+        ]
         template = members[0]
         self.obs_dim, self.action_dim = template.obs_dim, template.action_dim
         self.window, self.activation = template.window, template.activation

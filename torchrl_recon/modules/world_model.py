@@ -114,12 +114,16 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         self._register_member_hooks()
         if num_members is not None:
             check_int("num_members", num_members)
-            kwargs = self._member_config()
-            del kwargs["obs_dim"], kwargs["action_dim"]
-            keys = dict(obs_key=obs_key, action_key=action_key, out_key=out_key)
-            self._hold(
-                [LSTMWorldModel(obs_dim, action_dim, **kwargs, **keys) for _ in range(num_members)]
+            member = dict(
+                hidden_size=hidden_size,
+                dense_size=dense_size,
+                window=window,
+                activation=activation,
+                obs_key=obs_key,
+                action_key=action_key,
+                out_key=out_key,
             )
+            self._hold([LSTMWorldModel(obs_dim, action_dim, **member) for _ in range(num_members)])
             return
         self.lstm = nn.LSTM(obs_dim + action_dim, hidden_size, batch_first=True)
         self.dense = nn.Linear(hidden_size, dense_size)
@@ -158,10 +162,6 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     def _engine(self, weight: torch.Tensor) -> torch.Tensor:
         """A weight as the engine takes it: member 0's for one member, else as held."""
         return weight[0] if self.num_members == 1 else weight
-
-    def _check_members(self, name: str, x: torch.Tensor, min_ndim: int) -> None:
-        if self.num_members is not None:
-            self._members_first(name, x, min_ndim)
 
     def _ndim(self, ndim: int) -> int:
         """Dims an input needs: ``ndim`` plus the member dim when there is one."""
@@ -264,7 +264,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     def _lstm_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Checked and normalised sequences ``[*R, *B, L, N]``, ``[*R, *B, L, M]`` as the LSTM's
         input ``[*R, B, L, N + M]``."""
-        self._check_members("obs", obs, 3)
+        self._members_first("obs", obs, 3)
         check_features("obs", obs, self.obs_dim, min_ndim=self._ndim(2))
         check_features("action", action, self.action_dim, min_ndim=self._ndim(2))
         if obs.shape[:-1] != action.shape[:-1]:
@@ -329,7 +329,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         self, context_obs: torch.Tensor, context_action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Run the LSTM over a real context ``[*R, *B, T, N]``, ``[*R, *B, T, M]``; return ``(h, c)`` ``[*R, *B, hidden]``."""
-        self._check_members("context_obs", context_obs, 3)
+        self._members_first("context_obs", context_obs, 3)
         check_features("context_obs", context_obs, self.obs_dim, min_ndim=self._ndim(2))
         check_features("context_action", context_action, self.action_dim, min_ndim=self._ndim(2))
         check_window("context_obs", context_obs, self.window)
@@ -376,7 +376,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         Returns:
             Predicted states s_{t+1..t+H}, ``[*R, *B, K, H, N]`` (differentiable w.r.t. ``actions``).
         """
-        self._check_members("observation", observation, 2)
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
         check_features("actions", actions, self.action_dim, min_ndim=self._ndim(3))
         batch, hid, lead = observation.shape[:-1], self.hidden_size, self._lead
@@ -419,7 +419,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
             >>> s.shape, state[0].shape
             (torch.Size([2, 6]), torch.Size([2, 32]))
         """
-        self._check_members("observation", observation, 2)
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
         check_features("action", action, self.action_dim)
         if observation.shape[:-1] != action.shape[:-1]:
@@ -468,7 +468,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
             >>> model.rollout(torch.zeros(2, 6), torch.rand(2, 20, 3), state).shape
             torch.Size([2, 20, 6])
         """
-        self._check_members("observation", observation, 2)
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
         check_features("actions", actions, self.action_dim, min_ndim=self._ndim(2))
         batch, hid, lead = observation.shape[:-1], self.hidden_size, self._lead

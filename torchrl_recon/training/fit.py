@@ -572,11 +572,12 @@ def _train_members(
 
     @torch.no_grad()
     def restore(members: list[int]) -> None:
+        index = torch.tensor(members, device=device) if stacked else None
         for key, value in state.items():
-            for r in members:
-                (value[r] if stacked else value).copy_(
-                    best_state[key][r] if stacked else best_state[key]
-                )
+            if stacked:  # all the members at once: frozen ones are restored every step
+                value[index] = best_state[key][index]
+            else:
+                value.copy_(best_state[key])
 
     bar = tqdm(
         range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False

@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.population import ReconstructionPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -463,6 +464,12 @@ def fit_population(
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")
+    stacked = [i for i, m in enumerate(models) if isinstance(m, StackedMembers) and m.num_members]
+    if stacked:
+        raise ValueError(
+            f"fit_population fits one model per entry; models {stacked} hold several "
+            "(num_members is set): pass their split() instead."
+        )
     count = len(models)
     buffers = _per_member("buffers", buffers, count)
     val_buffers = _per_member("val_buffers", val_buffers, count, optional=True)

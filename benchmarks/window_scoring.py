@@ -36,8 +36,8 @@ def window_copies_score(est: WorldModelEnsembleUncertainty, x: torch.Tensor) -> 
         windows = window_view(block, t).reshape(-1, t, est.feature_dim)
         windows = windows.expand(members, *windows.shape)
         pred = est.members.predict_delta(windows[..., :n], windows[..., n:])[..., -1, :]
-        pred = pred * (est.members.delta_norm_scale[:, None] / sigma)
-        pred = pred + est.members.delta_norm_loc[:, None] / sigma
+        pred = pred * (est.members.delta_norm.scale[:, None] / sigma)
+        pred = pred + est.members.delta_norm.loc[:, None] / sigma
         u = (pred - pred.mean(0)).square().mean(0).mean(-1)
         outs.append(u.view(block.shape[0], -1))
     return torch.cat(outs)

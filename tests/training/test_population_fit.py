@@ -121,6 +121,11 @@ def test_population_fit_errors_name_what_to_fix():
         fit_population([_world(0), _world(1)], [rb, _buffer(1, slice_len=9)], **FIT)
     with pytest.raises(ValueError, match="share one config"):
         fit_population([_world(0), LSTMWorldModel(N, M, window=4)], rb, **FIT)
+    stacked = LSTMWorldModel(N, M, window=4, num_members=2)
+    with pytest.raises(ValueError, match=r"fits one model; this one has num_members=2"):
+        fit_world_model(stacked, rb, **FIT)
+    with pytest.raises(ValueError, match=r"models \[1\] hold several .* split\(\)"):
+        fit_population([_world(0), stacked], rb, fit_normalization=False, **FIT)
     assert math.isfinite(fit_population([_world(0)], rb, **FIT)[0].best_val_loss)
 
 
@@ -172,7 +177,6 @@ def test_shared_sampling_follows_each_member_in_any_order():
 def test_population_errors_are_each_members_multi_step_errors():
     """One batched rollout of all members gives each member's own ``multi_step_errors``."""
     from torchrl_recon.evaluation import multi_step_errors, population_multi_step_errors
-    from torchrl_recon.modules import WorldModelPopulation
 
     models = [_world(i) for i in range(3)]
     g = torch.Generator().manual_seed(0)
@@ -186,11 +190,11 @@ def test_population_errors_are_each_members_multi_step_errors():
     )
     scale = torch.rand(N, generator=g) + 0.5
     together = population_multi_step_errors(
-        WorldModelPopulation.from_members(models), td, window=4, scale=scale
+        LSTMWorldModel.from_members(models), td, window=4, scale=scale
     )
     assert together.shape == (3, 5, 8)
     for r, model in enumerate(models):
         alone = multi_step_errors(model, td, window=4, scale=scale)
         torch.testing.assert_close(together[r], alone, rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="L > window=12"):
-        population_multi_step_errors(WorldModelPopulation.from_members(models), td, window=12)
+        population_multi_step_errors(LSTMWorldModel.from_members(models), td, window=12)

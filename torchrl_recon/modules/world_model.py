@@ -1,4 +1,4 @@
-"""The paper's recurrent world model: an LSTM that predicts state changes Δs."""
+"""The paper's recurrent world model: an LSTM that predicts state changes Δs, one model or R."""
 
 from __future__ import annotations
 
@@ -6,12 +6,14 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torch.nn import functional as F
 
 from torchrl_recon.modules._lstm_rollout import (
     LSTMRollout,
     fold_weights,
     recorded_rollout,
     rollout_inplace,
+    sigmoid_tanh,
 )
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import (
@@ -21,10 +23,11 @@ from torchrl_recon.modules.checks import (
     check_int,
     check_window,
 )
+from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.normalization import Normalizer
 
 
-class LSTMWorldModel(TensorDictModuleBase):
+class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     """LSTM → dense → linear world model predicting Δs_{t+1} from past (s, a) (paper §2.1).
 
     Inputs and targets are standardised with statistics fitted by :meth:`fit_normalization`
@@ -43,6 +46,17 @@ class LSTMWorldModel(TensorDictModuleBase):
     (one autoregressive step) and :meth:`rollout` (many steps from a warmed-up state).
     Every output is made on the device and dtype of the model and its inputs.
 
+    **Members.** With ``num_members=R`` the model is R independent world models run as one
+    batch (retraining many models is overhead-bound: each step becomes one batched matmul over
+    the members). Every parameter and buffer keeps its name with the member dim first
+    (``lstm.weight_ih_l0`` ``[R, 4·hid, N + M]``, stacked by ``TensorDict.from_modules``), and
+    every input and output carries it first: ``[R, *B, ...]``, member r's rows through member
+    r. :meth:`from_members`, :meth:`member`, :meth:`split` and :meth:`load_member` move
+    members in and out; :meth:`prediction_loss` gives one loss per member. Member 0 of
+    ``LSTMWorldModel(..., num_members=R)`` made after ``torch.manual_seed(s)`` is the single
+    model made after the same call, and R = 1 runs the single model's own ops (its results are
+    bitwise the single model's).
+
     Args:
         obs_dim: state size N.
         action_dim: action size M.
@@ -54,12 +68,18 @@ class LSTMWorldModel(TensorDictModuleBase):
         activation: ``"relu"``, ``"tanh"`` or ``"elu"`` after the dense layer.
         obs_key, action_key: input keys.
         out_key: where ``forward`` writes predicted next observations.
+        num_members: None (default) for one model; R for R members with a leading member
+            dim, initialised one after the other from the global RNG.
 
     Examples:
         >>> model = LSTMWorldModel(6, 3)
         >>> ctx_s, ctx_a, s0 = torch.randn(2, 10, 6), torch.randn(2, 10, 3), torch.randn(2, 6)
         >>> model.imagine(ctx_s, ctx_a, s0, torch.rand(2, 100, 30, 3)).shape
         torch.Size([2, 100, 30, 6])
+        >>> models = LSTMWorldModel(6, 3, num_members=5, window=4)
+        >>> ctx_s, ctx_a, s0 = torch.randn(5, 2, 4, 6), torch.randn(5, 2, 4, 3), torch.randn(5, 2, 6)
+        >>> models.imagine(ctx_s, ctx_a, s0, torch.rand(5, 2, 100, 30, 3)).shape
+        torch.Size([5, 2, 100, 30, 6])
     """
 
     def __init__(
@@ -74,6 +94,7 @@ class LSTMWorldModel(TensorDictModuleBase):
         obs_key: NestedKey = "observation",
         action_key: NestedKey = "action",
         out_key: NestedKey = ("next", "predicted_observation"),
+        num_members: int | None = None,
     ) -> None:
         super().__init__()
         check_activation(activation)
@@ -89,6 +110,21 @@ class LSTMWorldModel(TensorDictModuleBase):
         self.hidden_size, self.dense_size, self.activation = hidden_size, dense_size, activation
         self.in_keys = [obs_key, action_key]
         self.out_keys = [out_key]
+        self.num_members = num_members
+        self._register_member_hooks()
+        if num_members is not None:
+            check_int("num_members", num_members)
+            member = dict(
+                hidden_size=hidden_size,
+                dense_size=dense_size,
+                window=window,
+                activation=activation,
+                obs_key=obs_key,
+                action_key=action_key,
+                out_key=out_key,
+            )
+            self._hold([LSTMWorldModel(obs_dim, action_dim, **member) for _ in range(num_members)])
+            return
         self.lstm = nn.LSTM(obs_dim + action_dim, hidden_size, batch_first=True)
         self.dense = nn.Linear(hidden_size, dense_size)
         self.head = nn.Linear(dense_size, obs_dim)
@@ -98,7 +134,7 @@ class LSTMWorldModel(TensorDictModuleBase):
 
     def config(self) -> dict:
         """Constructor arguments, stored in checkpoints and checked on load."""
-        return {
+        config = {
             "obs_dim": self.obs_dim,
             "action_dim": self.action_dim,
             "hidden_size": self.hidden_size,
@@ -106,16 +142,58 @@ class LSTMWorldModel(TensorDictModuleBase):
             "window": self.window,
             "activation": self.activation,
         }
+        if self.num_members is not None:
+            config["num_members"] = self.num_members
+        return config
 
     @property
     def feature_dim(self) -> int:
         """Features per step of the LSTM's input, N + M."""
         return self.obs_dim + self.action_dim
 
+    # -- the member dim: inputs carry ``[R]`` first when num_members is set; the engine runs
+    # a member dim only for R > 1 (R = 1 takes member 0's weights and the single model's ops).
+
+    @property
+    def _lead(self) -> tuple[int, ...]:
+        """The engine's member dim: ``(R,)`` for R > 1 members, else none."""
+        return (self.num_members,) if (self.num_members or 1) > 1 else ()
+
+    def _engine(self, weight: torch.Tensor) -> torch.Tensor:
+        """A weight as the engine takes it: member 0's for one member, else as held."""
+        return weight[0] if self.num_members == 1 else weight
+
+    def _ndim(self, ndim: int) -> int:
+        """Dims an input needs: ``ndim`` plus the member dim when there is one."""
+        return ndim + (self.num_members is not None)
+
+    def _shape_error(self, name: str, x: torch.Tensor, tail: str, batch: torch.Size) -> ValueError:
+        dims, named = ("*B", "*B") if self.num_members is None else ("R, *B", "[R, *B]")
+        return ValueError(
+            f"{name} has shape {tuple(x.shape)}; expected [{dims}, {tail}] with {named} = "
+            f"{tuple(batch)}."
+        )
+
+    def _stat(self, which: str, stat: str, ndim: int) -> torch.Tensor:
+        """``{which}_norm``'s ``loc`` or ``scale``, to broadcast against ``[*R, ..., D]`` of ``ndim`` dims."""
+        value = getattr(getattr(self, f"{which}_norm"), stat)
+        return value if self.num_members is None else self._bcast(value, ndim)
+
+    def _norm(self, which: str, x: torch.Tensor) -> torch.Tensor:
+        return (x - self._stat(which, "loc", x.dim())) / self._stat(which, "scale", x.dim())
+
+    def _denorm(self, which: str, x: torch.Tensor) -> torch.Tensor:
+        return x * self._stat(which, "scale", x.dim()) + self._stat(which, "loc", x.dim())
+
     def fit_normalization(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
     ) -> None:
         """Fit input and target statistics from real transitions ``[..., N]``, ``[..., M]``, ``[..., N]``."""
+        if self.num_members is not None:
+            raise ValueError(
+                "fit_normalization fits one model; fit each member's before stacking them "
+                "(LSTMWorldModel.from_members)."
+            )
         check_features("obs", obs, self.obs_dim)
         check_features("action", action, self.action_dim)
         check_features("next_obs", next_obs, self.obs_dim)
@@ -124,41 +202,136 @@ class LSTMWorldModel(TensorDictModuleBase):
         self.delta_norm.fit(next_obs - obs)
 
     def normalize_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The LSTM's input for raw ``obs`` ``[..., N]`` and ``action`` ``[..., M]``: both
-        standardised, concatenated, ``[..., N + M]``.
+        """The LSTM's input for raw ``obs`` ``[*R, ..., N]`` and ``action`` ``[*R, ..., M]``: both
+        standardised, concatenated, ``[*R, ..., N + M]``.
 
         Examples:
             >>> LSTMWorldModel(6, 3).normalize_inputs(torch.zeros(5, 6), torch.ones(5, 3)).shape
             torch.Size([5, 9])
         """
-        return torch.cat([self.obs_norm.normalize(obs), self.action_norm.normalize(action)], -1)
+        return torch.cat([self._norm("obs", obs), self._norm("action", action)], -1)
 
-    def predict_delta(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Teacher-forced normalised Δs predictions for sequences ``[*B, L, N]``, ``[*B, L, M]``."""
-        check_features("obs", obs, self.obs_dim, min_ndim=2)
-        check_features("action", action, self.action_dim, min_ndim=2)
+    def norm_stats(self) -> tuple[torch.Tensor, ...]:
+        """``(obs_loc, obs_scale, action_loc, action_scale, delta_loc, delta_scale)``."""
+        return tuple(
+            t
+            for norm in (self.obs_norm, self.action_norm, self.delta_norm)
+            for t in (norm.loc, norm.scale)
+        )
+
+    def _lstm_weights(self) -> tuple[torch.Tensor, ...]:
+        lstm = self.lstm
+        return lstm.weight_ih_l0, lstm.weight_hh_l0, lstm.bias_ih_l0, lstm.bias_hh_l0
+
+    def _lstm(
+        self, x: torch.Tensor, hx: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """The LSTM over ``x`` ``[*R, B, L, F]`` from ``hx`` ``[*R, B, hid]`` (zeros when None).
+
+        Returns the outputs ``[*R, B, L, hid]`` and the last ``(h, c)`` ``[*R, B, hid]``.
+        """
+        if not self._lead:  # one model: nn.LSTM's own kernel (member 0's weights for R = 1)
+            hx = None if hx is None else tuple(s[None].contiguous() for s in hx)
+            if self.num_members is None:
+                out, (h, c) = self.lstm(x, hx)
+            else:
+                if hx is None:
+                    zeros = x.new_zeros(1, x.shape[0], self.hidden_size)
+                    hx = (zeros, zeros)
+                weights = [self._engine(w) for w in self._lstm_weights()]
+                out, h, c = torch.lstm(x, hx, weights, True, 1, 0.0, self.training, False, True)
+            return out, (h[0], c[0])
+        w_ih, w_hh, b_ih, b_hh = self._lstm_weights()
+        members, rows = x.shape[:2]
+        h, c = (x.new_zeros(members, rows, self.hidden_size),) * 2 if hx is None else hx
+        gates_x = _input_gates(x, w_ih, b_ih, b_hh)
+        w_hh_t = w_hh.transpose(-1, -2)
+        outs = []
+        # `unbind`, not `gates_x[:, :, t]`: a slice's backward zero-fills a full-size gradient
+        # per step (O(L²) memory traffic); unbind's is one stack.
+        for gates_t in gates_x.unbind(2):
+            h, c = _lstm_cell(gates_t, h, c, w_hh_t)
+            outs.append(h)
+        return torch.stack(outs, 2), (h, c)
+
+    def _head(self, out: torch.Tensor) -> torch.Tensor:
+        """The dense layer and the output layer on LSTM outputs ``[*R, ..., hid]``."""
+        dense, head = self.dense, self.head
+        z = _linear(out, self._engine(dense.weight), self._engine(dense.bias))
+        z = ACTIVATIONS[self.activation](z)
+        return _linear(z, self._engine(head.weight), self._engine(head.bias))
+
+    def _lstm_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Checked and normalised sequences ``[*R, *B, L, N]``, ``[*R, *B, L, M]`` as the LSTM's
+        input ``[*R, B, L, N + M]``."""
+        self._members_first("obs", obs, 3)
+        check_features("obs", obs, self.obs_dim, min_ndim=self._ndim(2))
+        check_features("action", action, self.action_dim, min_ndim=self._ndim(2))
         if obs.shape[:-1] != action.shape[:-1]:
             raise ValueError(
                 f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch/time dims."
             )
         x = self.normalize_inputs(obs, action)
-        batch, length = x.shape[:-2], x.shape[-2]
-        out, _ = self.lstm(x.reshape(-1, length, x.shape[-1]))
-        z = ACTIVATIONS[self.activation](self.dense(out))
-        return self.head(z).reshape(*batch, length, self.obs_dim)
+        return x.reshape(*self._lead, -1, x.shape[-2], x.shape[-1])
+
+    def predict_delta(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Teacher-forced normalised Δs predictions for sequences ``[*R, *B, L, N]``, ``[*R, *B, L, M]``."""
+        out, _ = self._lstm(self._lstm_inputs(obs, action))
+        return self._head(out).reshape(obs.shape)
+
+    def predict_window_deltas(
+        self, obs: torch.Tensor, action: torch.Tensor, window: int
+    ) -> torch.Tensor:
+        """Normalised Δs predicted after every ``window``-step window of the sequences, each
+        window read from a fresh LSTM state: ``[*R, *B, L, N]``, ``[*R, *B, L, M]`` →
+        ``[*R, *B, L − window + 1, N]``.
+
+        The same as :meth:`predict_delta` on a copy of each window, last step (a sliding-window
+        score), without the copies: the input part of the gates is computed once per step and
+        only each window's last output goes through the head.
+
+        Examples:
+            >>> models = LSTMWorldModel(6, 3, num_members=2, window=4)
+            >>> models.predict_window_deltas(torch.randn(2, 5, 12, 6), torch.randn(2, 5, 12, 3), 4).shape
+            torch.Size([2, 5, 9, 6])
+        """
+        check_int("window", window)
+        x = self._lstm_inputs(obs, action)
+        if obs.shape[-2] < window:
+            raise ValueError(
+                f"obs has shape {tuple(obs.shape)}; expected at least window={window} steps (dim -2)."
+            )
+        # The batched cell with a member dim (of one for a single model).
+        weights = self._lstm_weights()
+        if self.num_members is None:
+            weights = tuple(w[None] for w in weights)
+        if not self._lead:
+            x = x[None]
+        w_ih, w_hh, b_ih, b_hh = weights
+        members, length, hid = x.shape[0], x.shape[-2], self.hidden_size
+        windows = length - window + 1
+        gates_x = _input_gates(x, w_ih, b_ih, b_hh).unfold(2, window, 1)  # [P, B, W, 4·hid, T]
+        rows = gates_x.shape[1] * windows
+        h = c = x.new_zeros(members, rows, hid)
+        w_hh_t = w_hh.transpose(-1, -2)
+        for t in range(window):
+            h, c = _lstm_cell(gates_x[..., t].reshape(members, rows, -1), h, c, w_hh_t)
+        out = self._head(h if self._lead else h[0])
+        return out.reshape(*obs.shape[:-2], windows, self.obs_dim)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])
-        delta = self.delta_norm.denormalize(self.predict_delta(obs, action))
+        delta = self._denorm("delta", self.predict_delta(obs, action))
         tensordict.set(self.out_keys[0], obs + delta)
         return tensordict
 
     def warmup(
         self, context_obs: torch.Tensor, context_action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Run the LSTM over a real context ``[*B, T, N]``, ``[*B, T, M]``; return ``(h, c)`` ``[*B, hidden]``."""
-        check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
-        check_features("context_action", context_action, self.action_dim, min_ndim=2)
+        """Run the LSTM over a real context ``[*R, *B, T, N]``, ``[*R, *B, T, M]``; return ``(h, c)`` ``[*R, *B, hidden]``."""
+        self._members_first("context_obs", context_obs, 3)
+        check_features("context_obs", context_obs, self.obs_dim, min_ndim=self._ndim(2))
+        check_features("context_action", context_action, self.action_dim, min_ndim=self._ndim(2))
         check_window("context_obs", context_obs, self.window)
         if context_obs.shape[:-1] != context_action.shape[:-1]:
             raise ValueError(
@@ -170,31 +343,16 @@ class LSTMWorldModel(TensorDictModuleBase):
             context_obs[..., -self.window :, :], context_action[..., -self.window :, :]
         )
         batch = x.shape[:-2]
-        _, (h, c) = self.lstm(x.reshape(-1, self.window, x.shape[-1]))
-        return h[0].reshape(*batch, self.hidden_size), c[0].reshape(*batch, self.hidden_size)
+        _, (h, c) = self._lstm(x.reshape(*self._lead, -1, self.window, x.shape[-1]))
+        return h.reshape(*batch, self.hidden_size), c.reshape(*batch, self.hidden_size)
 
     def _folded_weights(self) -> tuple[torch.Tensor, ...]:
-        """Fold the normalisations into the weights so the rollout works in raw units."""
-        lstm = self.lstm
-        return fold_weights(
-            lstm.weight_ih_l0,
-            lstm.weight_hh_l0,
-            lstm.bias_ih_l0,
-            lstm.bias_hh_l0,
-            self.dense.weight,
-            self.dense.bias,
-            self.head.weight,
-            self.head.bias,
-            self.norm_stats(),
-        )
-
-    def norm_stats(self) -> tuple[torch.Tensor, ...]:
-        """``(obs_loc, obs_scale, action_loc, action_scale, delta_loc, delta_scale)``."""
-        return tuple(
-            t
-            for norm in (self.obs_norm, self.action_norm, self.delta_norm)
-            for t in (norm.loc, norm.scale)
-        )
+        """Fold the normalisations into the weights so the rollout works in raw units
+        (``[R, ...]`` each for R > 1 members; see ``fold_weights``)."""
+        dense, head = self.dense, self.head
+        raw = (*self._lstm_weights(), dense.weight, dense.bias, head.weight, head.bias)
+        norms = tuple(self._engine(x) for x in self.norm_stats())
+        return fold_weights(*(self._engine(w) for w in raw), norms)
 
     def imagine(
         self,
@@ -208,31 +366,31 @@ class LSTMWorldModel(TensorDictModuleBase):
         """Predict states for candidate action sequences, all candidates in one batch.
 
         Args:
-            context_obs: real past states s_{t-T..t-1}, ``[*B, T', N]`` with T' >= window.
-            context_action: real past actions a_{t-T..t-1}, ``[*B, T', M]``.
-            observation: the current real state s_t, ``[*B, N]``.
-            actions: candidates a_{t..t+H-1}, ``[*B, K, H, M]``.
+            context_obs: real past states s_{t-T..t-1}, ``[*R, *B, T', N]`` with T' >= window.
+            context_action: real past actions a_{t-T..t-1}, ``[*R, *B, T', M]``.
+            observation: the current real state s_t, ``[*R, *B, N]``.
+            actions: candidates a_{t..t+H-1}, ``[*R, *B, K, H, M]``.
             state: ``(h, c)`` from :meth:`warmup` on this context, to skip recomputing it
                 (planners call ``imagine`` many times on one context).
 
         Returns:
-            Predicted states s_{t+1..t+H}, ``[*B, K, H, N]`` (differentiable w.r.t. ``actions``).
+            Predicted states s_{t+1..t+H}, ``[*R, *B, K, H, N]`` (differentiable w.r.t. ``actions``).
         """
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
-        check_features("actions", actions, self.action_dim, min_ndim=3)
-        batch = observation.shape[:-1]
+        check_features("actions", actions, self.action_dim, min_ndim=self._ndim(3))
+        batch, hid, lead = observation.shape[:-1], self.hidden_size, self._lead
         if actions.shape[:-3] != batch:
-            raise ValueError(
-                f"actions has shape {tuple(actions.shape)}; expected [*B, K, H, {self.action_dim}] with *B = {tuple(batch)}."
-            )
+            raise self._shape_error("actions", actions, f"K, H, {self.action_dim}", batch)
         check_finite("observation", observation)
         h, c = self.warmup(context_obs, context_action) if state is None else state
         k, horizon = actions.shape[-3], actions.shape[-2]
-        rows = int(torch.Size(batch).numel()) * k
-        s0 = observation.reshape(-1, 1, self.obs_dim).expand(-1, k, -1).reshape(rows, self.obs_dim)
-        h = h.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
-        c = c.reshape(-1, 1, self.hidden_size).expand(-1, k, -1).reshape(rows, self.hidden_size)
-        flat_actions = actions.reshape(rows, horizon, self.action_dim)
+
+        def expand(x: torch.Tensor, size: int) -> torch.Tensor:  # each row once per candidate
+            return x.reshape(*lead, -1, 1, size).expand(*lead, -1, k, -1).reshape(*lead, -1, size)
+
+        s0, h, c = expand(observation, self.obs_dim), expand(h, hid), expand(c, hid)
+        flat_actions = actions.reshape(*lead, -1, horizon, self.action_dim)
         states = self._rollout(s0, h, c, flat_actions)
         return states.reshape(*batch, k, horizon, self.obs_dim)
 
@@ -242,17 +400,17 @@ class LSTMWorldModel(TensorDictModuleBase):
         action: torch.Tensor,
         state: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """One-step prediction: s_{t+1} from s_t ``[*B, N]``, a_t ``[*B, M]`` and the LSTM state.
+        """One-step prediction: s_{t+1} from s_t ``[*R, *B, N]``, a_t ``[*R, *B, M]`` and the LSTM state.
 
         Args:
-            observation: s_t, ``[*B, N]``.
-            action: a_t, ``[*B, M]``.
-            state: ``(h, c)`` ``[*B, hidden]`` from :meth:`warmup` or the previous step; zeros
-                when None.
+            observation: s_t, ``[*R, *B, N]``.
+            action: a_t, ``[*R, *B, M]``.
+            state: ``(h, c)`` ``[*R, *B, hidden]`` from :meth:`warmup` or the previous step;
+                zeros when None.
 
         Returns:
-            ``(s_{t+1} [*B, N], (h, c))``: feed both back for the next step (this calls the
-            model's ``nn.LSTM`` once per step; :meth:`rollout` does many steps at once).
+            ``(s_{t+1} [*R, *B, N], (h, c))``: feed both back for the next step (this runs the
+            LSTM once per step; :meth:`rollout` does many steps at once).
 
         Examples:
             >>> model = LSTMWorldModel(6, 3)
@@ -261,6 +419,7 @@ class LSTMWorldModel(TensorDictModuleBase):
             >>> s.shape, state[0].shape
             (torch.Size([2, 6]), torch.Size([2, 32]))
         """
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
         check_features("action", action, self.action_dim)
         if observation.shape[:-1] != action.shape[:-1]:
@@ -268,15 +427,15 @@ class LSTMWorldModel(TensorDictModuleBase):
                 f"observation {tuple(observation.shape)} and action {tuple(action.shape)} "
                 "disagree on batch dims."
             )
-        batch, hid = observation.shape[:-1], self.hidden_size
-        x = self.normalize_inputs(observation, action).reshape(-1, 1, self.feature_dim)
-        hx = None
-        if state is not None:
-            hx = tuple(s.reshape(1, -1, hid).contiguous() for s in state)
-        out, (h, c) = self.lstm(x, hx)
-        z = ACTIVATIONS[self.activation](self.dense(out[:, 0]))
-        delta = self.delta_norm.denormalize(self.head(z)).reshape(*batch, self.obs_dim)
-        return observation + delta, (h[0].reshape(*batch, hid), c[0].reshape(*batch, hid))
+        batch, hid, lead = observation.shape[:-1], self.hidden_size, self._lead
+        x = self.normalize_inputs(observation, action).reshape(*lead, -1, 1, self.feature_dim)
+        hx = None if state is None else tuple(s.reshape(*lead, -1, hid) for s in state)
+        out, (h, c) = self._lstm(x, hx)
+        delta = self._denorm("delta", self._head(out[..., 0, :]))
+        return observation + delta.reshape(*batch, self.obs_dim), (
+            h.reshape(*batch, hid),
+            c.reshape(*batch, hid),
+        )
 
     def rollout(
         self,
@@ -289,9 +448,9 @@ class LSTMWorldModel(TensorDictModuleBase):
         """Roll action sequences out autoregressively from a warmed-up state, one row each.
 
         Args:
-            observation: s_t, ``[*B, N]``.
-            actions: a_{t..t+H-1}, ``[*B, H, M]``.
-            state: ``(h, c)`` ``[*B, hidden]`` (from :meth:`warmup`).
+            observation: s_t, ``[*R, *B, N]``.
+            actions: a_{t..t+H-1}, ``[*R, *B, H, M]``.
+            state: ``(h, c)`` ``[*R, *B, hidden]`` (from :meth:`warmup`).
 
         Keyword Args:
             recorded: record every op with autograd (the slow reference) instead of the
@@ -300,8 +459,8 @@ class LSTMWorldModel(TensorDictModuleBase):
                 states and gradients.
 
         Returns:
-            s_{t+1..t+H}, ``[*B, H, N]``, differentiable w.r.t. the actions, the start state and
-            the model's parameters.
+            s_{t+1..t+H}, ``[*R, *B, H, N]``, differentiable w.r.t. the actions, the start state
+            and the model's parameters.
 
         Examples:
             >>> model = LSTMWorldModel(6, 3, window=4)
@@ -309,33 +468,88 @@ class LSTMWorldModel(TensorDictModuleBase):
             >>> model.rollout(torch.zeros(2, 6), torch.rand(2, 20, 3), state).shape
             torch.Size([2, 20, 6])
         """
+        self._members_first("observation", observation, 2)
         check_features("observation", observation, self.obs_dim)
-        check_features("actions", actions, self.action_dim, min_ndim=2)
-        batch, hid = observation.shape[:-1], self.hidden_size
+        check_features("actions", actions, self.action_dim, min_ndim=self._ndim(2))
+        batch, hid, lead = observation.shape[:-1], self.hidden_size, self._lead
         if actions.shape[:-2] != batch:
-            raise ValueError(
-                f"actions has shape {tuple(actions.shape)}; expected [*B, H, {self.action_dim}] "
-                f"with *B = {tuple(batch)}."
-            )
+            raise self._shape_error("actions", actions, f"H, {self.action_dim}", batch)
         horizon = actions.shape[-2]
-        s0 = observation.reshape(-1, self.obs_dim)
-        h, c = (x.reshape(-1, hid) for x in state)
-        flat_actions = actions.reshape(-1, horizon, self.action_dim)
-        if recorded:
-            states = recorded_rollout(
-                s0, h, c, flat_actions, self.activation, *self._folded_weights()
-            )
-        else:
-            states = self._rollout(s0, h, c, flat_actions)
+        s0 = observation.reshape(*lead, -1, self.obs_dim)
+        h, c = (x.reshape(*lead, -1, hid) for x in state)
+        flat_actions = actions.reshape(*lead, -1, horizon, self.action_dim)
+        states = self._rollout(s0, h, c, flat_actions, recorded)
         return states.reshape(*batch, horizon, self.obs_dim)
 
     def _rollout(
-        self, s0: torch.Tensor, h: torch.Tensor, c: torch.Tensor, actions: torch.Tensor
+        self,
+        s0: torch.Tensor,
+        h: torch.Tensor,
+        c: torch.Tensor,
+        actions: torch.Tensor,
+        recorded: bool = False,
     ) -> torch.Tensor:
-        """``[R, N]``, ``[R, hid]``, ``[R, hid]``, ``[R, H, M]`` → ``[R, H, N]`` on the fastest path."""
-        needs_grad = torch.is_grad_enabled() and any(
-            x.requires_grad for x in (s0, h, c, actions, *self.parameters())
-        )
+        """``[*R, B, N]``, ``[*R, B, hid]`` x2, ``[*R, B, H, M]`` → ``[*R, B, H, N]`` on the fastest path."""
+        weights = self._folded_weights()
+        inputs = (s0, h, c, actions)
+        needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, *weights))
+        if recorded:
+            return recorded_rollout(*inputs, self.activation, *weights)
         if needs_grad:  # one autograd node with a hand-written backward through time
-            return LSTMRollout.apply(s0, h, c, actions, self.activation, *self._folded_weights())
-        return rollout_inplace(s0, h, c, actions, self.activation, *self._folded_weights())
+            return LSTMRollout.apply(*inputs, self.activation, *weights)
+        if not self._lead:
+            return rollout_inplace(*inputs, self.activation, *weights)
+        with torch.no_grad():
+            return recorded_rollout(*inputs, self.activation, *weights)
+
+    def prediction_loss(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, mode: str
+    ) -> torch.Tensor:
+        """Each member's ``WorldModelPredictionLoss`` on its sequences ``[*R, B, L, ...]`` → ``[*R]``."""
+        if mode == "one_step":
+            pred = self.predict_delta(obs, action)
+            err = pred - self._norm("delta", next_obs - obs)
+        elif mode == "multi_step":
+            w = self.window
+            if obs.shape[-2] <= w:
+                raise ValueError(
+                    f"multi_step loss needs sequences longer than window={w}, got length {obs.shape[-2]}."
+                )
+            pred = self.imagine(
+                obs[..., :w, :], action[..., :w, :], obs[..., w, :], action[..., None, w:, :]
+            )[..., 0, :, :]
+            err = (pred - next_obs[..., w:, :]) / self._stat("obs", "scale", pred.dim())
+        else:
+            raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
+        members = () if self.num_members is None else (self.num_members,)
+        return err.pow(2).reshape(*members, -1).mean(-1)
+
+
+def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``nn.Linear`` for 2-D weights; per member for ``[P, out, in]`` ones and ``x`` ``[P, *B, in]``."""
+    if weight.dim() == 2:
+        return F.linear(x, weight, bias)
+    flat = x.reshape(x.shape[0], -1, x.shape[-1])
+    out = torch.baddbmm(bias.unsqueeze(-2), flat, weight.transpose(-1, -2))
+    return out.reshape(*x.shape[:-1], weight.shape[-2])
+
+
+def _input_gates(
+    x: torch.Tensor, w_ih: torch.Tensor, b_ih: torch.Tensor, b_hh: torch.Tensor
+) -> torch.Tensor:
+    """Each member's input part of the LSTM gates, ``x`` ``[P, B, L, F]`` → ``[P, B, L, 4·hid]``."""
+    members, rows, length, features = x.shape
+    bias = (b_ih + b_hh).unsqueeze(-2)
+    gates = torch.baddbmm(bias, x.reshape(members, -1, features), w_ih.transpose(-1, -2))
+    return gates.reshape(members, rows, length, -1)
+
+
+def _lstm_cell(
+    gates_x: torch.Tensor, h: torch.Tensor, c: torch.Tensor, w_hh_t: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One LSTM step of every member: input gates ``[P, B, 4·hid]`` and state ``[P, B, hid]``."""
+    gates = torch.baddbmm(gates_x, h, w_hh_t)
+    i, f, g, o = gates.chunk(4, -1)
+    c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
+    h = torch.sigmoid(o) * sigmoid_tanh(c)
+    return h, c

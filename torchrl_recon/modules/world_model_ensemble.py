@@ -10,7 +10,6 @@ from tensordict import NestedKey
 from torchrl_recon.modules._one_step import blocked_scores, population_variance
 from torchrl_recon.modules.checks import check_finite, check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.population import WorldModelPopulation
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
@@ -19,7 +18,7 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
     """Disagreement of E LSTM world models, the world model's own uncertainty.
 
     The members are world models of the paper's kind (:class:`~torchrl_recon.modules.LSTMWorldModel`,
-    held as one :class:`~torchrl_recon.modules.WorldModelPopulation`). Each reads a window of T
+    held as one with ``num_members=E``). Each reads a window of T
     (s, a) pairs as the planner's world model reads its context, from a fresh LSTM state, and
     predicts the state change after the window's last pair. The u of the window is the variance
     of those predictions across members, in units of the standardised state (σ_s² of the
@@ -75,7 +74,7 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
         check_int("num_members", num_members, 2)
         self.num_members = num_members
         self.hidden_size, self.dense_size, self.activation = hidden_size, dense_size, activation
-        self.members = WorldModelPopulation(
+        self.members = LSTMWorldModel(
             obs_dim,
             action_dim,
             num_members=num_members,
@@ -116,7 +115,7 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
             )
         device = next(first.parameters()).device
         est = est.to_empty(device=device)
-        est.members = WorldModelPopulation.from_members(models)
+        est.members = LSTMWorldModel.from_members(models)
         with torch.no_grad():
             loc = torch.cat([first.obs_norm.loc, first.action_norm.loc])
             scale = torch.cat([first.obs_norm.scale, first.action_norm.scale])
@@ -148,9 +147,10 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
             ("action", loc[n:], scale[n:]),
             ("delta", torch.zeros_like(loc[:n]), scale[:n]),
         ):
-            getattr(members, f"{which}_norm_loc").copy_(mean.expand(self.num_members, -1))
-            getattr(members, f"{which}_norm_scale").copy_(std.expand(self.num_members, -1))
-            getattr(members, f"{which}_norm_fitted").fill_(True)
+            norm = getattr(members, f"{which}_norm")
+            norm.loc.copy_(mean.expand(self.num_members, -1))
+            norm.scale.copy_(std.expand(self.num_members, -1))
+            norm.fitted.fill_(True)
 
     def _windows(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every T-window of raw sequences ``[R, L, N + M]`` as each member's input: obs
@@ -167,12 +167,12 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
     def _in_state_units(self, pred: torch.Tensor) -> torch.Tensor:
         """Members' normalised changes ``[E, P, N]`` in units of σ_s."""
         members, sigma = self.members, self.input_norm.scale[: self.obs_dim]
-        scale = members.delta_norm_scale[:, None] / sigma
-        return pred * scale + members.delta_norm_loc[:, None] / sigma
+        scale = members.delta_norm.scale[:, None] / sigma
+        return pred * scale + members.delta_norm.loc[:, None] / sigma
 
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         needs_grad = torch.is_grad_enabled() and (
-            x.requires_grad or self.members.lstm_weight_ih_l0.requires_grad
+            x.requires_grad or self.members.lstm.weight_ih_l0.requires_grad
         )
         return blocked_scores(self._score_rows, x, needs_grad)
 

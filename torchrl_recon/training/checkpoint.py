@@ -15,18 +15,20 @@ FORMAT_VERSION = 1
 MapLocation = str | torch.device
 
 
+FORMER_NAMES = {"WorldModelPopulation": "LSTMWorldModel"}
+"""Class names older checkpoints hold → the class that loads them (R world models are one
+``LSTMWorldModel`` with ``num_members=R`` now)."""
+
+
 def _module_classes() -> dict[str, type[nn.Module]]:
     """The classes a checkpoint may name: the world model, every registered estimator kind and
-    the populations."""
-    from torchrl_recon.modules import (
-        ESTIMATORS,
-        LSTMWorldModel,
-        ReconstructionPopulation,
-        WorldModelPopulation,
-    )
+    the autoencoder population, and the former names of these."""
+    from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel, ReconstructionPopulation
 
-    classes = (LSTMWorldModel, WorldModelPopulation, ReconstructionPopulation, *ESTIMATORS.values())
-    return {cls.__name__: cls for cls in classes}
+    classes = {cls.__name__: cls for cls in (LSTMWorldModel, ReconstructionPopulation)}
+    classes.update((cls.__name__, cls) for cls in ESTIMATORS.values())
+    classes.update((old, classes[new]) for old, new in FORMER_NAMES.items())
+    return classes
 
 
 def _to_cpu(obj: Any) -> Any:
@@ -164,7 +166,7 @@ def load_checkpoint(
                 f"Checkpoint {path} has no module {name!r}; it has {sorted(payload['modules'])}."
             )
         saved = payload["modules"][name]
-        if saved["class"] != type(module).__name__:
+        if FORMER_NAMES.get(saved["class"], saved["class"]) != type(module).__name__:
             raise ValueError(
                 f"Checkpoint {path}: {name!r} is a {saved['class']}, not a {type(module).__name__}."
             )

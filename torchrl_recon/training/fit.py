@@ -21,7 +21,8 @@ from tqdm.auto import tqdm
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
-from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
+from torchrl_recon.modules.members import StackedMembers
+from torchrl_recon.modules.population import ReconstructionPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
@@ -248,6 +249,11 @@ def fit_world_model(
         >>> [h["step"] for h in result.history], bool(model.obs_norm.fitted)
         ([5, 10], True)
     """
+    if getattr(model, "num_members", None) is not None:
+        raise ValueError(
+            f"fit_world_model fits one model; this one has num_members={model.num_members} "
+            "(fit members with fit_population(model.split(), ...))."
+        )
     if fit_normalization:
         data = buffer_contents(buffer)
         model.fit_normalization(data["observation"], data["action"], data["next", "observation"])
@@ -375,7 +381,7 @@ def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
             loss_module = UncertaintyLoss(first, slice_len=slice_len)
         return loss_module, lambda batches: _loss_value(loss_module, batches[0]).reshape(1)
     if isinstance(first, LSTMWorldModel):
-        pop = WorldModelPopulation.from_members(models)
+        pop = LSTMWorldModel.from_members(models)
         keys = ("observation", "action", ("next", "observation"))
 
         def losses(batches):
@@ -458,6 +464,12 @@ def fit_population(
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")
+    stacked = [i for i, m in enumerate(models) if isinstance(m, StackedMembers) and m.num_members]
+    if stacked:
+        raise ValueError(
+            f"fit_population fits one model per entry; models {stacked} hold several "
+            "(num_members is set): pass their split() instead."
+        )
     count = len(models)
     buffers = _per_member("buffers", buffers, count)
     val_buffers = _per_member("val_buffers", val_buffers, count, optional=True)
@@ -567,11 +579,12 @@ def _train_members(
 
     @torch.no_grad()
     def restore(members: list[int]) -> None:
+        index = torch.tensor(members, device=device) if stacked else None
         for key, value in state.items():
-            for r in members:
-                (value[r] if stacked else value).copy_(
-                    best_state[key][r] if stacked else best_state[key]
-                )
+            if stacked:  # all the members at once: frozen ones are restored every step
+                value[index] = best_state[key][index]
+            else:
+                value.copy_(best_state[key])
 
     bar = tqdm(
         range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False

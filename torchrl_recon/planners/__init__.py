@@ -15,11 +15,18 @@ from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.registry import (
+    PLANNERS,
+    check_planner_kwargs,
+    get_planner_class,
+    make_planner,
+)
 from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
     "CEMPlanner",
     "GradientPlanner",
+    "PLANNERS",
     "InfeasiblePlanError",
     "InfeasiblePlanWarning",
     "Objective",
@@ -32,7 +39,10 @@ __all__ = [
     "WorldModelPlanningEnv",
     "bounds_from_spec",
     "check_bounds_match",
+    "check_planner_kwargs",
     "cost_to_u_ratio",
+    "get_planner_class",
+    "make_planner",
     "relative_beta",
     "window_uncertainty",
 ]

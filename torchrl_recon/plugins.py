@@ -1,4 +1,4 @@
-"""Parts named in a recipe: a key of a registry (``cem``) or a class of the user's own
+"""Parts named in a recipe: a key of a registry (a shipped class) or a class of the user's own
 (``my_planners:MyPlanner``), with the keywords of that class.
 
 A registry is a plain ``{name: class}`` dict (:data:`torchrl_recon.planners.PLANNERS`,
@@ -56,14 +56,12 @@ def import_object(spec: str, what: str) -> Any:
     return getattr(mod, name)
 
 
-def resolve_class(
-    spec: str, registry: Mapping[str, type[T]], base: type[T], what: str
-) -> type[T]:
+def resolve_class(spec: str, registry: Mapping[str, type[T]], base: type[T], what: str) -> type[T]:
     """The class a recipe's ``kind`` names: a key of ``registry``, or ``module:Class`` (a
     subclass of ``base``, imported).
 
     Args:
-        spec: ``"cem"`` or ``"my_planners:MyPlanner"``.
+        spec: a key of ``registry``, or ``"my_planners:MyPlanner"``.
         registry: the shipped classes by name.
         base: the class every part of this kind derives from.
         what: the part's name in messages (``"planner"``).

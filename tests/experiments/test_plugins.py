@@ -105,12 +105,18 @@ def test_a_users_planner_and_estimator_run_from_a_recipe(parts, tmp_path, capsys
 @pytest.mark.parametrize(
     "overrides, words",
     [
-        (["settings.0.planner.kind={m}:NotAPlanner"], ["'settings[0].planner.kind'", "PlannerBase"]),
+        (
+            ["settings.0.planner.kind={m}:NotAPlanner"],
+            ["'settings[0].planner.kind'", "PlannerBase"],
+        ),
         (
             ["settings.0.planner.kind=no_such_module_q:P"],
             ["'settings[0].planner.kind'", "cannot import", "PYTHONPATH"],
         ),
-        (["settings.0.planner.kind={m}:Nope"], ["'settings[0].planner.kind'", "no attribute 'Nope'"]),
+        (
+            ["settings.0.planner.kind={m}:Nope"],
+            ["'settings[0].planner.kind'", "no attribute 'Nope'"],
+        ),
         (["settings.0.planner.kind=mppi"], ["'settings[0].planner.kind'", "'mppi'", "'cem'"]),
         (
             ["settings.0.planner.kind={m}:MyPlanner", "+settings.0.planner.kwargs.colour=1"],
@@ -208,7 +214,10 @@ def test_an_old_run_directory_resumes_with_the_same_recipe(recipe, tmp_path):
     assert OmegaConf.to_container(read_config(tmp_path)) == OmegaConf.to_container(cfg)
     changed = load_recipe(
         DRONE / f"{recipe}.yaml",
-        [f"output_dir={tmp_path}", f"{'settings.0' if 'settings' in old else 'guided'}.planner.kwargs.horizon=7"],
+        [
+            f"output_dir={tmp_path}",
+            f"{'settings.0' if 'settings' in old else 'guided'}.planner.kwargs.horizon=7",
+        ],
     )
     with pytest.raises(Exception, match="planner.kwargs.horizon: 10 -> 7"):
         check_run_dir(changed)

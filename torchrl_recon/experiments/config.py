@@ -3,14 +3,13 @@ type or a choice that is none of its ``Enum``'s is an error before any work star
 declares its range next to it (``count``, ``positive``, ``checked``; every float finite), run by
 :func:`~torchrl_recon.experiments.field_checks.schema_errors`; what spans several sections or
 needs the env or a registry (env keywords, planner and estimator classes, data sizes against
-``training.slice_len``) is :mod:`torchrl_recon.experiments.recipe_checks`'.
+``training.slice_len``) is checked by :mod:`torchrl_recon.experiments.recipe_checks`.
 
 :func:`upgrade_legacy_config` reads a run directory's ``config.yaml`` written before planner
 blocks took their class's own keywords."""
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -19,7 +18,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
-from torchrl_recon.devices import check_device
+from torchrl_recon.devices import DEVICE_CHOICES, check_device
 from torchrl_recon.experiments.field_checks import (
     Choice,
     above,
@@ -47,8 +46,8 @@ def _directory(value: str) -> str | None:
 def _device(value: str) -> str | None:
     try:
         check_device(value)
-    except ValueError as e:
-        return str(e).split(", got")[0].removeprefix("device must be ")
+    except ValueError:
+        return f"one of {', '.join(DEVICE_CHOICES)} (N = 0, 1, ...)"
     return None
 
 
@@ -338,7 +337,9 @@ class ControlConfig(RunConfig):
     replan: ReplanConfig = field(default_factory=ReplanConfig)
     settings: list[ControlSetting] = checked(
         factory=list,
-        check=lambda v: None if v else "a non-empty list (a control recipe needs at least one setting)",
+        check=lambda v: (
+            None if v else "a non-empty list (a control recipe needs at least one setting)"
+        ),
     )
 
 
@@ -400,9 +401,9 @@ class CalibrateConfig(RunConfig):
     random_episode_steps: int = count(500)
     estimators: list[EstimatorSpec] = checked(
         factory=list,
-        check=lambda v: None
-        if v
-        else "a non-empty list (a calibrate recipe needs at least one estimator)",
+        check=lambda v: (
+            None if v else "a non-empty list (a calibrate recipe needs at least one estimator)"
+        ),
     )
     evaluation: CalibrationEvalConfig = field(default_factory=CalibrationEvalConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
@@ -443,7 +444,9 @@ def upgrade_legacy_config(saved: DictConfig) -> DictConfig:
     legacy = [
         b
         for b in blocks
-        if isinstance(b, dict) and isinstance(b.get("planner"), dict) and "kwargs" not in b["planner"]
+        if isinstance(b, dict)
+        and isinstance(b.get("planner"), dict)
+        and "kwargs" not in b["planner"]
     ]
     if not legacy:
         return saved
@@ -465,4 +468,4 @@ def _upgrade_planner(old: dict[str, Any]) -> dict[str, Any]:
     params = inspect.signature(PLANNERS[kind]).parameters
     if "steps" in params:
         flat["steps"] = flat.pop("gradient_steps")
-    return {"kind": kind, "kwargs": {k: v for k, v in flat.items() if k in params}}
+    return {"kind": kind, "kwargs": {k: flat[k] for k in params if k in flat}}

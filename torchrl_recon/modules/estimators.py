@@ -19,7 +19,6 @@ ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
 }
 
 
-
 def get_estimator_class(kind: str) -> type[UncertaintyEstimator]:
     """The estimator class ``kind`` names: a key of :data:`ESTIMATORS` or ``module:Class`` (a
     subclass of :class:`UncertaintyEstimator` in a module on ``PYTHONPATH``).

@@ -82,7 +82,7 @@ def main() -> None:
             results[name] = one / batched
             p = setting.planner
             print(
-                f"{name} ({p.kind}, H={p.horizon}): one env at a time {one:7.1f} s, "
+                f"{name} ({p.kind}, H={p.kwargs.horizon}): one env at a time {one:7.1f} s, "
                 f"one batch of {args.episodes} {batched:7.1f} s"
             )
     print(f"load average after: {os.getloadavg()[0]:.2f}")

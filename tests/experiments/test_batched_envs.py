@@ -28,8 +28,8 @@ CONTROL = [
     "env.episode_steps=20",
     "warmup_random_steps=3",
     "+env.kwargs.max_tilt=0.01",
-    "settings.0.planner.horizon=3",
-    "settings.0.planner.num_candidates=8",
+    "settings.0.planner.kwargs.horizon=3",
+    "settings.0.planner.kwargs.num_candidates=8",
 ]
 
 
@@ -126,8 +126,8 @@ def test_batched_exploration_data_is_valid(tmp_path):
             "validation.trajectories=5",
             "validation.steps=4",
             "validation.policy=offset_noise",
-            "guided.planner.horizon=3",
-            "guided.planner.num_candidates=8",
+            "guided.planner.kwargs.horizon=3",
+            "guided.planner.kwargs.num_candidates=8",
         ],
     )
     ctx = RunContext.create(cfg, tmp_path)

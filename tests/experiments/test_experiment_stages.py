@@ -40,8 +40,8 @@ def test_explore_stages_one_by_one(tmp_path):
         "initial_random_steps=30",
         "validation.trajectories=2",
         "validation.steps=4",
-        "guided.planner.horizon=3",
-        "guided.planner.num_candidates=8",
+        "guided.planner.kwargs.horizon=3",
+        "guided.planner.kwargs.num_candidates=8",
     )
     initial = explore_stages.random_steps_stage(ctx, "initial_random", 30)
     assert initial.numel() == 30 and ctx.stages.done("initial_random")
@@ -77,7 +77,7 @@ def test_control_stages_one_by_one(tmp_path):
     threshold = control_stages.replan_threshold(ctx.cfg, u)
     assert threshold > 0 and u.device.type == "cpu"
     setting = ctx.cfg.settings[0]
-    setting.planner.horizon, setting.planner.num_candidates = 3, 8
+    setting.planner.kwargs.horizon, setting.planner.kwargs.num_candidates = 3, 8
     model = planning_model(ctx.cfg, world, estimator)
     controller = control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
     record = control_stages.setting_stage(ctx, setting, controller)

@@ -38,7 +38,7 @@ def _explore_cfg(**extra):
             "guided": {
                 "steps": 200,
                 "refit_every_episodes": 2,
-                "planner": {"horizon": 10, "num_candidates": 64},
+                "planner": {"kwargs": {"horizon": 10, "num_candidates": 64}},
             },
             "random_steps": 200,
             "retrainings": 2,
@@ -49,7 +49,7 @@ def _explore_cfg(**extra):
 
 
 def _control_cfg(**extra):
-    planner = {"horizon": 10, "num_candidates": 64}
+    planner = {"kwargs": {"horizon": 10, "num_candidates": 64}}
     return OmegaConf.merge(
         OmegaConf.structured(ControlConfig),
         {
@@ -69,9 +69,7 @@ def _control_cfg(**extra):
                     "name": "gradient",
                     "planner": {
                         "kind": "gradient",
-                        "horizon": 10,
-                        "restarts": 2,
-                        "gradient_steps": 3,
+                        "kwargs": {"horizon": 10, "restarts": 2, "steps": 3},
                     },
                     "beta": 0.1,
                     "beta_relative": True,

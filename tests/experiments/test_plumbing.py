@@ -251,7 +251,7 @@ def test_paper_scale_numbers(env):
     assert (c.random_episodes, c.random_episode_steps, c.episodes) == (10, 500, 10)
     assert (c.warmup_random_steps, c.models.window) == (10, 10)
     assert c.env.episode_steps <= 500
-    assert all(s.planner.horizon == 200 for s in c.settings)
+    assert all(s.planner.kwargs.horizon == 200 for s in c.settings)
     by_name = {s.name: s for s in c.settings}
     assert by_name["baseline"].planner.kind == "shooting" and by_name["baseline"].beta == 0
     assert by_name["baseline"].band is None
@@ -286,11 +286,11 @@ def test_smoke_recipes_shrink_every_size(env):
     assert e.logger.backend == "csv" and "smoke" in e.output_dir
     assert e.initial_random_steps <= 500 and e.guided.steps <= 200 and e.random_steps <= 200
     assert e.retrainings == 2 and e.validation.trajectories <= 5
-    assert e.training.world_model.steps <= 50 and e.guided.planner.horizon <= 10
+    assert e.training.world_model.steps <= 50 and e.guided.planner.kwargs.horizon <= 10
     c = load_recipe(RECIPES / env / "control_smoke.yaml")
     assert c.logger.backend == "csv" and "smoke" in c.output_dir
     assert c.episodes == 2 and c.random_episodes * c.random_episode_steps <= 500
-    assert all(s.planner.horizon <= 10 for s in c.settings)
+    assert all(s.planner.kwargs.horizon <= 10 for s in c.settings)
     full = load_recipe(RECIPES / env / "control.yaml")
     assert [s.name for s in c.settings] == [s.name for s in full.settings]
 

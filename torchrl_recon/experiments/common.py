@@ -18,14 +18,7 @@ from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
-from torchrl_recon.planners import (
-    CEMPlanner,
-    GradientPlanner,
-    Objective,
-    PlannerBase,
-    PlanningModel,
-    RandomShootingPlanner,
-)
+from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
 from torchrl_recon.training import (
     fit_uncertainty,
     fit_world_model,
@@ -153,7 +146,9 @@ def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWor
 def build_estimator(
     spec: DictConfig, obs_dim: int, action_dim: int, window: int
 ) -> UncertaintyEstimator:
-    """The estimator a recipe's ``models.uncertainty`` block (or a calibration entry) names."""
+    """The estimator a recipe's ``models.uncertainty`` block (or a calibration entry) names:
+    ``kind`` (a key of :data:`~torchrl_recon.modules.ESTIMATORS` or ``module:Class``) built as
+    ``Class(obs_dim, action_dim, window=window, hidden_size=..., activation=..., **kwargs)``."""
     from torchrl_recon.modules.estimators import make_estimator
 
     kwargs = OmegaConf.to_container(spec.kwargs, resolve=True) if spec.get("kwargs") else {}
@@ -272,31 +267,11 @@ def fit_stage(
 def build_planner(
     planner_cfg: DictConfig, model: PlanningModel, objective: Objective
 ) -> PlannerBase:
-    """Random shooting, CEM or gradient planner from a recipe's planner block."""
-    p = planner_cfg
-    if p.kind == "shooting":
-        return RandomShootingPlanner(
-            model, objective, horizon=p.horizon, num_candidates=p.num_candidates
-        )
-    if p.kind == "cem":
-        return CEMPlanner(
-            model,
-            objective,
-            horizon=p.horizon,
-            num_candidates=p.num_candidates,
-            iterations=p.iterations,
-            num_elites=p.num_elites,
-        )
-    if p.kind == "gradient":
-        return GradientPlanner(
-            model,
-            objective,
-            horizon=p.horizon,
-            restarts=p.restarts,
-            steps=p.gradient_steps,
-            lr=p.lr,
-        )
-    raise ValueError(f"planner kind must be 'shooting', 'cem' or 'gradient', got {p.kind!r}.")
+    """The planner a recipe's planner block names: ``kind`` (a key of
+    :data:`~torchrl_recon.planners.PLANNERS` or ``module:Class``) built as
+    ``Class(model, objective, **kwargs)``."""
+    kwargs = OmegaConf.to_container(planner_cfg.kwargs, resolve=True)
+    return make_planner(planner_cfg.kind, model, objective, **kwargs)
 
 
 def state_scale(data: TensorDictBase) -> torch.Tensor:

@@ -1,14 +1,96 @@
-"""Typed schemas of the recipes. A YAML recipe is merged onto these, so an unknown key or a
-wrong type is an error before any work starts. The values' ranges (every number finite, counts
->= 1, ``guided.ratio`` > 1, ``training.val_fraction`` in (0, 1), env keywords of the chosen
-env, ...) are checked next, by :mod:`torchrl_recon.experiments.recipe_checks`."""
+"""Typed schemas of the recipes. A YAML recipe is merged onto these, so an unknown key, a wrong
+type or a choice that is none of its ``Enum``'s is an error before any work starts. Each field
+declares its range next to it (``count``, ``positive``, ``checked``; every float finite), run by
+:func:`~torchrl_recon.experiments.field_checks.schema_errors`; what spans several sections or
+needs the env or a registry (env keywords, planner and estimator classes, data sizes against
+``training.slice_len``) is checked by :mod:`torchrl_recon.experiments.recipe_checks`.
+
+:func:`upgrade_legacy_config` reads a run directory's ``config.yaml`` written before planner
+blocks took their class's own keywords."""
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
+from torchrl_recon.devices import DEVICE_CHOICES, check_device
+from torchrl_recon.experiments.field_checks import (
+    Choice,
+    above,
+    at_least,
+    checked,
+    count,
+    finite,
+    positive,
+)
+
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
+"""Setting and estimator names: they name stage records and folders of the run directory."""
+
+
+def _file_name(value: str) -> str | None:
+    if NAME_PATTERN.fullmatch(value):
+        return None
+    return "a name of letters, digits, '_', '.' or '-' (it names files of the run directory)"
+
+
+def _directory(value: str) -> str | None:
+    return None if value.strip() else "a directory"
+
+
+def _device(value: str) -> str | None:
+    try:
+        check_device(value)
+    except ValueError:
+        return f"one of {', '.join(DEVICE_CHOICES)} (N = 0, 1, ...)"
+    return None
+
+
+class LoggerBackend(Choice):
+    wandb = "wandb"
+    csv = "csv"
+    none = "none"
+
+
+class LoggerMode(Choice):
+    offline = "offline"
+    online = "online"
+
+
+WindowSampling = Choice("WindowSampling", [(s, s) for s in WINDOW_SAMPLINGS], module=__name__)
+"""``trajectory`` or ``step`` (see :data:`torchrl_recon.data.step_sampler.WINDOW_SAMPLINGS`)."""
+
+
+class WorldModelMode(Choice):
+    multi_step = "multi_step"
+    one_step = "one_step"
+
+
+class BandKind(Choice):
+    absolute = "absolute"
+    quantile = "quantile"
+    mean_ratio = "mean_ratio"
+
+
+class DataPolicy(Choice):
+    random = "random"
+    offset_noise = "offset_noise"
+
+
+class ReplanMode(Choice):
+    every_step = "every_step"
+    every_n = "every_n"
+    uncertainty = "uncertainty"
+
+
+class ThresholdOn(Choice):
+    step = "step"
+    cumulative = "cumulative"
 
 
 @dataclass
@@ -29,41 +111,46 @@ class EnvConfig:
     id: str | None = None
     cost: str | None = None
     state_names: list[str] = field(default_factory=list)
-    kwargs: dict[str, Any] = field(default_factory=dict)
-    episode_steps: int = 100
+    kwargs: dict[str, Any] = checked(factory=dict, finite=False)  # the env section checks them
+    episode_steps: int = count(100)
 
 
 @dataclass
 class WorldModelConfig:
-    hidden_size: int = 32
-    dense_size: int = 32
+    hidden_size: int = count(32)
+    dense_size: int = count(32)
     activation: str = "relu"
 
 
 @dataclass
 class UncertaintyConfig:
-    """Which estimator (``kind``: a key of ``torchrl_recon.modules.ESTIMATORS``), its hidden
-    width and activation, and the keywords only that kind takes (e.g. ``num_members``)."""
+    """Which estimator, its hidden width and activation, and the keywords only that kind takes
+    (e.g. ``num_members``).
+
+    ``kind``: a key of :data:`torchrl_recon.modules.ESTIMATORS`, or ``module:Class``, a user's
+    own :class:`~torchrl_recon.modules.UncertaintyEstimator` in a module on ``PYTHONPATH``. It
+    is built as ``Class(obs_dim, action_dim, window=models.window, hidden_size=...,
+    activation=..., **kwargs)``."""
 
     kind: str = "reconstruction"
-    hidden_size: int = 100
+    hidden_size: int = count(100)
     activation: str = "relu"
     kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
 class ModelsConfig:
-    window: int = 10
+    window: int = count(10)
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
 
 
 @dataclass
 class FitConfig:
-    steps: int = 3000
-    lr: float = 3e-3
-    eval_every: int = 100
-    patience: int = 10
+    steps: int = count(3000)
+    lr: float = positive(3e-3)
+    eval_every: int = count(100)
+    patience: int = count(10)
 
 
 @dataclass
@@ -74,27 +161,28 @@ class TrainingConfig:
     a window in it) or ``step`` (every window start alike; see ``StepUniformSliceSampler``).
     """
 
-    slice_len: int = 40
-    num_slices: int = 32
-    window_sampling: str = "trajectory"
-    val_fraction: float = 0.1
-    world_model_mode: str = "multi_step"
+    slice_len: int = count(40)
+    num_slices: int = count(32)
+    window_sampling: WindowSampling = WindowSampling.trajectory
+    val_fraction: float = checked(0.1, lambda v: None if 0 < v < 1 else "in (0, 1)")
+    world_model_mode: WorldModelMode = WorldModelMode.multi_step
     world_model: FitConfig = field(default_factory=FitConfig)
     uncertainty: FitConfig = field(default_factory=lambda: FitConfig(eval_every=250))
 
 
 @dataclass
 class PlannerConfig:
-    """``kind``: ``shooting``, ``cem`` or ``gradient``; unused fields are ignored by the other kinds."""
+    """A planner: ``kind`` names its class, ``kwargs`` holds that class's own keywords.
+
+    ``kind``: a key of :data:`torchrl_recon.planners.PLANNERS` (``shooting``, ``cem``,
+    ``gradient``) or ``module:Class``, a user's own
+    :class:`~torchrl_recon.planners.PlannerBase` in a module on ``PYTHONPATH``. It is built as
+    ``Class(model, objective, **kwargs)``, e.g. ``{kind: cem, kwargs: {horizon: 30,
+    num_candidates: 500, num_elites: 50}}``; the recipe check binds ``kwargs`` to the class's
+    signature and builds it on a tiny model before any work."""
 
     kind: str = "shooting"
-    horizon: int = 50
-    num_candidates: int = 1000
-    iterations: int = 5
-    num_elites: int = 100
-    restarts: int = 16
-    gradient_steps: int = 50
-    lr: float = 0.05
+    kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -103,16 +191,26 @@ class BandConfig:
 
     low: float | None = None
     high: float | None = None
-    kind: str = "quantile"
+    kind: BandKind = BandKind.quantile
+
+    def more_errors(self) -> Iterator[tuple[str, str]]:
+        """The band the objective would build (its limits against its kind)."""
+        from torchrl_recon.planners.objective import UncertaintyBand
+
+        if finite(self.low, self.high):
+            try:
+                UncertaintyBand(low=self.low, high=self.high, kind=self.kind)
+            except ValueError as e:
+                yield "", f": {e}"
 
 
 @dataclass
 class LoggerConfig:
     """``backend``: ``wandb`` (offline unless ``mode: online``), ``csv`` or ``none``."""
 
-    backend: str = "wandb"
+    backend: LoggerBackend = LoggerBackend.wandb
     project: str = "torchrl_recon"
-    mode: str = "offline"
+    mode: LoggerMode = LoggerMode.offline
 
 
 @dataclass
@@ -123,9 +221,9 @@ class ValidationConfig:
     (per-trajectory random offset + noise, covering more of the action space).
     """
 
-    trajectories: int = 100
-    steps: int = 100
-    policy: str = "random"
+    trajectories: int = count(100)
+    steps: int = count(100)
+    policy: DataPolicy = DataPolicy.random
 
 
 @dataclass
@@ -135,12 +233,19 @@ class GuidedConfig:
     ``beta = 0`` takes any of them (the paper's "sample until"). ``ratio`` > 1, ``cap`` null or
     > ``ratio``, ``beta`` <= 0."""
 
-    steps: int = 15000
-    ratio: float = 1.2
+    steps: int = count(15000)
+    ratio: float = checked(
+        1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
+    )
     cap: float | None = None
-    beta: float = 0.0
+    beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
     planner: PlannerConfig = field(default_factory=PlannerConfig)
-    refit_every_episodes: int = 50
+    refit_every_episodes: int = count(50)
+
+    def more_errors(self) -> Iterator[tuple[str, str]]:
+        """``cap`` above ``ratio``."""
+        if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
+            yield "cap", f" must be null or above guided.ratio = {self.ratio}, got {self.cap!r}"
 
 
 @dataclass
@@ -157,11 +262,11 @@ class RunConfig:
 
     experiment: str = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
-    num_envs: int = 1
+    num_envs: int = count(1)
     seed: int = 0
-    threads: int = 1
-    device: str = "auto"
-    output_dir: str = MISSING
+    threads: int = count(1)
+    device: str = checked("auto", _device)
+    output_dir: str = checked(MISSING, _directory)
     stop_after: str | None = None
     progress: bool = True
     models: ModelsConfig = field(default_factory=ModelsConfig)
@@ -174,13 +279,13 @@ class ExploreConfig(RunConfig):
     """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
 
     experiment: str = "explore"
-    output_dir: str = "outputs/explore"
+    output_dir: str = checked("outputs/explore", _directory)
     initial_random_steps: int = 10000
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     guided: GuidedConfig = field(default_factory=GuidedConfig)
-    random_steps: int = 15000
-    retrainings: int = 10
-    retrainings_per_fit: int | None = None
+    random_steps: int = count(15000)
+    retrainings: int = count(10)
+    retrainings_per_fit: int | None = count(None)
 
 
 @dataclass
@@ -192,9 +297,9 @@ class ControlSetting:
     whatever the scales of the env's cost and of the fitted estimator.
     """
 
-    name: str = MISSING
+    name: str = checked(MISSING, _file_name)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
-    alpha: float = 1.0
+    alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))
     beta: float = 0.0
     beta_relative: bool = False
     band: BandConfig | None = None
@@ -208,12 +313,14 @@ class ReplanConfig:
     ``error_threshold`` (not in the paper): also re-plan, in any mode, when the real state is
     further than this from the plan's prediction (RMS in the world model's normalised units)."""
 
-    mode: str = "uncertainty"
-    every: int = 10
-    threshold_quantile: float = 0.95
-    threshold_scale: float = 1.0
-    threshold_on: str = "step"
-    error_threshold: float | None = None
+    mode: ReplanMode = ReplanMode.uncertainty
+    every: int = count(10)
+    threshold_quantile: float = checked(0.95, lambda v: None if 0 < v <= 1 else "in (0, 1]")
+    threshold_scale: float = positive(1.0)
+    threshold_on: ThresholdOn = ThresholdOn.step
+    error_threshold: float | None = checked(
+        None, lambda v: None if v > 0 else "a positive finite number or null"
+    )
 
 
 @dataclass
@@ -221,20 +328,26 @@ class ControlConfig(RunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3)."""
 
     experiment: str = "control"
-    output_dir: str = "outputs/control"
-    random_episodes: int = 10
-    random_episode_steps: int = 500
-    episodes: int = 10
-    warmup_random_steps: int = 10
+    output_dir: str = checked("outputs/control", _directory)
+    # two random episodes at least: one is held out to validate the fit
+    random_episodes: int = count(10, 2)
+    random_episode_steps: int = count(500)
+    episodes: int = count(10)
+    warmup_random_steps: int = count(10, 0)
     replan: ReplanConfig = field(default_factory=ReplanConfig)
-    settings: list[ControlSetting] = field(default_factory=list)
+    settings: list[ControlSetting] = checked(
+        factory=list,
+        check=lambda v: (
+            None if v else "a non-empty list (a control recipe needs at least one setting)"
+        ),
+    )
 
 
 @dataclass
 class EstimatorSpec(UncertaintyConfig):
     """One estimator of the calibration benchmark: a ``models.uncertainty`` block plus a name."""
 
-    name: str = MISSING
+    name: str = checked(MISSING, _file_name)
 
 
 @dataclass
@@ -244,22 +357,25 @@ class CalibrationEvalConfig:
     against the real error. Out of distribution: held-out windows with the states moved by
     ``ood_state_shift`` standard deviations, and with the actions held at the upper bound."""
 
-    trajectories: int = 200
-    horizon: int = 30
-    policy: str = "offset_noise"
-    ood_windows: int = 500
-    ood_state_shift: float = 3.0
+    trajectories: int = count(200)
+    horizon: int = count(30)
+    policy: DataPolicy = DataPolicy.offset_noise
+    ood_windows: int = count(500)
+    ood_state_shift: float = checked(3.0, above(0, " (standard deviations)"))
 
 
 @dataclass
 class TimingConfig:
     """Scoring ``candidates`` × H windows and one CEM call per estimator, for each H in ``horizons``."""
 
-    candidates: int = 1000
-    horizons: list[int] = field(default_factory=lambda: [30, 200])
-    repeats: int = 5
-    iterations: int = 5
-    num_elites: int = 100
+    candidates: int = count(1000)
+    horizons: list[int] = checked(
+        factory=lambda: [30, 200],
+        check=lambda v: None if v and min(v) >= 1 else "a non-empty list of ints >= 1",
+    )
+    repeats: int = count(5)
+    iterations: int = count(5)
+    num_elites: int = count(100)
 
 
 @dataclass
@@ -280,10 +396,76 @@ class CalibrateConfig(RunConfig):
     the estimators are listed in ``estimators``."""
 
     experiment: str = "calibrate"
-    output_dir: str = "outputs/calibrate"
-    random_steps: int = 10000
-    random_episode_steps: int = 500
-    estimators: list[EstimatorSpec] = field(default_factory=list)
+    output_dir: str = checked("outputs/calibrate", _directory)
+    random_steps: int = count(10000)
+    random_episode_steps: int = count(500)
+    estimators: list[EstimatorSpec] = checked(
+        factory=list,
+        check=lambda v: (
+            None if v else "a non-empty list (a calibrate recipe needs at least one estimator)"
+        ),
+    )
     evaluation: CalibrationEvalConfig = field(default_factory=CalibrationEvalConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
     outcomes: OutcomesConfig = field(default_factory=OutcomesConfig)
+
+
+LEGACY_PLANNER_DEFAULTS: dict[str, Any] = {
+    "horizon": 50,
+    "num_candidates": 1000,
+    "iterations": 5,
+    "num_elites": 100,
+    "restarts": 16,
+    "gradient_steps": 50,
+    "lr": 0.05,
+}
+"""The flat planner block of configs written before planner blocks took ``kwargs``: every
+planner kind's keywords side by side, at these defaults (``gradient_steps`` was the gradient
+planner's ``steps``)."""
+
+
+def upgrade_legacy_config(saved: DictConfig) -> DictConfig:
+    """A run directory's stored config in the current form: each planner block written flat
+    (``{kind, horizon, num_candidates, iterations, num_elites, restarts, gradient_steps,
+    lr}``) becomes ``{kind, kwargs}`` with only that kind's own keywords (``gradient_steps`` →
+    ``steps``). A config in the current form is returned as it is.
+
+    Examples:
+        >>> old = OmegaConf.create({"experiment": "explore", "guided": {"planner": {
+        ...     "kind": "gradient", "horizon": 30, "num_candidates": 64, "iterations": 5,
+        ...     "num_elites": 16, "restarts": 4, "gradient_steps": 20, "lr": 0.05}}})
+        >>> OmegaConf.to_container(upgrade_legacy_config(old).guided.planner)
+        {'kind': 'gradient', 'kwargs': {'horizon': 30, 'restarts': 4, 'steps': 20, 'lr': 0.05}}
+    """
+    data = OmegaConf.to_container(saved, resolve=False)
+    if not isinstance(data, dict):
+        return saved
+    blocks = [data.get("guided")] + list(data.get("settings") or [])
+    legacy = [
+        b
+        for b in blocks
+        if isinstance(b, dict)
+        and isinstance(b.get("planner"), dict)
+        and "kwargs" not in b["planner"]
+    ]
+    if not legacy:
+        return saved
+    for block in legacy:
+        block["planner"] = _upgrade_planner(block["planner"])
+    return OmegaConf.create(data)
+
+
+def _upgrade_planner(old: dict[str, Any]) -> dict[str, Any]:
+    """``{kind, kwargs}`` of a flat planner block (unchanged when its kind is not shipped)."""
+    import inspect
+
+    from torchrl_recon.planners.registry import PLANNERS
+
+    kind = old.get("kind", "shooting")
+    if kind not in PLANNERS:
+        return old  # the schema merge reports it
+    flat = {**LEGACY_PLANNER_DEFAULTS, **{k: v for k, v in old.items() if k != "kind"}}
+    params = inspect.signature(PLANNERS[kind]).parameters
+    if "steps" in params:
+        flat["steps"] = flat.pop("gradient_steps")
+    return {"kind": kind, "kwargs": {k: flat[k] for k in params if k in flat}}

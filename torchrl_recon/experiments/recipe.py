@@ -1,15 +1,17 @@
 """Recipes: load a YAML recipe, apply overrides and check every key before any work starts.
 
 A recipe is a YAML file holding every number of one experiment; it is merged onto the typed
-schema of :mod:`torchrl_recon.experiments.config` so that an unknown key or a wrong type is an
-error naming the key before any work starts; :mod:`.recipe_checks` then checks the values
-(names, ranges, finite numbers, env keywords). Run directories are :mod:`.run_dir`'s job.
+schema of :mod:`torchrl_recon.experiments.config` so that an unknown key, a wrong type or an
+unknown choice is an error naming the key before any work starts; the ranges declared on the
+schema's fields and :mod:`.recipe_checks` (env, planner and estimator classes, sizes across
+sections) then check the values. Run directories are :mod:`.run_dir`'s job.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -65,6 +67,10 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
     return validate(compose_recipe(path, jobs[0]), source=str(path))
 
 
+_BAD_CHOICE = re.compile(r"Invalid value '(.*)', expected one of \[(.*)\]")
+"""OmegaConf's message for a value that is none of an ``Enum`` field's choices."""
+
+
 def _first_line(msg: str) -> str:
     return str(msg).strip().splitlines()[0] if str(msg).strip() else str(msg)
 
@@ -87,6 +93,12 @@ def _merge_checked(schema: Any, data: Any, *, prefix: str, source: str) -> DictC
         raise RecipeError(f"{source}: unknown key '{key}' (not a field{where}).{hint}") from e
     except ValidationError as e:
         key = f"{prefix}{e.full_key}" if e.full_key else prefix.rstrip(".")
+        choice = _BAD_CHOICE.fullmatch(_first_line(e.msg))
+        if choice:  # an Enum field: name the choices as the other range messages do
+            value, choices = choice.groups()
+            raise RecipeError(
+                f"{source}: '{key}' must be one of {choices.split(', ')}, got {value!r}"
+            ) from e
         raise RecipeError(f"{source}: wrong type for '{key}': {_first_line(e.msg)}") from e
     except OmegaConfBaseException as e:
         key = f"{prefix}{getattr(e, 'full_key', '')}"
@@ -106,8 +118,10 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     that imports (``env.cost``, which runs its module, or the registered env's), and for a
     gymnasium env its spaces and a call of the cost (the env is built, not stepped); without
     ``env.name``, ``env.id`` names the run (``Pendulum-v1``; ``my_module:MyEnv-v0`` →
-    ``MyEnv-v0``); kinds, modes and
-    backends known; setting and estimator names unique and usable as file names. Nothing is
+    ``MyEnv-v0``); modes and backends among their choices; each planner and estimator class
+    (``kind``: shipped or ``module:Class``) importable, of the right base class, taking the
+    block's ``kwargs`` and built on a tiny model; setting and estimator names unique and usable
+    as file names. Nothing is
     written: the CLI and :func:`~torchrl_recon.experiments.runner.run` call it before the run
     directory exists.
 

@@ -1,57 +1,43 @@
-"""Value checks of a merged recipe: names, ranges, finite numbers and env keywords.
+"""The checks of a merged recipe that span several keys or need the env or a registry.
 
 :func:`recipe_errors` is what :func:`torchrl_recon.experiments.recipe.validate` runs after the
-schema merge (which has already checked keys and types). Each check adds one message naming
-the key, the value and what was expected; nothing here builds an env or touches the disk
-(beyond reading an outcome recipe of a calibration run).
+schema merge (which has already checked keys, types and choices). The per-field ranges and
+finiteness are declared on the schema's fields (:mod:`.config`, run by
+:func:`~.field_checks.schema_errors`); here: the env section (the env known, its keywords, its
+cost), the planner and estimator classes a recipe names (``kind``: shipped or
+``module:Class``; ``kwargs`` against the class's signature; built on a tiny model), data sizes
+against ``training.slice_len``, unique names, ``stop_after`` and a calibration's outcome
+recipes. Each problem is one message naming the key, the value and what was expected; nothing
+here touches the disk (beyond reading an outcome recipe of a calibration run).
 """
 
 from __future__ import annotations
 
 import inspect
 import math
-import re
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
-from torchrl_recon.devices import check_device
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader
+from torchrl_recon.experiments.field_checks import finite, schema_errors
 
 if TYPE_CHECKING:
     from torchrl_recon.experiments.experiment_type import ExperimentType
-
-PLANNER_KINDS = ("shooting", "cem", "gradient")
-BAND_KINDS = ("absolute", "quantile", "mean_ratio")
-LOGGER_BACKENDS = ("wandb", "csv", "none")
-LOGGER_MODES = ("offline", "online")
-REPLAN_MODES = ("every_step", "every_n", "uncertainty")
-THRESHOLD_ON = ("step", "cumulative")
-VALIDATION_POLICIES = ("random", "offset_noise")
-WORLD_MODEL_MODES = ("multi_step", "one_step")
-NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
-"""Setting and estimator names: they name stage records and folders of the run directory."""
+    from torchrl_recon.planners import Objective, PlanningModel
 
 
 class _Errors(list):
-    """The messages of one recipe, with helpers that skip values already refused as non-finite."""
+    """The messages of one recipe."""
 
     def need(self, key: str, value: Any, ok: bool, expected: str) -> None:
-        if isinstance(value, float) and not math.isfinite(value):
-            return  # reported once, by the finite-number check
-        if not ok:
+        """Add ``'key' must be <expected>, got <value>`` unless ``ok`` (or the value is a
+        non-finite number: the schema walk reports it)."""
+        if finite(value) and not ok:
             self.append(f"'{key}' must be {expected}, got {value!r}")
-
-    def at_least(self, cfg: DictConfig, keys: tuple[str, ...], low: int) -> None:
-        for key in keys:
-            value = OmegaConf.select(cfg, key)
-            self.need(key, value, value >= low, f">= {low}")
-
-    def one_of(self, cfg: DictConfig, key: str, choices: tuple[str, ...]) -> None:
-        value = OmegaConf.select(cfg, key)
-        self.need(key, value, value in choices, f"one of {list(choices)}")
 
 
 def recipe_errors(
@@ -65,16 +51,23 @@ def recipe_errors(
         >>> from torchrl_recon.experiments.registry import get_type
         >>> cfg = OmegaConf.structured(ExploreConfig(output_dir="out"))
         >>> cfg.env.name = "drone"
+        >>> cfg.guided.planner.kwargs = {"horizon": 10}
         >>> recipe_errors(cfg, get_type("explore"))
         []
         >>> cfg.guided.ratio = float("nan")
         >>> cfg.training.val_fraction = 1.0
-        >>> recipe_errors(cfg, get_type("explore"))
-        ["'guided.ratio' must be a finite number, got nan", "'training.val_fraction' must be in (0, 1), got 1.0"]
+        >>> cfg.guided.planner.kwargs.num_elites = 4
+        >>> recipe_errors(cfg, get_type("explore"))  # doctest: +NORMALIZE_WHITESPACE
+        ["'training.val_fraction' must be in (0, 1), got 1.0", "'guided.ratio' must be a finite
+        number, got nan", "'guided.planner.kwargs': RandomShootingPlanner does not accept
+        ['num_elites']; it accepts ['block_rows', 'horizon', 'num_candidates', 'on_infeasible']."]
     """
     errors = _Errors()
     env_defaults = _env_errors(cfg, errors)
-    _finite_errors(OmegaConf.to_container(cfg, resolve=True), "", errors, env_defaults)
+    _finite_errors(
+        OmegaConf.to_container(cfg.env.kwargs, resolve=True), "env.kwargs", errors, env_defaults
+    )
+    errors.extend(schema_errors(cfg))
     _run_errors(cfg, errors)
     experiment.check(cfg, errors, recipes)
     if cfg.stop_after is not None and not experiment.is_stage(cfg, cfg.stop_after):
@@ -85,7 +78,6 @@ def recipe_errors(
     return list(errors)
 
 
-# ----------------------------------------------------------------------------------------------
 # Every number finite; env keywords the env takes
 
 
@@ -263,47 +255,28 @@ def _expected_like(default: Any, value: Any) -> str | None:
 
 
 # ----------------------------------------------------------------------------------------------
+
+
+# ----------------------------------------------------------------------------------------------
 # Keys every experiment has
 
 
-def _fit_errors(cfg: DictConfig, key: str, errors: _Errors) -> None:
-    errors.at_least(cfg, (f"{key}.steps", f"{key}.eval_every", f"{key}.patience"), 1)
-    lr = OmegaConf.select(cfg, f"{key}.lr")
-    errors.need(f"{key}.lr", lr, lr > 0, "> 0")
-
-
 def _run_errors(cfg: DictConfig, errors: _Errors) -> None:
-    errors.need("output_dir", cfg.output_dir, bool(str(cfg.output_dir).strip()), "a directory")
-    errors.at_least(cfg, ("env.episode_steps",), 1)
-    errors.one_of(cfg, "logger.backend", LOGGER_BACKENDS)
-    errors.one_of(cfg, "logger.mode", LOGGER_MODES)
-    try:
-        check_device(cfg.device)
-    except ValueError as e:
-        errors.append(f"'device': {e}")
-    errors.at_least(
-        cfg, ("threads", "num_envs", "models.window", "models.world_model.hidden_size"), 1
-    )
-    errors.at_least(cfg, ("models.world_model.dense_size", "models.uncertainty.hidden_size"), 1)
+    t = cfg.training
+    multi = t.world_model_mode == "multi_step"
+    if cfg.models.window >= 1:
+        errors.need(
+            "training.slice_len",
+            t.slice_len,
+            t.slice_len > cfg.models.window if multi else t.slice_len >= cfg.models.window,
+            f"{'above' if multi else 'at least'} models.window = {cfg.models.window} "
+            f"(the {'multi-step loss predicts after' if multi else 'estimator sees'} a full "
+            "window)",
+        )
     errors.extend(_world_model_errors(cfg))
     errors.extend(
         _estimator_errors(cfg.models.uncertainty, "models.uncertainty", cfg.models.window)
     )
-    t = cfg.training
-    errors.one_of(cfg, "training.world_model_mode", WORLD_MODEL_MODES)
-    errors.one_of(cfg, "training.window_sampling", WINDOW_SAMPLINGS)
-    errors.at_least(cfg, ("training.slice_len", "training.num_slices"), 1)
-    errors.need("training.val_fraction", t.val_fraction, 0 < t.val_fraction < 1, "in (0, 1)")
-    multi = t.world_model_mode == "multi_step"
-    errors.need(
-        "training.slice_len",
-        t.slice_len,
-        t.slice_len > cfg.models.window if multi else t.slice_len >= cfg.models.window,
-        f"{'above' if multi else 'at least'} models.window = {cfg.models.window} "
-        f"(the {'multi-step loss predicts after' if multi else 'estimator sees'} a full window)",
-    )
-    _fit_errors(cfg, "training.world_model", errors)
-    _fit_errors(cfg, "training.uncertainty", errors)
 
 
 def _world_model_errors(cfg: DictConfig) -> list[str]:
@@ -312,7 +285,7 @@ def _world_model_errors(cfg: DictConfig) -> list[str]:
 
     m = cfg.models
     if min(m.window, m.world_model.hidden_size, m.world_model.dense_size) < 1:
-        return []  # reported by the range checks
+        return []  # reported by the schema's checks
     try:
         build_world_model(cfg, 1, 1)
     except (ValueError, TypeError) as e:
@@ -320,50 +293,106 @@ def _world_model_errors(cfg: DictConfig) -> list[str]:
     return []
 
 
-def _estimator_errors(spec: DictConfig, key: str, window: int) -> list[str]:
-    """Build the estimator a block names (tiny dims) so a bad kind or keyword fails before any work."""
-    from torchrl_recon.experiments.common import build_estimator
+# ----------------------------------------------------------------------------------------------
+# The parts a recipe names: shipped or a user's own class, with that class's keywords
 
-    if window < 1 or spec.hidden_size < 1:
-        return []  # reported by the range checks
+
+def _kwargs_key(key: str, message: str, kwargs: dict[str, Any]) -> str:
+    """``<key>.kwargs.<name>`` when the message starts with one of the keywords, else ``key``."""
+    first = message.split(" ", 1)[0]
+    return f"{key}.kwargs.{first}" if first in kwargs else key
+
+
+def _estimator_errors(spec: DictConfig, key: str, window: int) -> list[str]:
+    """The estimator block's class (``kind``), its keywords against the class's signature,
+    then the estimator built with tiny dims, so that a bad value fails before any work."""
+    from torchrl_recon.experiments.common import build_estimator
+    from torchrl_recon.modules import get_estimator_class
+    from torchrl_recon.plugins import check_keywords
+
+    try:
+        cls = get_estimator_class(spec.kind)
+    except ValueError as e:
+        return [f"'{key}.kind': {e}"]
+    kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
+    try:
+        check_keywords(
+            cls,
+            kwargs,
+            positional=2,
+            keywords=("window", "hidden_size", "activation"),
+            given_by=f"models.window, {key}.hidden_size and {key}.activation",
+        )
+    except TypeError as e:
+        return [f"'{key}.kwargs': {e}"]
+    if window < 1 or spec.hidden_size < 1 or not _all_finite(kwargs):
+        return []  # reported by the schema's checks
     try:
         build_estimator(spec, 1, 1, window)
-    except (ValueError, TypeError) as e:
-        return [f"'{key}': {e}"]
+    except Exception as e:  # a user's class: any error is theirs to fix
+        return [f"'{_kwargs_key(key, str(e), kwargs)}': {e}"]
     return []
 
 
-def _planner_errors(planner: DictConfig, key: str, errors: _Errors) -> None:
-    errors.need(
-        f"{key}.kind", planner.kind, planner.kind in PLANNER_KINDS, f"one of {list(PLANNER_KINDS)}"
-    )
-    for name in (
-        "horizon",
-        "num_candidates",
-        "iterations",
-        "num_elites",
-        "restarts",
-        "gradient_steps",
-    ):
-        errors.need(f"{key}.{name}", planner[name], planner[name] >= 1, ">= 1")
-    errors.need(f"{key}.lr", planner.lr, planner.lr > 0, "> 0")
-    if planner.kind == "cem":
-        errors.need(
-            f"{key}.num_elites",
-            planner.num_elites,
-            planner.num_elites <= planner.num_candidates,
-            f"at most num_candidates = {planner.num_candidates}",
-        )
+def _planner_errors(
+    planner: DictConfig,
+    key: str,
+    window: int,
+    objective: Callable[[], Objective],
+    with_objective: str,
+) -> list[str]:
+    """The planner block's class (``kind``), its keywords against the class's signature, then
+    the planner built on a tiny model with the recipe's objective (``objective()``; described
+    by ``with_objective`` in a message), so that a bad value fails before any work."""
+    from torchrl_recon.planners import check_planner_kwargs, get_planner_class
+
+    try:
+        cls = get_planner_class(planner.kind)
+    except ValueError as e:
+        return [f"'{key}.kind': {e}"]
+    kwargs = OmegaConf.to_container(planner.kwargs, resolve=True)
+    try:
+        check_planner_kwargs(cls, kwargs)
+    except TypeError as e:
+        return [f"'{key}.kwargs': {e}"]
+    if window < 1 or not _all_finite(kwargs):
+        return []  # reported by the schema's checks
+    try:
+        goal = objective()
+    except ValueError:
+        return []  # the objective's values are reported by the schema's checks
+    try:
+        with torch.random.fork_rng(devices=[]):  # the run's random numbers stay as they are
+            cls(_tiny_planning_model(window), goal, **kwargs)
+    except Exception as e:  # a user's class: any error is theirs to fix
+        where = _kwargs_key(key, str(e), kwargs)
+        return [f"'{where}'{'' if where != key else f' ({with_objective})'}: {e}"]
+    return []
 
 
-def _name_errors(names: list[str], key: str, what: str, errors: _Errors) -> None:
-    for i, name in enumerate(names):
-        errors.need(
-            f"{key}[{i}].name",
-            name,
-            bool(NAME_PATTERN.fullmatch(name)),
-            "a name of letters, digits, '_', '.' or '-' (it names files of the run directory)",
-        )
+def _tiny_planning_model(window: int) -> PlanningModel:
+    """A planning model of one state and one action dim, with an estimator, on the CPU."""
+    from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+    from torchrl_recon.planners import PlanningModel
+
+    world = LSTMWorldModel(1, 1, window=window, hidden_size=1, dense_size=1)
+    u = ReconstructionUncertainty(1, 1, window=window, hidden_size=1)
+    return PlanningModel(world, lambda obs, action, next_obs: obs[..., 0], uncertainty=u)
+
+
+def _all_finite(node: Any) -> bool:
+    if isinstance(node, dict):
+        return all(_all_finite(v) for v in node.values())
+    if isinstance(node, list):
+        return all(_all_finite(v) for v in node)
+    return finite(node)
+
+
+# ----------------------------------------------------------------------------------------------
+# Names and data sizes
+
+
+def _duplicate_errors(names: list[str], key: str, what: str, errors: _Errors) -> None:
     for name in sorted({n for n in names if names.count(n) > 1}):
         errors.append(f"'{key}': duplicate {what} name {name!r}")
 
@@ -401,11 +430,8 @@ def _data_errors(
 
 def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The explore recipe's own checks."""
-    errors.at_least(cfg, ("random_steps", "retrainings"), 1)
-    if cfg.get("retrainings_per_fit") is not None:
-        errors.at_least(cfg, ("retrainings_per_fit",), 1)
-    errors.at_least(cfg, ("validation.trajectories", "validation.steps"), 1)
-    errors.one_of(cfg, "validation.policy", VALIDATION_POLICIES)
+    from torchrl_recon.policies import exploration_objective
+
     _data_errors(
         errors,
         frames_key="initial_random_steps",
@@ -415,28 +441,21 @@ def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
         slice_len=cfg.training.slice_len,
     )
     g = cfg.guided
-    errors.at_least(cfg, ("guided.steps", "guided.refit_every_episodes"), 1)
-    errors.need(
-        "guided.ratio", g.ratio, g.ratio > 1, "above 1 (the threshold is ratio × the mean Σu)"
-    )
-    if g.cap is not None:
-        errors.need("guided.cap", g.cap, g.cap > g.ratio, f"null or above guided.ratio = {g.ratio}")
-    errors.need("guided.beta", g.beta, g.beta <= 0, "<= 0 (exploration seeks uncertainty)")
-    if g.planner.kind == "gradient":
-        errors.need(
-            "guided.beta",
-            g.beta,
-            g.beta < 0,
-            "< 0 with the gradient planner (with beta 0 the objective is constant: no gradient)",
+    errors.extend(
+        _planner_errors(
+            g.planner,
+            "guided.planner",
+            cfg.models.window,
+            lambda: exploration_objective(ratio=g.ratio, cap=g.cap, beta=g.beta),
+            f"with the exploration objective: alpha 0, guided.beta = {g.beta}",
         )
-    _planner_errors(g.planner, "guided.planner", errors)
+    )
 
 
 def control_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The control recipe's own checks."""
-    errors.at_least(cfg, ("random_episode_steps", "episodes", "replan.every"), 1)
-    errors.at_least(cfg, ("random_episodes",), 2)
-    errors.at_least(cfg, ("warmup_random_steps",), 0)
+    from torchrl_recon.experiments.control_stages import setting_objective
+
     # two episodes at least (random_episodes >= 2): one is held out to validate the fit
     _data_errors(
         errors,
@@ -451,77 +470,25 @@ def control_errors(cfg: DictConfig, errors: _Errors) -> None:
         cfg.env.episode_steps > warmup,
         f"above max(warmup_random_steps, models.window) = {warmup} (or no step is planned)",
     )
-    r = cfg.replan
-    errors.one_of(cfg, "replan.mode", REPLAN_MODES)
-    errors.one_of(cfg, "replan.threshold_on", THRESHOLD_ON)
-    q = r.threshold_quantile
-    errors.need("replan.threshold_quantile", q, 0 < q <= 1, "in (0, 1]")
-    errors.need("replan.threshold_scale", r.threshold_scale, r.threshold_scale > 0, "> 0")
-    if r.error_threshold is not None:
-        errors.need(
-            "replan.error_threshold",
-            r.error_threshold,
-            r.error_threshold > 0,
-            "a positive finite number or null",
-        )
-    if not cfg.settings:
-        errors.append("'settings' is empty: a control recipe needs at least one setting")
-    _name_errors([s.name for s in cfg.settings], "settings", "setting", errors)
+    _duplicate_errors([s.name for s in cfg.settings], "settings", "setting", errors)
     for i, setting in enumerate(cfg.settings):
-        key = f"settings[{i}]"
-        _planner_errors(setting.planner, f"{key}.planner", errors)
-        errors.need(
-            f"{key}.alpha", setting.alpha, setting.alpha >= 0, ">= 0 (the weight of reward)"
+        errors.extend(
+            _planner_errors(
+                setting.planner,
+                f"settings[{i}].planner",
+                cfg.models.window,
+                lambda setting=setting: setting_objective(setting, 1.0)[0],
+                f"with settings[{i}].alpha = {setting.alpha}, beta = {setting.beta}",
+            )
         )
-        if setting.band is not None:
-            _band_errors(setting.band, f"{key}.band", errors)
-
-
-def _band_errors(band: DictConfig, key: str, errors: _Errors) -> None:
-    from torchrl_recon.planners.objective import UncertaintyBand
-
-    if band.kind not in BAND_KINDS:
-        errors.append(f"'{key}.kind' must be one of {list(BAND_KINDS)}, got {band.kind!r}")
-        return
-    if any(v is not None and not math.isfinite(v) for v in (band.low, band.high)):
-        return  # reported by the finite-number check
-    try:
-        UncertaintyBand(low=band.low, high=band.high, kind=band.kind)
-    except ValueError as e:
-        errors.append(f"'{key}': {e}")
 
 
 def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | None) -> None:
     """The estimator comparison recipe's own checks; its outcome recipes are loaded (and so
     checked) with ``recipes`` when given."""
-    if not cfg.estimators:
-        errors.append("'estimators' is empty: a calibrate recipe needs at least one estimator")
-    _name_errors([s.name for s in cfg.estimators], "estimators", "estimator", errors)
+    _duplicate_errors([s.name for s in cfg.estimators], "estimators", "estimator", errors)
     for i, spec in enumerate(cfg.estimators):
-        errors.need(f"estimators[{i}].hidden_size", spec.hidden_size, spec.hidden_size >= 1, ">= 1")
         errors.extend(_estimator_errors(spec, f"estimators[{i}]", cfg.models.window))
-    errors.one_of(cfg, "evaluation.policy", VALIDATION_POLICIES)
-    errors.at_least(
-        cfg,
-        (
-            "evaluation.trajectories",
-            "evaluation.horizon",
-            "evaluation.ood_windows",
-            "timing.candidates",
-            "timing.repeats",
-            "timing.iterations",
-            "timing.num_elites",
-            "random_steps",
-            "random_episode_steps",
-        ),
-        1,
-    )
-    shift = cfg.evaluation.ood_state_shift
-    errors.need("evaluation.ood_state_shift", shift, shift > 0, "> 0 (standard deviations)")
-    if not cfg.timing.horizons or min(cfg.timing.horizons) < 1:
-        errors.append(
-            f"'timing.horizons' must be a non-empty list of ints >= 1, got {list(cfg.timing.horizons)}"
-        )
     _data_errors(
         errors,
         frames_key="random_steps",

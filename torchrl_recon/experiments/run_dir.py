@@ -337,8 +337,10 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
     if not isinstance(saved, DictConfig):
         raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
     # Imported here: the registry imports the experiments, which import this module.
+    from torchrl_recon.experiments.config import upgrade_legacy_config
     from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
+    saved = upgrade_legacy_config(saved)  # planner blocks written flat, before `kwargs`
     kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
     if kind is not None:
         # Keys added to the schema after the run was made compare at their defaults.

@@ -5,7 +5,7 @@ from __future__ import annotations
 from torchrl_recon.modules.baselines import LinearDeltaModel
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.ensemble import EnsembleUncertainty
-from torchrl_recon.modules.estimators import ESTIMATORS, make_estimator
+from torchrl_recon.modules.estimators import ESTIMATORS, get_estimator_class, make_estimator
 from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
@@ -20,6 +20,7 @@ __all__ = [
     "ESTIMATORS",
     "LinearDeltaModel",
     "LSTMWorldModel",
+    "get_estimator_class",
     "make_estimator",
     "MCDropoutUncertainty",
     "module_device",

@@ -1,8 +1,6 @@
-"""Registry of the uncertainty estimators, built by name from a config."""
+"""Registry of the uncertainty estimators, built by name (or ``module:Class``) from a config."""
 
 from __future__ import annotations
-
-import inspect
 
 from torchrl_recon.modules.ensemble import EnsembleUncertainty
 from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
@@ -10,6 +8,7 @@ from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model_ensemble import WorldModelEnsembleUncertainty
+from torchrl_recon.plugins import check_keywords, resolve_class
 
 ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
     "reconstruction": ReconstructionUncertainty,
@@ -19,17 +18,33 @@ ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
     "world_model_ensemble": WorldModelEnsembleUncertainty,
 }
 
-_POSITIONAL = ("self", "obs_dim", "action_dim", "window")
+
+def get_estimator_class(kind: str) -> type[UncertaintyEstimator]:
+    """The estimator class ``kind`` names: a key of :data:`ESTIMATORS` or ``module:Class`` (a
+    subclass of :class:`UncertaintyEstimator` in a module on ``PYTHONPATH``).
+
+    Raises:
+        ValueError: one line: unknown name, a class that cannot be imported, or one that is
+            not an :class:`UncertaintyEstimator`.
+
+    Examples:
+        >>> get_estimator_class("rnd").__name__
+        'RNDUncertainty'
+        >>> get_estimator_class("torchrl_recon.modules:EnsembleUncertainty").__name__
+        'EnsembleUncertainty'
+    """
+    return resolve_class(kind, ESTIMATORS, UncertaintyEstimator, "estimator")
 
 
 def make_estimator(
     kind: str, obs_dim: int, action_dim: int, *, window: int = 10, **kwargs
 ) -> UncertaintyEstimator:
-    """Build the estimator registered as ``kind`` in :data:`ESTIMATORS`.
+    """Build the estimator ``kind`` names as ``Class(obs_dim, action_dim, window=window, **kwargs)``.
 
     Args:
-        kind: ``"reconstruction"``, ``"ensemble"``, ``"mc_dropout"``, ``"rnd"`` or
-            ``"world_model_ensemble"``.
+        kind: a key of :data:`ESTIMATORS` (``"reconstruction"``, ``"ensemble"``,
+            ``"mc_dropout"``, ``"rnd"``, ``"world_model_ensemble"``) or ``"module:Class"``, a
+            user's own :class:`UncertaintyEstimator`.
         obs_dim: state size N.
         action_dim: action size M.
 
@@ -45,21 +60,11 @@ def make_estimator(
         >>> make_estimator("gp", 6, 3)
         Traceback (most recent call last):
         ...
-        ValueError: Unknown estimator kind 'gp'; expected one of ['ensemble', 'mc_dropout', ...].
+        ValueError: unknown estimator 'gp'; expected one of ['ensemble', 'mc_dropout', ...] or 'module:Class' (...).
     """
-    if kind not in ESTIMATORS:
-        raise ValueError(f"Unknown estimator kind {kind!r}; expected one of {sorted(ESTIMATORS)}.")
-    cls = ESTIMATORS[kind]
-    accepted = sorted(
-        name
-        for name, param in inspect.signature(cls.__init__).parameters.items()
-        if name not in _POSITIONAL
-        and param.kind in (param.POSITIONAL_OR_KEYWORD, param.KEYWORD_ONLY)
-    )
-    unknown = sorted(set(kwargs) - set(accepted))
-    if unknown:
-        raise ValueError(
-            f"{cls.__name__} (kind {kind!r}) does not accept {unknown}; it accepts {accepted} "
-            "besides obs_dim, action_dim and window."
-        )
+    cls = get_estimator_class(kind)
+    try:
+        check_keywords(cls, kwargs, positional=2, keywords=("window",))
+    except TypeError as e:
+        raise ValueError(f"{e} (kind {kind!r}; obs_dim, action_dim and window are given)") from None
     return cls(obs_dim, action_dim, window=window, **kwargs)

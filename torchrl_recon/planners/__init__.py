@@ -24,6 +24,12 @@ from torchrl_recon.planners.planning_model import (
     TerminationFn,
     check_step_fn,
 )
+from torchrl_recon.planners.registry import (
+    PLANNERS,
+    check_planner_kwargs,
+    get_planner_class,
+    make_planner,
+)
 from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
@@ -31,6 +37,7 @@ __all__ = [
     "EliteMemory",
     "GradientPlanner",
     "ICEMPlanner",
+    "PLANNERS",
     "InfeasiblePlanError",
     "InfeasiblePlanWarning",
     "MPPIPlanner",
@@ -45,9 +52,12 @@ __all__ = [
     "WorldModelPlanningEnv",
     "bounds_from_spec",
     "check_bounds_match",
+    "check_planner_kwargs",
     "check_step_fn",
     "colored_noise",
     "cost_to_u_ratio",
+    "get_planner_class",
+    "make_planner",
     "relative_beta",
     "window_uncertainty",
 ]

@@ -1,0 +1,127 @@
+"""Value checks declared next to the schema field they guard, and the walk that runs them all.
+
+A field of a recipe dataclass (:mod:`torchrl_recon.experiments.config`) declares its range with
+one of the helpers here (``count(1)``, ``positive(3e-3)``, ``checked(0.1, in_open_unit)``);
+choices are ``Enum`` fields, which the schema merge itself refuses. Every float, at any depth,
+must be finite unless its field says otherwise. A dataclass may add checks that span its own
+fields in a ``more_errors`` method. :func:`schema_errors` runs every check of a merged recipe
+(through ``OmegaConf.to_object``) and returns one message per problem, naming its full key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from enum import Enum
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+Check = Callable[[Any], "str | None"]
+"""A field's check: what the value should be when it is refused, None when it fits."""
+
+CHECK, FINITE = "check", "finite"
+
+
+class Choice(str, Enum):
+    """A choice of a recipe key: written as its plain string in YAML and ``config.yaml``,
+    equal to it, and shown as it everywhere (``str``, ``repr``, f-strings, JSON)."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __repr__(self) -> str:
+        return repr(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+def checked(default: Any = dataclasses.MISSING, check: Check | None = None, **kw: Any) -> Any:
+    """A dataclass field whose value (when not None) must pass ``check``; ``finite=False``
+    lets its floats be infinite (another check handles them); ``factory`` gives a mutable
+    default."""
+    metadata = {CHECK: check, FINITE: kw.pop("finite", True)}
+    if "factory" in kw:
+        return dataclasses.field(default_factory=kw.pop("factory"), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def at_least(low: float, why: str = "") -> Check:
+    """``value >= low``."""
+    return lambda v: None if v >= low else f">= {low}{why}"
+
+
+def above(low: float, why: str = "") -> Check:
+    """``value > low``."""
+    return lambda v: None if v > low else f"> {low}{why}"
+
+
+def count(default: Any, low: int = 1) -> Any:
+    """An integer field of at least ``low`` (1 by default)."""
+    return checked(default, at_least(low))
+
+
+def positive(default: Any) -> Any:
+    """A number field above 0."""
+    return checked(default, above(0))
+
+
+def schema_errors(cfg: DictConfig) -> list[str]:
+    """Every problem the schema's own checks find in a merged, resolved recipe, one message
+    each, naming the full key (``'settings[1].band.high'``).
+
+    Examples:
+        >>> from torchrl_recon.experiments.config import ExploreConfig
+        >>> cfg = OmegaConf.structured(ExploreConfig(output_dir="out"))
+        >>> cfg.guided.ratio, cfg.training.world_model.steps = float("nan"), 0
+        >>> schema_errors(cfg)
+        ["'training.world_model.steps' must be >= 1, got 0", "'guided.ratio' must be a finite number, got nan"]
+    """
+    errors: list[str] = []
+    _walk(OmegaConf.to_object(cfg), "", errors)
+    return errors
+
+
+def _walk(obj: Any, key: str, errors: list[str]) -> None:
+    if isinstance(obj, list):
+        for i, item in enumerate(obj):
+            _walk(item, f"{key}[{i}]", errors)
+        return
+    if not dataclasses.is_dataclass(obj):
+        return
+    for f in dataclasses.fields(obj):
+        value, sub = getattr(obj, f.name), f"{key}.{f.name}" if key else f.name
+        finite = not f.metadata.get(FINITE, True) or _finite(value, sub, errors)
+        check = f.metadata.get(CHECK)
+        if check is not None and value is not None and finite:
+            expected = check(value)
+            if expected:
+                errors.append(f"'{sub}' must be {expected}, got {value!r}")
+        _walk(value, sub, errors)
+    more = getattr(obj, "more_errors", None)
+    if more is not None:
+        for sub, text in more():
+            errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
+
+
+def _finite(value: Any, key: str, errors: list[str]) -> bool:
+    """Report every NaN or ±inf in a plain value (dicts and lists at any depth; a dataclass is
+    walked by its own fields); True when there is none."""
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return True
+        errors.append(f"'{key}' must be a finite number, got {value}")
+        return False
+    if isinstance(value, dict):
+        return all([_finite(v, f"{key}.{k}", errors) for k, v in value.items()])
+    if isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
+        return all([_finite(v, f"{key}[{i}]", errors) for i, v in enumerate(value)])
+    return True
+
+
+def finite(*values: Any) -> bool:
+    """No value is a NaN or infinite float (for ``more_errors``: a non-finite value is
+    reported once, by the walk)."""
+    return not any(isinstance(v, float) and not math.isfinite(v) for v in values)

@@ -141,7 +141,7 @@ def test_a_user_env_and_cost_from_their_own_module(tmp_path):
         (["env.id=Pendulum-v1", "env.cost={costs}:nope"], ["'env.cost'", "nope", "pendulum"]),
         (["env.id=Pendulum-v1", "env.cost={costs}"], ["'env.cost'", "module:function"]),
         (["env.id=Pendulum-v1", "env.cost={costs}:two_args"], ["cost(obs, action, next_obs)"]),
-        (["env.id=Pendulum-v1", "env.cost={costs}:per_dim"], ["one cost per step", "[2, 3]"]),
+        (["env.id=Pendulum-v1", "env.cost={costs}:per_dim"], ["one value per step", "[2, 3]"]),
         (
             ["env.id=Pendulum-v1", "env.cost={costs}:pendulum", "env.kwargs={gravity: 3}"],
             ["'env.kwargs'", "gravity", "'g'"],
@@ -222,3 +222,34 @@ def test_a_module_env_id_names_the_run_without_its_module(tmp_path, monkeypatch)
     )
     assert cfg.env.name == "DriftName-v0"
     assert cfg.output_dir == "outputs/smoke/explore/DriftName-v0/seed0"
+
+
+TERMINATIONS = """
+import torch
+
+
+def fallen(obs, action, next_obs):
+    return next_obs[..., 2].abs() > 8.0
+
+
+def not_bool(obs, action, next_obs):
+    return next_obs[..., 2]
+"""
+
+
+def test_env_termination_is_imported_and_checked_before_any_work(costs, tmp_path, capsys):
+    terms = f"gym_recipe_terms_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{terms}.py").write_text(TERMINATIONS)  # tmp_path is on sys.path (costs)
+    base = ["env.id=Pendulum-v1", f"env.cost={costs}:pendulum", f"output_dir={tmp_path / 'o'}"]
+    for term, expected in (
+        ("not_bool", "'env.termination': termination(obs [2, 3, 3], action [2, 3, 1]"),
+        ("nope", f"'env.termination': termination '{terms}:nope': module '{terms}' has no"),
+    ):
+        args = [*base, f"env.termination={terms}:{term}"]
+        code = main(["control", str(GYM / "control_smoke.yaml"), *args])
+        err = capsys.readouterr().err
+        assert code == 2 and expected in err, err
+        assert not (tmp_path / "o").exists()  # refused before any work
+    cfg = load_recipe(GYM / "control_smoke.yaml", [*base, f"env.termination={terms}:fallen"])
+    model = planning_model(cfg, LSTMWorldModel(3, 1, window=cfg.models.window))
+    assert model.termination_fn.__name__ == "fallen"

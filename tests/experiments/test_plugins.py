@@ -117,7 +117,7 @@ def test_a_users_planner_and_estimator_run_from_a_recipe(parts, tmp_path, capsys
             ["settings.0.planner.kind={m}:Nope"],
             ["'settings[0].planner.kind'", "no attribute 'Nope'"],
         ),
-        (["settings.0.planner.kind=mppi"], ["'settings[0].planner.kind'", "'mppi'", "'cem'"]),
+        (["settings.0.planner.kind=mpc"], ["'settings[0].planner.kind'", "'mpc'", "'mppi'"]),
         (
             ["settings.0.planner.kind={m}:MyPlanner", "+settings.0.planner.kwargs.colour=1"],
             ["'settings[0].planner.kwargs'", "['colour']", "'label'"],

@@ -26,11 +26,12 @@ def _own_functions(module: Any) -> list[str]:
     )
 
 
-def import_cost(path: str) -> CostFn:
+def import_cost(path: str, *, what: str = "cost") -> CostFn:
     """Import the cost function ``"module:function"`` (this runs ``module``'s code, as any import).
 
     The function must take ``(obs, action, next_obs)`` (batched torch tensors) and return the
-    per-step cost of the same batch shape.
+    per-step cost of the same batch shape. ``what`` names it in messages: a termination
+    function (``termination(obs, action, next_obs) -> bool``) is imported the same way.
 
     Raises:
         ValueError: one line: ``path`` is not ``module:function``, the module cannot be
@@ -49,10 +50,10 @@ def import_cost(path: str) -> CostFn:
     module, _, attr = str(path).partition(":")
     if not module or not attr or ":" in attr:
         raise ValueError(
-            f"cost must be 'module:function' (a batched torch cost(obs, action, next_obs) -> "
-            f"[...] in an importable module), got {path!r}."
+            f"{what} must be 'module:function' (a batched torch {what}(obs, action, next_obs) "
+            f"-> [...] in an importable module), got {path!r}."
         )
-    where = f"cost {path!r}"
+    where = f"{what} {path!r}"
     try:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -85,7 +86,7 @@ def import_cost(path: str) -> CostFn:
         signature.bind(None, None, None, **keywords)
     except TypeError:
         raise ValueError(
-            f"{where}: {module}.{attr}{signature} cannot be called as cost(obs, action, next_obs)."
+            f"{where}: {module}.{attr}{signature} cannot be called as {what}(obs, action, next_obs)."
         ) from None
     return fn
 

@@ -15,10 +15,16 @@ from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
-from torchrl_recon.envs.registry import CostFn, EnvEntry
+from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
-from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
+from torchrl_recon.planners import (
+    Objective,
+    PlannerBase,
+    PlanningModel,
+    TerminationFn,
+    make_planner,
+)
 from torchrl_recon.training import (
     fit_uncertainty,
     fit_world_model,
@@ -93,14 +99,23 @@ def cost_fn(cfg: DictConfig) -> CostFn:
     return env_entry(cfg).cost_fn_with(kwargs)
 
 
+def termination_fn(cfg: DictConfig) -> TerminationFn | None:
+    """The recipe's ``env.termination`` function, imported (None when not given)."""
+    path = cfg.env.get("termination")
+    return None if path is None else import_cost(path, what="termination")
+
+
 def planning_model(
     cfg: DictConfig, world: LSTMWorldModel, uncertainty: UncertaintyEstimator | None = None
 ) -> PlanningModel:
-    """The recipe's :class:`PlanningModel`: its cost, and the action bounds of its env's spec
-    (:meth:`PlanningModel.from_env`; the env is built, read and closed, without stepping)."""
+    """The recipe's :class:`PlanningModel`: its cost and termination, and the action bounds of
+    its env's spec (:meth:`PlanningModel.from_env`; the env is built, read and closed, without
+    stepping)."""
     env = build_env(cfg, seed=0, episode_steps=1)
     try:
-        return PlanningModel.from_env(world, cost_fn(cfg), env, uncertainty=uncertainty)
+        return PlanningModel.from_env(
+            world, cost_fn(cfg), env, uncertainty=uncertainty, termination_fn=termination_fn(cfg)
+        )
     finally:
         close_env(env)
 

@@ -104,12 +104,15 @@ class EnvConfig:
     ``id``, only the env's name in run directories, tables and loggers. ``cost``:
     ``module:function``, a batched torch ``cost(obs, action, next_obs) -> [...]`` (imported:
     the module's code runs); null: the registered env's own (a gymnasium env has none).
-    ``state_names``: the observation's dims, for plots (empty: the registered env's, else
+    ``termination``: ``module:function``, a batched torch ``termination(obs, action, next_obs)
+    -> bool [...]`` that the planners use to stop a candidate's cost and u after its predicted
+    end; null: episodes never end in the model. ``state_names``: the observation's dims, for plots (empty: the registered env's, else
     ``s0, s1, ...``). ``kwargs``: keywords of the env's constructor."""
 
     name: str | None = None
     id: str | None = None
     cost: str | None = None
+    termination: str | None = None
     state_names: list[str] = field(default_factory=list)
     kwargs: dict[str, Any] = checked(factory=dict, finite=False)  # the env section checks them
     episode_steps: int = count(100)

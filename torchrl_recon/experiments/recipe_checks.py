@@ -158,6 +158,12 @@ def _env_errors(cfg: DictConfig, errors: _Errors) -> dict[str, Any]:
             cost = entry.cost_fn_with(kwargs)
         except ValueError as e:
             errors.append(f"'env.cost': {e}")
+    termination = None
+    if env.get("termination") is not None:
+        try:
+            termination = import_cost(env.termination, what="termination")
+        except ValueError as e:
+            errors.append(f"'env.termination': {e}")
     shipped = ENVS.get(entry.name)
     if shipped is not None and shipped.gym_id == entry.gym_id:
         if env.state_names and len(env.state_names) != len(shipped.state_names):
@@ -166,18 +172,23 @@ def _env_errors(cfg: DictConfig, errors: _Errors) -> dict[str, Any]:
                 f"of {entry.name!r}, got {len(env.state_names)} names"
             )
     elif len(errors) == before:
-        _gym_env_errors(entry.gym_id, kwargs, cost, list(env.state_names), errors)
+        _gym_env_errors(entry.gym_id, kwargs, cost, termination, list(env.state_names), errors)
     return defaults
 
 
 def _gym_env_errors(
-    gym_id: str, kwargs: dict, cost: Any, state_names: list[str], errors: _Errors
+    gym_id: str,
+    kwargs: dict,
+    cost: Any,
+    termination: Any,
+    state_names: list[str],
+    errors: _Errors,
 ) -> None:
     """Build a gymnasium env once (no step): its constructor takes ``kwargs``, its observation
-    is a flat Box, its action a bounded float Box, ``state_names`` fit and ``cost`` runs."""
+    is a flat Box, its action a bounded float Box, ``state_names`` fit, and ``cost`` and
+    ``termination`` return one value per step."""
     import gymnasium as gym
     import numpy as np
-    import torch
 
     try:
         made = gym.make(gym_id, disable_env_checker=True, **kwargs)
@@ -213,21 +224,15 @@ def _gym_env_errors(
             f"'env.state_names' must name the {n_obs} observation dims of {gym_id!r}, got "
             f"{len(state_names)} names"
         )
-    if cost is None:
-        return
-    obs = torch.zeros(2, 3, n_obs)
-    mid = torch.as_tensor((act_space.low + act_space.high) / 2, dtype=torch.float32)
-    shapes = f"cost(obs [2, 3, {n_obs}], action [2, 3, {n_act}], next_obs [2, 3, {n_obs}])"
-    try:
-        out = cost(obs, mid.expand(2, 3, n_act), obs)
-    except Exception as e:
-        errors.append(f"'env.cost': {shapes} failed: {e!r}")
-        return
-    if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2, 3):
-        got = list(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-        errors.append(
-            f"'env.cost': {shapes} must return one cost per step, a tensor [2, 3], got {got}"
-        )
+    from torchrl_recon.planners import check_step_fn
+
+    for key, fn, boolean in (("cost", cost, False), ("termination", termination, True)):
+        if fn is None:
+            continue
+        try:
+            check_step_fn(key, fn, n_obs, n_act, boolean=boolean)
+        except ValueError as e:
+            errors.append(f"'env.{key}': {e}")
 
 
 def _expected_like(default: Any, value: Any) -> str | None:

@@ -20,13 +20,16 @@ $(VENV)/.installed: pyproject.toml
 demo: setup
 	$(PY) -m torchrl_recon.cli explore recipes/industrial_benchmark/explore_smoke.yaml
 
+# Tests run in parallel workers (pytest-xdist), one per core; PYTEST_WORKERS=0 runs them in-process.
+PYTEST_WORKERS ?= auto
+
 test: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" -n $(PYTEST_WORKERS) --dist worksteal
 
 test-all: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
 
 test-faults: setup
 	$(PY) -m pytest -q -rP tests/experiments/test_fault_injection.py

@@ -96,9 +96,9 @@ def relative_paths(text: str, root: Path, base: Path | None = None) -> str:
     relative to ``base`` (default ``root``).
 
     Examples:
-        >>> relative_paths('output_dir=/work/runs/seed0", "/work/main/x"', Path("/work/main"))
+        >>> relative_paths('output_dir=/srv/runs/seed0", "/srv/main/x"', Path("/srv/main"))
         'output_dir=../runs/seed0", "x"'
-        >>> relative_paths("active / random", Path("/work/main"))
+        >>> relative_paths("active / random", Path("/srv/main"))
         'active / random'
     """
     base = root if base is None else base

@@ -109,8 +109,8 @@ def test_publishing_again_replaces_the_runs_members_and_adds_others(tmp_path, do
 
 def test_publish_refuses_an_absolute_path_outside_the_root(tmp_path, docs, results_script):
     run = _run(tmp_path)
-    (run / "meta.json").write_text(json.dumps({"run_dir": "/home/me/runs/seed0"}))
-    with pytest.raises(ValueError, match=r"meta.json:1 still holds an absolute path \(/home/me/"):
+    (run / "meta.json").write_text(json.dumps({"run_dir": "/Users/me/runs/seed0"}))
+    with pytest.raises(ValueError, match=r"meta.json:1 still holds an absolute path \(/Users/me/"):
         results_script("publish_run").publish(
             run, docs / "results" / "explore" / "drone" / "seed0",
             root=tmp_path / "checkout", results_root=docs / "results",
@@ -152,12 +152,12 @@ def test_relative_paths_rewrites_only_paths_of_the_machine(results_script):
     rewrite = results_script("publish_run").relative_paths
     from pathlib import Path
 
-    root = Path("/work/main")
-    text = '"run_dir": "/work/runs/a/seed0", "x": "active / random", "y": "/dev/null"'
+    root = Path("/srv/main")
+    text = '"run_dir": "/srv/runs/a/seed0", "x": "active / random", "y": "/dev/null"'
     assert (
         rewrite(text, root)
         == '"run_dir": "../runs/a/seed0", "x": "active / random", "y": "/dev/null"'
     )
     summary_dir = root / "docs/results/control/drone/summary"
-    files = '"/work/main/docs/results/control/drone/seed0/results.json"'
+    files = '"/srv/main/docs/results/control/drone/seed0/results.json"'
     assert rewrite(files, root, summary_dir) == '"../seed0/results.json"'

@@ -19,7 +19,7 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
-from torchrl_recon.experiments.archive import run_records
+from torchrl_recon.archive import run_records
 from torchrl_recon.experiments.control_stages import episode_mean_std
 from torchrl_recon.experiments.summary import save_figures
 

@@ -34,7 +34,7 @@ import re
 import sys
 from pathlib import Path
 
-from torchrl_recon.experiments.archive import (
+from torchrl_recon.archive import (
     ARCHIVE,
     MANIFEST,
     folder_of,

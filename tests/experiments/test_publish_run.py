@@ -8,7 +8,7 @@ import json
 import pytest
 
 from tests.experiments.results_fixtures import known_explore
-from torchrl_recon.experiments.archive import ARCHIVE, MANIFEST, read_members
+from torchrl_recon.archive import ARCHIVE, MANIFEST, read_members
 from torchrl_recon.experiments.summary import summarize
 
 FILES = [

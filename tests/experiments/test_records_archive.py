@@ -11,9 +11,7 @@ import tarfile
 import pytest
 
 from tests.experiments.results_fixtures import known_explore, write_runs
-from torchrl_recon.cli import main
-from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.experiments.archive import (
+from torchrl_recon.archive import (
     ARCHIVE,
     MANIFEST,
     pack,
@@ -22,6 +20,8 @@ from torchrl_recon.experiments.archive import (
     sha256_bytes,
     verify_results,
 )
+from torchrl_recon.cli import main
+from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.summary import summarize
 
 RECORDS = {

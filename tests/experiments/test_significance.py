@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tests.experiments.results_fixtures import ACTIVE, RANDOM, known_explore, write_runs
-from torchrl_recon.experiments.significance import (
+from torchrl_recon.evaluation.significance import (
     PAPER_RATIOS,
     bootstrap_ci,
     cohens_dz,

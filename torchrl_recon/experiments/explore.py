@@ -8,12 +8,12 @@ import sys
 from collections.abc import Mapping
 from typing import Any
 
+from torchrl_recon.evaluation.significance import significance
 from torchrl_recon.experiments import explore_stages
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_table1
 from torchrl_recon.experiments.recipe_checks import explore_errors
-from torchrl_recon.experiments.significance import significance
 from torchrl_recon.experiments.stats import mean_std, paired_tests
 from torchrl_recon.experiments.tables import fmt, pm, render
 
@@ -23,7 +23,7 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     mean ± sample std of those means for each arm, the ratio active / random of the means, a
     paired t-test (``scipy.stats.ttest_rel``, from 2 seeds) and a Wilcoxon signed-rank test
     (``scipy.stats.wilcoxon``, from 5 seeds); and ``significance``
-    (:func:`~torchrl_recon.experiments.significance.significance`): the mean per-seed ratio
+    (:func:`~torchrl_recon.evaluation.significance.significance`): the mean per-seed ratio
     with its 95% bootstrap interval, the seeds in each direction, Cohen's d_z and how many seeds
     the observed spread needs to detect the paper's ratio."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))

@@ -11,7 +11,7 @@ Calibrate: per estimator, mean ± std across seeds of every number of its row.
 Results are data too: each ``results.json`` is checked before it is used
 (:func:`~torchrl_recon.experiments.results_check.check_results`: finite numbers, means equal to
 the mean of their values, the ratio equal to active / random), and published ones against the
-SHA-256 manifest of their folder's records archive (:mod:`~torchrl_recon.experiments.archive`).
+SHA-256 manifest of their folder's records archive (:mod:`~torchrl_recon.archive`).
 A file that fails is one :class:`~torchrl_recon.errors.DamagedFileError` naming it.
 """
 
@@ -25,7 +25,7 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-from torchrl_recon.experiments.archive import verify_results
+from torchrl_recon.archive import verify_results
 from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.results_check import check_results
 from torchrl_recon.experiments.run_dir import read_results
@@ -71,7 +71,7 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
             (read as plain JSON by :func:`~torchrl_recon.experiments.run_dir.read_results`),
             fails :func:`~torchrl_recon.experiments.results_check.check_results`, or (published)
             differs from its folder's manifest
-            (:func:`~torchrl_recon.experiments.archive.verify_results`).
+            (:func:`~torchrl_recon.archive.verify_results`).
         ValueError: the files mix experiment kinds, or one env repeats a seed.
     """
     files = find_results(paths)

@@ -131,3 +131,10 @@ def test_summaries_record_paths_relative_to_the_output_folder(tmp_path, monkeypa
     path, *_ = save_summary(summary, [json.loads(f.read_text()) for f in files], tmp_path / "out")
     assert json.loads(path.read_text())["files"][4] == "../runs/drone/seed4/results.json"
     assert str(tmp_path) not in path.read_text()
+
+
+def test_runs_inside_another_run_are_part_of_its_results_not_found_on_their_own(tmp_path):
+    outer = write_runs(tmp_path, known_explore()[:2])
+    inner = write_runs(outer[0].parent / "outcomes" / "x", known_explore()[:1])
+    assert find_results([tmp_path]) == outer
+    assert find_results([outer[0].parent / "outcomes"]) == inner  # asked for: found

@@ -32,7 +32,8 @@ from torchrl_recon.experiments.run_dir import read_results
 
 
 def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
-    """``results.json`` files: given directly, or found anywhere below the given directories.
+    """``results.json`` files: given directly, or found anywhere below the given directories,
+    except those of runs inside another run (a comparison's outcome runs, part of its results).
 
     Only paths are returned, written as given (relative stays relative), each file once; read
     each with :func:`~torchrl_recon.experiments.run_dir.read_results` (plain JSON, checked).
@@ -43,7 +44,9 @@ def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
         if p.is_file():
             found.append(p)
         elif p.is_dir():
-            found.extend(sorted(p.rglob("results.json")))
+            below = sorted(p.rglob("results.json"))
+            runs = {f.parent for f in below}
+            found.extend(f for f in below if not runs.intersection(f.parent.parents))
         else:
             raise FileNotFoundError(f"No such file or directory: {p}")
     unique: dict[Path, Path] = {}

@@ -19,8 +19,18 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
+from torchrl_recon.archive import run_records
 from torchrl_recon.experiments.control_stages import episode_mean_std
 from torchrl_recon.experiments.summary import save_figures
+
+
+def stage_records(run: Path) -> dict[str, bytes]:
+    """``{"stages/...json": content}`` of a run: its own files, and for a published run the
+    members of its folder's ``records.tar.xz`` (read in memory, checked against the manifest)."""
+    records = {k: v for k, v in run_records(run).items() if k.startswith("stages/")}
+    for path in sorted((run / "stages").rglob("*.json")):
+        records[path.relative_to(run).as_posix()] = path.read_bytes()
+    return records
 
 
 def settings_so_far(run: Path) -> dict[str, dict]:
@@ -30,25 +40,26 @@ def settings_so_far(run: Path) -> dict[str, dict]:
     finished episodes plus ``"unfinished": "k of n episodes"``.
     """
     config = yaml.safe_load((run / "config.yaml").read_text())
-    stages, out = run / "stages", {}
+    records, out = stage_records(run), {}
     for name in (s["name"] for s in config["settings"]):
-        if (stages / f"setting_{name}.json").exists():
-            out[name] = json.loads((stages / f"setting_{name}.json").read_text())
+        if f"stages/setting_{name}.json" in records:
+            out[name] = json.loads(records[f"stages/setting_{name}.json"])
             continue
+        prefix = f"stages/setting_{name}/part_"
         parts = sorted(
-            (stages / f"setting_{name}").glob("part_*.json"),
-            key=lambda p: int(p.stem.split("_")[1]),
+            (k for k in records if k.startswith(prefix) and k.endswith(".json")),
+            key=lambda k: int(k[len(prefix) : -len(".json")]),
         )
         if len(parts) < 2:
             continue
-        records = [json.loads(p.read_text()) for p in parts]
-        episodes = [r["metrics"] for r in records]
+        finished = [json.loads(records[k]) for k in parts]
+        episodes = [r["metrics"] for r in finished]
         mean, std = episode_mean_std(episodes)
         out[name] = {
             "episodes": episodes,
             "mean": mean,
             "std": std,
-            "trajectory_example": records[0]["trajectory_example"],
+            "trajectory_example": finished[0]["trajectory_example"],
             "unfinished": f"{len(parts)} of {config['episodes']} episodes",
         }
     return out

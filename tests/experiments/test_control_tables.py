@@ -32,3 +32,17 @@ def test_unfinished_setting_is_reported_with_its_finished_episodes(tmp_path, res
     assert found["gradient"]["unfinished"] == "3 of 10 episodes"
     assert found["gradient"]["mean"]["prediction_mse"] == 5.0
     assert "| gradient (3 of 10 episodes) | 5 ± 1 |" in tables.table(found)
+
+
+def test_a_published_runs_records_are_read_from_its_folders_archive(tmp_path, results_script):
+    from torchrl_recon.archive import pack
+
+    tables = results_script("control_tables")
+    run = tmp_path / "control" / "drone" / "seed0"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text(yaml.safe_dump({"settings": [{"name": "baseline"}]}))
+    record = {"episodes": [_episode(1.0)], "mean": _episode(1.0), "std": _episode(0.0)}
+    members = {"drone/seed0/stages/setting_baseline.json": json.dumps(record).encode()}
+    pack(tmp_path / "control", members, {})
+    assert not (run / "stages").exists()
+    assert tables.settings_so_far(run) == {"baseline": record}

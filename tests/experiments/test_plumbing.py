@@ -82,11 +82,16 @@ def episode(mse: float) -> dict:
     }
 
 
+def stats_mean(values: list[float]) -> float:
+    """The mean a control run records: over the episodes with a planned step (NaN if none)."""
+    return sum(values) / len(values) if values else float("nan")
+
+
 def control_result(seed: int, mses: dict[str, list[float]], env: str = "drone") -> dict:
     settings = {}
     for name, values in mses.items():
         eps = [episode(v) for v in values]
-        mean = {k: sum(e[k] for e in eps) / len(eps) for k in METRICS}
+        mean = {k: stats_mean([e[k] for e in eps if not math.isnan(e[k])]) for k in METRICS}
         std = {k: 0.1 for k in METRICS}
         settings[name] = {"episodes": eps, "mean": mean, "std": std}
     length, n = 12, 4

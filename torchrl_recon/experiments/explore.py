@@ -8,6 +8,7 @@ import sys
 from collections.abc import Mapping
 from typing import Any
 
+from torchrl_recon.evaluation.significance import significance
 from torchrl_recon.experiments import explore_stages
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
@@ -21,7 +22,10 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Table 1 across seeds of one env: per seed, the arm means over retrainings; across seeds,
     mean ± sample std of those means for each arm, the ratio active / random of the means, a
     paired t-test (``scipy.stats.ttest_rel``, from 2 seeds) and a Wilcoxon signed-rank test
-    (``scipy.stats.wilcoxon``, from 5 seeds)."""
+    (``scipy.stats.wilcoxon``, from 5 seeds); and ``significance``
+    (:func:`~torchrl_recon.evaluation.significance.significance`): the mean per-seed ratio
+    with its 95% bootstrap interval, the seeds in each direction, Cohen's d_z and how many seeds
+    the observed spread needs to detect the paper's ratio."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
     seeds = [r.get("seed") for r in runs]
     if len(set(seeds)) != len(seeds):
@@ -59,6 +63,7 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "arms": arms,
         "ratio": ratio,
         "tests": tests,
+        "significance": significance(per_seed["active"], per_seed["random"], runs[0]["env"]),
         "mse_units": runs[0].get("mse_units", ""),
     }
 
@@ -88,10 +93,14 @@ def result_table(r: Mapping[str, Any]) -> str:
 
 
 def summary_table(r: Mapping[str, Any]) -> str:
-    """Table 1 of an explore summary: one row per env."""
-    rows = []
+    """Table 1 of an explore summary: one row per env (the arms, the ratio of their means, the
+    mean per-seed ratio with its 95% bootstrap interval, the seeds where active is lower /
+    higher, the paired tests and Cohen's d_z), then each env's power statement."""
+    rows, power = [], []
     for env, s in r["envs"].items():
         t, w = s["tests"]["paired_t"], s["tests"]["wilcoxon"]
+        sig = s.get("significance") or {}
+        ci, sides = sig.get("ratio_ci") or {}, sig.get("directions") or {}
         rows.append(
             [
                 env,
@@ -99,10 +108,15 @@ def summary_table(r: Mapping[str, Any]) -> str:
                 pm(s["arms"]["random"]["mean"], s["arms"]["random"]["std"]),
                 pm(s["arms"]["active"]["mean"], s["arms"]["active"]["std"]),
                 fmt(s["ratio"], 3),
+                f"{fmt(sig.get('mean_ratio'), 3)} [{fmt(ci.get('low'), 3)}, {fmt(ci.get('high'), 3)}]",
+                f"{sides.get('active_lower', '-')}/{sides.get('active_higher', '-')}",
                 fmt(t["p_value"], 3),
                 fmt(w["p_value"], 3),
+                fmt((sig.get("effect_size") or {}).get("cohens_dz"), 3),
             ]
         )
+        if (sig.get("power") or {}).get("note"):
+            power.append(f"power, {env}: {sig['power']['note']}")
     notes = sorted(
         {
             s["tests"][k]["note"]
@@ -111,10 +125,18 @@ def summary_table(r: Mapping[str, Any]) -> str:
             if s["tests"][k]["note"].startswith("not computed")
         }
     )
+    header = ["env", "seeds", "random", "active", "active/random", "mean ratio [95% CI]"]
+    header += ["lower/higher", "t-test p", "Wilcoxon p", "d_z"]
     text = "Table 1 — validation MSE, mean ± std across seeds of the per-seed means\n" + render(
-        ["env", "seeds", "random", "active", "active/random", "t-test p", "Wilcoxon p"],
-        rows,
+        header, rows
     )
+    text += (
+        "\nmean ratio: of the per-seed ratios, 95% percentile bootstrap over seeds (seeded);"
+        " lower/higher: seeds where active is below / above random; d_z: Cohen's d of the"
+        " per-seed differences active − random"
+    )
+    if power:
+        text += "\n" + "\n".join(power)
     if notes:
         text += "\n" + "\n".join(f"note: {n}" for n in notes)
     return text

@@ -1,0 +1,217 @@
+"""Results are data too: the checks ``summarize`` makes on each ``results.json`` before it
+averages it.
+
+Every number must be finite, except where an experiment kind writes NaN on purpose (a test
+that could not be computed, an episode without a planned step, ...); and the numbers that
+repeat others must agree with them: an explore arm's ``mean`` is the mean of its per-retraining
+``mse`` values, its ``ratio`` is ``active mean / random mean``, a control setting's ``mean`` is
+the mean over its episodes (NaN episodes left out). A file that breaks a rule is one
+:class:`~torchrl_recon.errors.DamagedFileError` naming the file, the key and both numbers.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
+
+from torchrl_recon.errors import DamagedFileError
+
+Path_ = tuple[str, ...]
+"""A key path inside a results dict; list items are ``"[i]"``."""
+
+MEAN_REL_TOL = 1e-5
+"""Relative tolerance of a recorded mean against the mean of its values: explore's arm means
+are taken in float32 (about 1e-7 relative), so 1e-5 allows that and nothing a hand would write."""
+
+RATIO_REL_TOL = 1e-9
+"""Relative tolerance of a recorded ratio against the quotient of the recorded means (computed
+from them in float64)."""
+
+NAN_ALLOWED: dict[str, tuple[Path_, ...]] = {
+    "explore": (
+        ("test", "statistic"),  # one retraining, or no spread: no test
+        ("test", "p_value"),
+        ("data", "active_feasible_fraction"),  # no plan made
+        ("arms", "*", "std"),  # one retraining: no spread (checked below)
+    ),
+    "control": (
+        ("settings", "*", "episodes", "**"),  # an episode without a planned step
+        ("settings", "*", "mean", "*"),  # checked against the episodes below
+        ("settings", "*", "std", "*"),
+        ("trajectory_example", "**"),
+    ),
+    "calibrate": (
+        ("estimators", "**"),  # a metric that could not be computed on the data drawn
+        ("timing", "**"),
+    ),
+}
+"""Per experiment kind, the key paths where NaN is a result (``*`` one key, ``**`` any below);
+infinity is never one."""
+
+_REMEDY = "re-run the experiment to write it again, or leave that run directory out"
+
+
+def _numbers(value: Any, path: Path_ = ()) -> Iterator[tuple[Path_, float]]:
+    """Every float below ``value`` with its key path (bools and ints are always finite)."""
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            yield from _numbers(v, (*path, str(k)))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from _numbers(v, (*path, f"[{i}]"))
+    elif isinstance(value, float):
+        yield path, value
+
+
+def _matches(path: Path_, pattern: Path_) -> bool:
+    """Whether a key path matches a pattern of keys, ``*`` (one key) and ``**`` (the rest)."""
+    for i, p in enumerate(pattern):
+        if p == "**":
+            return len(path) > i
+        if i >= len(path) or (p != "*" and p != path[i]):
+            return False
+    return len(path) == len(pattern)
+
+
+def key(path: Path_) -> str:
+    """A key path as one would write it: ``arms.active.mse[3]``.
+
+    Examples:
+        >>> key(("arms", "active", "mse", "[3]"))
+        'arms.active.mse[3]'
+    """
+    return "".join(p if p.startswith("[") else f".{p}" for p in path).lstrip(".")
+
+
+def _fail(source: str, what: str) -> None:
+    raise DamagedFileError(f"{source}: {what}; {_REMEDY}.")
+
+
+def check_finite(results: Mapping[str, Any], source: str) -> None:
+    """No infinity anywhere, and NaN only at the kind's :data:`NAN_ALLOWED` key paths.
+
+    Examples:
+        >>> check_finite({"experiment": "explore", "ratio": float("inf")}, "r.json")
+        Traceback (most recent call last):
+        ...
+        torchrl_recon.errors.DamagedFileError: r.json: ratio is inf, not a finite number; ...
+    """
+    allowed = NAN_ALLOWED.get(str(results.get("experiment")), ())
+    for path, value in _numbers(results):
+        if math.isinf(value) or (math.isnan(value) and not any(_matches(path, p) for p in allowed)):
+            _fail(source, f"{key(path)} is {value}, not a finite number")
+
+
+def _close(recorded: float, expected: float, rel_tol: float) -> bool:
+    if math.isnan(expected):
+        return math.isnan(recorded)
+    return math.isclose(recorded, expected, rel_tol=rel_tol, abs_tol=1e-300)
+
+
+def _mean(values: list[float]) -> float:
+    return math.fsum(values) / len(values) if values else float("nan")
+
+
+def _number(results: Mapping[str, Any], path: Path_, source: str) -> Any:
+    value: Any = results
+    for k in path:
+        if not isinstance(value, Mapping) or k not in value:
+            _fail(source, f"it has no {key(path)}")
+        value = value[k]
+    return value
+
+
+def check_explore(results: Mapping[str, Any], source: str) -> None:
+    """Each arm's ``mean`` equals the mean of its ``mse`` values (float32 rounding allowed);
+    ``ratio``, where recorded, equals ``active mean / random mean``; the arms' std is finite
+    from 2 values."""
+    means = {}
+    for arm in ("random", "active"):
+        values = _number(results, ("arms", arm, "mse"), source)
+        if not isinstance(values, list) or not values:
+            _fail(source, f"arms.{arm}.mse is not a list of numbers")
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            _fail(source, f"arms.{arm}.mse is not a list of numbers")
+        mean = _number(results, ("arms", arm, "mean"), source)
+        expected = _mean([float(v) for v in values])
+        if not isinstance(mean, (int, float)) or not _close(float(mean), expected, MEAN_REL_TOL):
+            _fail(
+                source,
+                f"arms.{arm}.mean is {mean!r}, but the mean of its {len(values)} "
+                f"per-retraining values (arms.{arm}.mse) is {expected!r}",
+            )
+        std = results["arms"][arm].get("std")
+        if len(values) > 1 and isinstance(std, float) and math.isnan(std):
+            _fail(source, f"arms.{arm}.std is nan with {len(values)} per-retraining values")
+        means[arm] = float(mean)
+    if "ratio" not in results:  # summarize computes the ratio from the means
+        return
+    ratio = results["ratio"]
+    expected = means["active"] / means["random"] if means["random"] else float("nan")
+    if not isinstance(ratio, (int, float)) or not _close(float(ratio), expected, RATIO_REL_TOL):
+        _fail(
+            source,
+            f"ratio is {ratio!r}, but arms.active.mean / arms.random.mean is {expected!r}",
+        )
+
+
+def check_control(results: Mapping[str, Any], source: str) -> None:
+    """Each setting's ``mean`` of each metric equals the mean over its episodes' finite values
+    (NaN when there is none)."""
+    settings = _number(results, ("settings",), source)
+    if not isinstance(settings, Mapping):
+        _fail(source, "settings is not a mapping of setting names")
+    for name, s in settings.items():
+        episodes = s.get("episodes") if isinstance(s, Mapping) else None
+        if not isinstance(episodes, list) or not isinstance(s.get("mean"), Mapping):
+            _fail(source, f"settings.{name} has no episodes and mean")
+        for metric, mean in s["mean"].items():
+            values = [
+                float(e[metric])
+                for e in episodes
+                if isinstance(e, Mapping) and isinstance(e.get(metric), (int, float))
+            ]
+            expected = _mean([v for v in values if not math.isnan(v)])
+            if not isinstance(mean, (int, float)) or not _close(
+                float(mean), expected, MEAN_REL_TOL
+            ):
+                _fail(
+                    source,
+                    f"settings.{name}.mean.{metric} is {mean!r}, but the mean over its "
+                    f"{len(values)} episodes is {expected!r}",
+                )
+
+
+KIND_CHECKS: dict[str, Callable[[Mapping[str, Any], str], None]] = {
+    "explore": check_explore,
+    "control": check_control,
+}
+"""The consistency checks of each kind beyond :func:`check_finite` (calibrate has none)."""
+
+
+def check_results(results: Mapping[str, Any], path: str | os.PathLike[str]) -> None:
+    """Refuse a ``results.json`` whose numbers are not finite where they must be, or disagree.
+
+    Args:
+        results: the file's content (:func:`~torchrl_recon.experiments.run_dir.read_results`).
+        path: the file, named in the error.
+
+    Raises:
+        DamagedFileError: one line naming the file, the key and the numbers that disagree.
+
+    Examples:
+        >>> arm = {"mse": [1.0, 3.0], "mean": 2.0, "std": 1.4}
+        >>> ok = {"experiment": "explore", "arms": {"random": arm, "active": arm}, "ratio": 1.0}
+        >>> check_results(ok, "seed0/results.json")
+        >>> check_results({**ok, "ratio": 0.5}, "seed0/results.json")
+        Traceback (most recent call last):
+        ...
+        torchrl_recon.errors.DamagedFileError: seed0/results.json: ratio is 0.5, but ...
+    """
+    source = os.fspath(path)
+    check_finite(results, source)
+    check = KIND_CHECKS.get(str(results.get("experiment")))
+    if check is not None:
+        check(results, source)

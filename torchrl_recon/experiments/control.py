@@ -4,7 +4,6 @@ stages (:mod:`.control_stages`), summary across seeds, tables, figures and headl
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Mapping
 from typing import Any
@@ -12,11 +11,10 @@ from typing import Any
 from torchrl_recon.experiments import control_stages
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
 from torchrl_recon.experiments.control_seeds import TESTED, across_seeds
-from torchrl_recon.experiments.control_stages import METRICS
+from torchrl_recon.experiments.control_stages import METRICS, episode_mean_std
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
 from torchrl_recon.experiments.recipe_checks import control_errors
-from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.experiments.tables import fmt, pm, render
 
 
@@ -36,11 +34,7 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     for name in names:
         episodes = [ep for r in runs for ep in r["settings"].get(name, {}).get("episodes", [])]
         metrics = [m for m in METRICS if any(m in ep for ep in episodes)]
-        mean, std = {}, {}
-        for m in metrics:
-            # episodes without a planned step report NaN metrics: left out, as in run_control
-            values = [float(ep[m]) for ep in episodes if m in ep]
-            mean[m], std[m] = mean_std([v for v in values if math.isfinite(v)])
+        mean, std = episode_mean_std(episodes, metrics)
         settings[name] = {
             "mean": mean,
             "std": std,

@@ -1,7 +1,6 @@
-"""The estimator comparison (uncertainty estimators side by side) as an
+"""The calibrate experiment (uncertainty estimators side by side) as an
 :class:`~torchrl_recon.experiments.experiment_type.ExperimentType`: its stages
-(:mod:`.estimator_comparison_stages`), summary across seeds, tables, figures and headline
-numbers. Its command and recipes' ``experiment`` are ``calibrate``."""
+(:mod:`.calibrate_stages`), summary across seeds, tables, figures and headline numbers."""
 
 from __future__ import annotations
 
@@ -9,7 +8,7 @@ import sys
 from collections.abc import Mapping
 from typing import Any
 
-from torchrl_recon.experiments import estimator_comparison_stages
+from torchrl_recon.experiments import calibrate_stages
 from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_calibration
@@ -108,13 +107,13 @@ def stage_values(cfg) -> dict:
     """``{estimator}`` and ``{kind}`` of the stage names."""
     return {
         "estimator": [s.name for s in cfg.estimators],
-        "kind": estimator_comparison_stages.OUTCOME_KINDS,
+        "kind": calibrate_stages.OUTCOME_KINDS,
     }
 
 
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    estimator_comparison_stages,
+    calibrate_stages,
     name="calibrate",
     help="uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
     schema=CalibrateConfig,

@@ -21,7 +21,7 @@ from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
-from torchrl_recon.experiments.registry import get_type
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.experiments.run_dir import (
     RunDirConflict,
     git_info,
@@ -612,16 +612,14 @@ def test_format_table_of_single_results():
 
 
 def _fake_experiments(monkeypatch, stop=False):
-    def fake(kind):
-        def fn(ctx):
-            if stop:
-                raise StopRequested("validation")
-            assert (ctx.run_dir / "config.yaml").is_file()
-            return explore_result(ctx.seed, [10.0, 12.0], [7.0, 8.0], env=ctx.cfg.env.name)
+    def fn(ctx):
+        if stop:
+            raise StopRequested("validation")
+        assert (ctx.run_dir / "config.yaml").is_file()
+        return explore_result(ctx.seed, [10.0, 12.0], [7.0, 8.0], env=ctx.cfg.env.name)
 
-        return fn
-
-    monkeypatch.setattr(runner, "_experiment_fn", fake)
+    explore = dataclasses.replace(EXPERIMENT_TYPES["explore"], run=fn)
+    monkeypatch.setitem(EXPERIMENT_TYPES, "explore", explore)
 
 
 def test_runner_writes_results_figures_and_table(tmp_path, monkeypatch, capsys):

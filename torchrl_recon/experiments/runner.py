@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +25,10 @@ from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.experiments.summary import format_table, save_figures
 
 
-def _run_child(cfg: DictConfig) -> dict[str, Any] | None:
-    """Run a child experiment (calibrate's outcomes); its headline numbers."""
-    results = run(cfg)
+def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
+    """Run a child experiment (calibrate's outcomes) made by the command ``argv``; its
+    headline numbers."""
+    results = run(cfg, argv=argv)
     outcome = get_type(cfg.experiment).outcome
     if outcome is None:
         raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
@@ -103,7 +105,8 @@ def run(
         kind = get_type(cfg.experiment)
         logger = make_logger(cfg, run_dir)
         recipes = RecipeLoader(resolve_recipe_path, load_recipe)
-        ctx = RunContext.create(cfg, run_dir, logger, run_child=_run_child, recipes=recipes)
+        child = partial(_run_child, argv=argv)
+        ctx = RunContext.create(cfg, run_dir, logger, run_child=child, recipes=recipes)
         try:
             results = kind.run(ctx)
         except StopRequested as stop:

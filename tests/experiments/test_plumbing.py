@@ -421,6 +421,25 @@ def test_prepare_run_dir_writes_config_and_meta(tmp_path):
     assert meta["resumed"] is False
 
 
+def test_meta_records_no_absolute_path(tmp_path, monkeypatch):
+    inside, outside = tmp_path / "cwd", tmp_path / "elsewhere"
+    inside.mkdir()
+    monkeypatch.chdir(inside)
+    recipe = str(RECIPES / "drone" / "explore_smoke.yaml")
+    for out, expected in ((inside / "runs" / "seed0", "runs/seed0"), (outside / "seed0", "seed0")):
+        cfg = load_recipe(recipe, [f"output_dir={out}"])
+        argv = ["torchrl-recon", "explore", recipe, f"output_dir={out}", "seed=0"]
+        extra = {"job_overrides": [f"output_dir={out}"]}
+        run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra)
+        release_run_dir(run_dir)
+        meta = json.loads((run_dir / "meta.json").read_text())
+        assert meta["run_dir"] == expected
+        # a shipped recipe by its name
+        assert meta["argv"][2:] == ["drone/explore_smoke.yaml", f"output_dir={expected}", "seed=0"]
+        assert meta["job_overrides"] == [f"output_dir={expected}"]
+        assert str(tmp_path) not in json.dumps(meta)
+
+
 def test_git_info_outside_a_checkout(tmp_path):
     assert git_info(tmp_path) == {"commit": "unknown", "dirty": None}
 

@@ -148,8 +148,10 @@ def portable_path(path: str | os.PathLike[str]) -> str:
     p = Path(path)
     if not p.is_absolute():
         return str(path)
-    root = next((r for r in (RECIPES_DIR, Path.cwd()) if p.is_relative_to(r) and p != r), None)
-    return p.relative_to(root).as_posix() if root else p.name
+    if p.resolve().is_relative_to(RECIPES_DIR):
+        return p.resolve().relative_to(RECIPES_DIR).as_posix()
+    cwd = Path.cwd()
+    return p.relative_to(cwd).as_posix() if p.is_relative_to(cwd) and p != cwd else p.name
 
 
 def portable_argv(argv: Sequence[str]) -> list[str]:

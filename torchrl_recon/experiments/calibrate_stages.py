@@ -218,7 +218,7 @@ def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
     return outcomes
 
 
-def comparison_results(
+def calibrate_results(
     ctx: RunContext, fits: dict, evaluation: dict, times: dict, outcomes: dict
 ) -> dict[str, Any]:
     """The results dict: one row per estimator, times as ratios to the reference estimator."""
@@ -265,4 +265,4 @@ def run(ctx: RunContext) -> dict[str, Any]:
     world, estimators, fits = fit_stages(ctx, data)
     evaluation = evaluation_stage(ctx, world, estimators, scale)
     times = ctx.stages.run("timing", lambda: timing(cfg, world, estimators, data))
-    return comparison_results(ctx, fits, evaluation, times, outcome_stages(ctx))
+    return calibrate_results(ctx, fits, evaluation, times, outcome_stages(ctx))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from _common import parse_args
 
-from torchrl_recon.experiments import control_stages
+from torchrl_recon.experiments import control_stages, explore_stages
 from torchrl_recon.experiments.common import build_planner, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
@@ -58,7 +58,7 @@ def main() -> None:
         data = control_stages.random_data_stage(
             ctx, "random_data", frames=4 * 250, episode_steps=250
         )
-        world, estimator = control_stages.models_stage(ctx, data)
+        world, estimator = explore_stages.models_stage(ctx, data, "models")
         model = planning_model(cfg, world, estimator)
         controller = control_stages.Controller(model, 1.0, 1.0, control_stages.state_scale(data))
         print(

@@ -3,18 +3,17 @@
 Experiments (paper §3) run from a YAML recipe through Hydra, so that any key can be overridden
 on the command line and seeds swept with Hydra's multirun (``-m``), e.g.::
 
-    torchrl-recon explore recipes/drone/explore_smoke.yaml seed=1
+    torchrl-recon explore drone/explore_smoke seed=1
     torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 \\
         hydra/launcher=joblib hydra.launcher.n_jobs=2
     torchrl-recon summarize outputs/explore/drone
+    torchrl-recon recipes
 
 Every failure ends in one ``error: ...`` line on stderr (tracebacks only with ``--debug`` or
 ``HYDRA_FULL_ERROR=1``). Exit codes: 0 done (or stopped by ``stop_after``); 2 a bad recipe or
 override, a missing recipe, a damaged file or a locked / conflicting run directory; 130
 interrupted (Ctrl-C, SIGINT, SIGTERM: re-run the same command to resume); 1 anything else
-(a bug: re-run with ``--debug`` and report the traceback).
-
-See docs/experiments.md.
+(a bug: re-run with ``--debug`` and report the traceback). See docs/experiments.md.
 """
 
 from __future__ import annotations
@@ -31,9 +30,9 @@ import threading
 import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from unittest import mock
 
 import torch
-from omegaconf import OmegaConf
 
 from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -41,16 +40,13 @@ from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
 """Each experiment command and its help line (from the registry)."""
 _ARGV_ENV = "TORCHRL_RECON_ARGV"
+"""The command as typed, for the ``meta.json`` of each job (jobs may run in other processes)."""
 _STATUS_ENV = "TORCHRL_RECON_STATUS"
-"""A file each Hydra job appends its exit code to (jobs may run in other processes)."""
+"""A file each Hydra job appends its exit code to."""
 _DEBUG_ENV = "TORCHRL_RECON_DEBUG"
 """Set by ``--debug`` (``HYDRA_FULL_ERROR=1`` does the same): tracebacks are shown."""
 
 EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
-
-
-# ----------------------------------------------------------------------------------------------
-# Failures: one line each
 
 
 def debug_enabled() -> bool:
@@ -67,8 +63,7 @@ def exit_code(error: BaseException) -> int:
         >>> exit_code(DamagedFileError("x")), exit_code(ZeroDivisionError())
         (2, 1)
     """
-    from torchrl_recon.errors import DamagedFileError
-    from torchrl_recon.experiments.recipe import RecipeError
+    from torchrl_recon.errors import DamagedFileError, RecipeError
     from torchrl_recon.experiments.run_dir import RunDirConflict
 
     user = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
@@ -118,37 +113,14 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-@contextlib.contextmanager
-def _env(name: str, value: str | None) -> Iterator[None]:
-    """Set (or leave alone, when ``value`` is None) an environment variable for a block."""
-    saved = os.environ.get(name)
-    if value is not None:
-        os.environ[name] = value
-    try:
-        yield
-    finally:
-        if saved is None:
-            os.environ.pop(name, None)
-        else:
-            os.environ[name] = saved
+def _env(name: str, value: str | None):
+    """Set ``name`` (or nothing, when ``value`` is None) for a block; the environment is
+    restored afterwards."""
+    return mock.patch.dict(os.environ, {} if value is None else {name: value})
 
 
 # ----------------------------------------------------------------------------------------------
 # Hydra
-
-
-def _register_resolvers() -> None:
-    """``${trr_parent:path}`` and ``${trr_abspath:path}``, used to place Hydra's sweep dirs."""
-    OmegaConf.register_new_resolver("trr_parent", lambda p: str(Path(str(p)).parent), replace=True)
-    OmegaConf.register_new_resolver(
-        "trr_abspath", lambda p: str(Path(str(p)).expanduser().resolve()), replace=True
-    )
-    from torchrl_recon.experiments.compose import register_resolvers
-
-    register_resolvers()  # the recipes' own (${trr_env_name:...})
-
-
-_register_resolvers()  # at import: joblib workers import this module to unpickle _task
 
 
 def hydra_settings(kind: str) -> dict[str, str]:
@@ -169,89 +141,72 @@ def hydra_settings(kind: str) -> dict[str, str]:
     }
 
 
-def _record_exit(code: int) -> None:
-    """Tell :func:`run_recipe` a job's exit code (a job may run in another process)."""
-    path = os.environ.get(_STATUS_ENV)
-    if not path:  # not started by run_recipe: end like a command would
-        raise SystemExit(code)
-    with open(path, "a") as f:
-        f.write(f"{code}\n")
-
-
-def _run_dir_of(cfg) -> Path | None:
-    try:
-        return Path(str(cfg.output_dir)).expanduser().resolve()
-    except Exception:  # an interpolation that does not resolve: no directory to name
-        return None
-
-
 def _task(cfg) -> int:
     """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node).
 
-    A failure prints one ``error:`` line and records its exit code, so that a multirun goes on
-    with its other jobs; an interrupt names the last finished stage and ends the command (130).
+    A failure prints one ``error:`` line and records its exit code for :func:`run_recipe` (a
+    job may run in another process), so that a multirun goes on with its other jobs; an
+    interrupt names the last finished stage and ends the command (130).
     """
-    try:
-        _run_job(cfg)
-    except KeyboardInterrupt:
-        raise SystemExit(_interrupted(_run_dir_of(cfg))) from None
-    except Exception as e:
-        code = report(e)
-        _record_exit(code)
-        return code
-    return EXIT_OK
-
-
-def _run_job(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
+    from torchrl_recon.experiments.compose import register_resolvers
     from torchrl_recon.experiments.runner import run
 
-    _register_resolvers()
+    register_resolvers()  # again, in case a launcher's worker process starts without them
     # TorchRL logs one INFO line per replay buffer it fills, which drowns the run's output.
     if "TORCHRL_LOGGING_LEVEL" not in os.environ:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
+    hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
     extra = {}
-    try:
-        hydra_cfg = HydraConfig.get()
+    if hydra_cfg is not None:
         extra["job_overrides"] = list(hydra_cfg.overrides.task)
         extra["hydra_mode"] = getattr(hydra_cfg.mode, "name", str(hydra_cfg.mode)).lower()
-    except ValueError:
-        pass
-    run(cfg, argv=argv, extra_meta=extra)
+    try:
+        run(cfg, argv=argv, extra_meta=extra)
+    except KeyboardInterrupt:
+        try:
+            run_dir = Path(str(cfg.output_dir)).expanduser().resolve()
+        except Exception:  # an interpolation that does not resolve: no directory to name
+            run_dir = None
+        raise SystemExit(_interrupted(run_dir)) from None
+    except Exception as e:
+        code = report(e)
+        if not os.environ.get(_STATUS_ENV):  # not started by run_recipe: end as a command would
+            raise SystemExit(code) from None
+        with open(os.environ[_STATUS_ENV], "a") as f:
+            f.write(f"{code}\n")
+        return code
+    return EXIT_OK
 
 
 _HYDRA_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
 _HYDRA_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
 
 
-def _split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
+def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
     """Split Hydra command line items into flags (``--cfg job`` ...) and overrides."""
-    flags, rest = [], []
-    items = list(overrides)
-    i = 0
+    flags, rest, i = [], [], 0
     while i < len(items):
-        item = items[i]
-        if item.startswith("-"):
-            flags.append(item)
-            takes_value = item in _HYDRA_FLAGS_WITH_VALUE or (
-                item in ("--info", "-i")
-                and i + 1 < len(items)
-                and items[i + 1] in _HYDRA_INFO_TOPICS
-            )
-            if takes_value and i + 1 < len(items):
-                flags.append(items[i + 1])
-                i += 1
-        else:
+        item, value = items[i], items[i + 1] if i + 1 < len(items) else None
+        if not item.startswith("-"):
             rest.append(item)
+        elif value is not None and (
+            item in _HYDRA_FLAGS_WITH_VALUE
+            or (item in ("--info", "-i") and value in _HYDRA_INFO_TOPICS)
+        ):
+            flags += [item, value]
+            i += 1
+        else:
+            flags.append(item)
         i += 1
     return flags, rest
 
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
     """Validate every job of the command before Hydra starts anything; return the overrides
-    to hand to Hydra (a schema key the recipe lacks gets its ``+``).
+    to hand to Hydra (a schema key the recipe lacks gets its ``++``).
 
     Each job of a sweep (the product of the command line's sweeps and the recipe's own
     ``hydra.sweeper.params``) is composed by Hydra and checked on its own, and so is its run
@@ -268,10 +223,6 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
     from torchrl_recon.experiments.recipe import RecipeError, validate
     from torchrl_recon.experiments.run_dir import check_run_dir
 
-    if not recipe.is_file():
-        raise FileNotFoundError(
-            f"Recipe file not found: {recipe}. `torchrl-recon {kind} --help` lists the shipped recipes."
-        )
     base = compose_recipe(recipe, with_hydra=True)
     found = base.get("experiment")
     if found != kind:
@@ -302,140 +253,132 @@ def run_recipe(
     *,
     debug: bool = False,
 ) -> int:
-    """Run a recipe through a Hydra app built here; returns the exit code.
+    """Run a recipe (a path, or a shipped recipe's name) through ``hydra.main``; returns the
+    exit code.
 
-    ``sys.argv`` is rewritten to ``[prog, --config-dir, <recipe dir>, --config-name, <recipe
-    stem>, <hydra settings>, *overrides]`` (plus ``--multirun``) for the duration of the call.
-    Every failure prints one ``error:`` line; the code is 0, 2 (user error: recipe, file, run
-    directory), 130 (interrupted) or 1 (a bug). In a multirun, a job that fails does not stop
-    the others; the worst code is returned. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
+    Hydra reads its command line from ``sys.argv``: for the duration of the call it is
+    ``[prog, *Hydra flags, <hydra settings>, *overrides]`` (plus ``--multirun``), the recipe
+    being the app's config. Every failure prints one ``error:`` line; the code is 0, 2 (user
+    error: recipe, file, run directory), 130 (interrupted) or 1 (a bug). In a multirun, a job
+    that fails does not stop the others; the worst code is returned. ``debug`` shows
+    tracebacks (as ``HYDRA_FULL_ERROR=1``).
     """
-    from torchrl_recon.experiments.recipe import resolve_recipe_path
-
-    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
-        try:
-            path = resolve_recipe_path(recipe)
-        except FileNotFoundError as e:
-            return report(e, EXIT_USER)
-        return _run_recipe(kind, path, list(overrides), multirun)
-
-
-def _run_recipe(kind: str, recipe: Path, overrides: list[str], multirun: bool) -> int:
     import hydra
     from hydra.errors import HydraException
 
     from torchrl_recon.experiments.compose import hydra_error_message, search_path_override
+    from torchrl_recon.experiments.recipe import resolve_recipe_path
     from torchrl_recon.experiments.run_dir import RunDirConflict
 
-    flags, plain = _split_overrides(overrides)
-    try:
-        here = not multirun or not any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
-        plain = precheck(kind, recipe, plain, here=here)
-    except (FileNotFoundError, ValueError, RunDirConflict) as e:
-        return report(e, EXIT_USER)
-    given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
-    settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
-    fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
-    os.close(fd)
-    argv = [
-        "torchrl-recon",
-        "--config-dir",
-        str(recipe.resolve().parent),
-        "--config-name",
-        recipe.stem,
-        *flags,
-        *settings,
-        f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
-        search_path_override(),
-        *plain,
-    ]
-    if multirun:
-        argv.append("--multirun")
-    app = hydra.main(version_base="1.3", config_path=None)(_task)
-    saved_argv = sys.argv
-    command = ["torchrl-recon", kind, str(recipe), *overrides] + (
-        ["--multirun"] if multirun else []
-    )
-    sys.argv = argv
-    code = EXIT_OK
-    try:
-        # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs catch theirs)
-        with _env(_ARGV_ENV, json.dumps(command)), _env("HYDRA_FULL_ERROR", "1"):
-            app()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
-        code = _interrupted(None)
-    except HydraException as e:  # a bad Hydra setting or config group choice
-        code = report(e, EXIT_USER, hydra_error_message(e))
-    except Exception as e:
-        code = report(e)
-    finally:
-        sys.argv = saved_argv
-        jobs = [int(line) for line in Path(status).read_text().split()]
-        Path(status).unlink(missing_ok=True)
-    return code or max(jobs, default=EXIT_OK)
+    command = ["torchrl-recon", kind, str(recipe), *overrides] + ["--multirun"] * multirun
+    flags, plain = _split_overrides(list(overrides))
+    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
+        try:
+            path = resolve_recipe_path(recipe)
+            slurm = any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
+            here = not (multirun and slurm)  # the jobs' devices are checked where they run
+            plain = precheck(kind, path, plain, here=here)
+        except (FileNotFoundError, ValueError, RunDirConflict) as e:
+            return report(e, EXIT_USER)
+        given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
+        settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
+        fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
+        os.close(fd)
+        argv = [
+            "torchrl-recon",
+            *flags,
+            *settings,
+            f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
+            search_path_override(),
+            *plain,
+        ] + ["--multirun"] * multirun
+        config_dir = str(path.resolve().parent)
+        app = hydra.main(version_base="1.3", config_path=config_dir, config_name=path.stem)(_task)
+        code = EXIT_OK
+        try:
+            # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs
+            # catch theirs)
+            with mock.patch.object(sys, "argv", argv), _env(_ARGV_ENV, json.dumps(command)):
+                with _env("HYDRA_FULL_ERROR", "1"):
+                    app()
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
+            code = _interrupted(None)
+        except HydraException as e:  # a bad Hydra setting or config group choice
+            code = report(e, EXIT_USER, hydra_error_message(e))
+        except Exception as e:
+            code = report(e)
+        finally:
+            jobs = [int(line) for line in Path(status).read_text().split()]
+            Path(status).unlink(missing_ok=True)
+        return code or max(jobs, default=EXIT_OK)
+
+
+# ----------------------------------------------------------------------------------------------
+# Commands
 
 
 def _experiment(args: argparse.Namespace) -> int:
-    overrides = list(args.overrides)
-    multirun = args.multirun
-    for flag in ("-m", "--multirun"):
+    overrides, multirun = list(args.overrides), args.multirun
+    for flag in ("-m", "--multirun", "--debug"):  # after the recipe: left in the overrides
         while flag in overrides:
             overrides.remove(flag)
-            multirun = True
-    while "--debug" in overrides:  # given after the recipe: argparse leaves it in the overrides
-        overrides.remove("--debug")
-        os.environ[_DEBUG_ENV] = "1"
+            if flag == "--debug":
+                os.environ[_DEBUG_ENV] = "1"
+            else:
+                multirun = True
     return run_recipe(args.command, args.recipe, overrides, multirun=multirun)
 
 
 def _summarize(args: argparse.Namespace) -> int:
+    from torchrl_recon.experiments import summary as summaries
     from torchrl_recon.experiments.run_dir import read_results
-    from torchrl_recon.experiments.summary import (
-        find_results,
-        format_table,
-        save_summary,
-        summarize,
-    )
 
-    try:
-        files = find_results(args.dirs)
-    except FileNotFoundError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    files = summaries.find_results(args.dirs)
     if not files:
-        print(f"error: no results.json found below {', '.join(args.dirs)}", file=sys.stderr)
-        return 2
+        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
+    results = {f: read_results(f) for f in files}
     by_kind: dict[str, list[Path]] = {}
-    results = {}
-    for f in files:
-        r = read_results(f)
-        results[f] = r
+    for f, r in results.items():
         by_kind.setdefault(str(r.get("experiment")), []).append(f)
     if args.out is not None:
         Path(args.out).mkdir(parents=True, exist_ok=True)
     for kind, kind_files in sorted(by_kind.items()):
-        summary = summarize(kind_files)
-        print(f"{len(kind_files)} {kind} result file(s)")
-        print(format_table(summary))
-        print()
-        if args.out is None:
-            continue
-        path, *figures = save_summary(summary, [results[f] for f in kind_files], args.out)
-        print(f"summary: {path}")
-        for figure in figures:
-            print(f"figure: {figure}")
-    return 0
+        summary = summaries.summarize(kind_files)
+        print(f"{len(kind_files)} {kind} result file(s)\n{summaries.format_table(summary)}\n")
+        if args.out is not None:
+            path, *figures = summaries.save_summary(
+                summary, [results[f] for f in kind_files], args.out
+            )
+            print(f"summary: {path}" + "".join(f"\nfigure: {f}" for f in figures))
+    return EXIT_OK
 
 
-def _recipes_epilog(kind: str) -> str:
-    if not RECIPES_DIR.is_dir():
-        return ""
-    files = sorted(
-        p.relative_to(RECIPES_DIR).with_suffix("") for p in RECIPES_DIR.glob(f"*/{kind}*.yaml")
-    )
-    return "recipes (by name, from any folder; or a path to your own):\n" + "\n".join(f"  {p}" for p in files) if files else ""
+def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
+    """``(kind, name, first comment line)`` of each recipe shipped in the package (of ``kind``
+    only, if given); a name runs from any folder (``torchrl-recon explore drone/explore``).
+
+    Examples:
+        >>> ("explore", "drone/explore_smoke") in [r[:2] for r in shipped_recipes("explore")]
+        True
+    """
+    out = []
+    for path in sorted(RECIPES_DIR.glob("*/*.yaml")):
+        found = next((k for k in EXPERIMENTS if path.stem.startswith(k)), None)
+        if found is not None and kind in (None, found):
+            lines = path.read_text().splitlines()
+            about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
+            out.append((found, path.relative_to(RECIPES_DIR).with_suffix("").as_posix(), about))
+    return sorted(out, key=lambda r: list(EXPERIMENTS).index(r[0]))
+
+
+def _recipes(args: argparse.Namespace) -> int:
+    from torchrl_recon.experiments.tables import render
+
+    rows = [list(r) for r in shipped_recipes(args.kind)]
+    print(render(["kind", "recipe", "about"], rows))
+    return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -447,10 +390,11 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=f"experiments (paper §3):\n{experiments}\n\n"
         "examples:\n"
         "  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml\n"
-        "  torchrl-recon control recipes/drone/control.yaml seed=3 logger.backend=csv\n"
+        "  torchrl-recon control drone/control seed=3 logger.backend=csv\n"
         "  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 "
         "hydra/launcher=joblib hydra.launcher.n_jobs=2\n"
-        "  torchrl-recon summarize outputs/explore/drone\n\n"
+        "  torchrl-recon summarize outputs/explore/drone\n"
+        "  torchrl-recon recipes\n\n"
         "exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run\n"
         "directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).\n\n"
         "Details: docs/experiments.md",
@@ -462,6 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for kind, text in EXPERIMENTS.items():
+        names = "\n".join(f"  {name}" for _, name, _ in shipped_recipes(kind))
         p = sub.add_parser(
             kind,
             parents=[common],
@@ -470,10 +415,10 @@ def build_parser() -> argparse.ArgumentParser:
             "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
             "comma-separated values with Hydra's multirun; Hydra flags such as "
             "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
-            epilog=_recipes_epilog(kind),
+            epilog=f"recipes (by name, from any folder; or a path to your own):\n{names}",
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        p.add_argument("recipe", metavar="RECIPE", help="the recipe YAML file")
+        p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
         p.add_argument(
             "overrides",
             nargs=argparse.REMAINDER,
@@ -494,6 +439,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default=None, help="also write summary_<kind>.json and figures to this directory"
     )
     summ.set_defaults(func=_summarize)
+    rec = sub.add_parser(
+        "recipes", parents=[common], help="list the shipped recipes (kind, name, what it runs)"
+    )
+    rec.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
+    rec.set_defaults(func=_recipes)
     return parser
 
 

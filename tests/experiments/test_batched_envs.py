@@ -16,6 +16,7 @@ from torchrl_recon.experiments import control_stages, explore_stages
 from torchrl_recon.experiments.common import build_env, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.planners import window_uncertainty
 
 RECIPES = Path(torchrl_recon.__file__).parents[1] / "recipes" / "drone"
 # A drone that tilts past 0.01 rad ends its episode: episodes of a batch end at different steps.
@@ -38,8 +39,9 @@ def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control_stages
     cfg = load_recipe(RECIPES / "control_smoke.yaml", [*CONTROL, *overrides])
     ctx = RunContext.create(cfg, run_dir)
     data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = control_stages.models_stage(ctx, data)
-    u = control_stages.window_uncertainty(ctx, data, estimator)
+    world, estimator = explore_stages.models_stage(ctx, data, "models")
+    length = max(cfg.models.window, cfg.training.slice_len)  # as control_stages.run
+    u = window_uncertainty(data, estimator, sequence_length=length)
     model = planning_model(cfg, world, estimator)
     threshold = control_stages.replan_threshold(cfg, u)
     return ctx, control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
@@ -145,7 +147,7 @@ def test_batched_exploration_data_is_valid(tmp_path):
     assert validation.shape == (5, 7)
     assert (validation["step_count"].squeeze(-1) == torch.arange(7)).all()
 
-    world, estimator = explore_stages.models_stage(ctx, initial)
+    world, estimator = explore_stages.models_stage(ctx, initial, "initial_models")
     record, data = explore_stages.guided_round_stage(ctx, world, estimator, 0, 1, 40)
     assert data.numel() == record["steps"] == 40
     _assert_contiguous_trajectories(data)

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import os
 import signal
@@ -17,6 +18,7 @@ import pytest
 from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments import runner
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 IB_EXPLORE = RECIPES / "industrial_benchmark" / "explore_smoke.yaml"
@@ -91,13 +93,11 @@ def test_sigint_mid_run_exits_130_and_the_same_command_resumes(tmp_path):
 
 
 def _failing_experiment(monkeypatch, error: Exception) -> None:
-    def fn(kind):
-        def run(ctx):
-            raise error
+    def run(ctx):
+        raise error
 
-        return run
-
-    monkeypatch.setattr(runner, "_experiment_fn", fn)
+    explore = dataclasses.replace(EXPERIMENT_TYPES["explore"], run=run)
+    monkeypatch.setitem(EXPERIMENT_TYPES, "explore", explore)
 
 
 def test_damaged_file_inside_the_job_is_one_error_line_and_exit_2(tmp_path, monkeypatch, capsys):

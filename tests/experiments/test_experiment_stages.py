@@ -12,12 +12,13 @@ import torch
 
 import torchrl_recon
 from tests.experiments.tiny import TINY as TINY_OVERRIDES
-from torchrl_recon.experiments import control_stages, estimator_comparison_stages, explore_stages
-from torchrl_recon.experiments.common import fit_stage, planning_model
+from torchrl_recon.experiments import calibrate_stages, control_stages, explore_stages
+from torchrl_recon.experiments.common import build_models, fit_stage, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.experiments.stats import mean_std
+from torchrl_recon.planners import window_uncertainty
 
 PACKAGE = Path(torchrl_recon.__file__).parent
 RECIPES = PACKAGE.parent / "recipes" / "industrial_benchmark"
@@ -45,7 +46,7 @@ def test_explore_stages_one_by_one(tmp_path):
     )
     initial = explore_stages.random_steps_stage(ctx, "initial_random", 30)
     assert initial.numel() == 30 and ctx.stages.done("initial_random")
-    world, estimator = explore_stages.models_stage(ctx, initial)
+    world, estimator = explore_stages.models_stage(ctx, initial, "initial_models")
     assert (tmp_path / "checkpoints" / "initial_models.pt").is_file()
     validation = explore_stages.validation_stage(ctx)
     assert validation.shape == (2, 3 + 4)
@@ -72,8 +73,8 @@ def test_control_stages_one_by_one(tmp_path):
         "episodes=1",
     )
     data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = control_stages.models_stage(ctx, data)
-    u = control_stages.window_uncertainty(ctx, data, estimator)
+    world, estimator = explore_stages.models_stage(ctx, data, "models")
+    u = window_uncertainty(data, estimator, sequence_length=ctx.cfg.training.slice_len)
     threshold = control_stages.replan_threshold(ctx.cfg, u)
     assert threshold > 0 and u.device.type == "cpu"
     setting = ctx.cfg.settings[0]
@@ -85,7 +86,7 @@ def test_control_stages_one_by_one(tmp_path):
     assert math.isnan(record["std"]["real_cost"])  # one episode: no spread to measure
 
 
-def test_estimator_comparison_stages_one_by_one(tmp_path):
+def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):
     ctx = _ctx(
         tmp_path,
         "calibrate",
@@ -95,29 +96,38 @@ def test_estimator_comparison_stages_one_by_one(tmp_path):
         "evaluation.horizon=3",
         "evaluation.ood_windows=4",
     )
-    data = estimator_comparison_stages.random_data_stage(
-        ctx, "random_data", frames=24, episode_steps=12
-    )
-    world, estimators, fits = estimator_comparison_stages.fit_stages(ctx, data)
+    data = calibrate_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimators, fits = calibrate_stages.fit_stages(ctx, data)
     assert set(fits) == {"world_model", *estimators}
     assert all("val_loss" in record for record in fits.values())
     scale = torch.ones(data["observation"].shape[-1])
-    evaluation = estimator_comparison_stages.evaluation_stage(ctx, world, estimators, scale)
+    evaluation = calibrate_stages.evaluation_stage(ctx, world, estimators, scale)
     assert set(evaluation["estimators"]) == set(estimators)
+    # the timing stage times on the models' device (on CUDA: until the device is done)
+    seen = []
+
+    def fake_timer(fns, repeats, *, device=None):
+        seen.append(device)
+        return dict.fromkeys(fns, 1.0)
+
+    monkeypatch.setattr(calibrate_stages, "interleaved_median_ms", fake_timer)
+    times = calibrate_stages.timing(ctx.cfg, world, estimators, data)
+    assert seen and all(d == ctx.device for d in seen)
+    assert set(times[f"H{ctx.cfg.timing.horizons[0]}"]) == {"cem_without_u_ms", *estimators}
     if any(ctx.cfg.outcomes[f"{k}_recipe"] for k in ("explore", "control")):
         with pytest.raises(ValueError, match="outcomes run other recipes"):
-            estimator_comparison_stages.outcome_stages(ctx)  # a context without a runner
+            calibrate_stages.outcome_stages(ctx)  # a context without a runner
 
 
 def test_fit_stage_resumes_from_its_checkpoint(tmp_path):
     ctx = _ctx(tmp_path, "control", "random_episodes=2", "random_episode_steps=12")
     data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = control_stages.build_models(
+    world, estimator = build_models(
         ctx.cfg, data["observation"].shape[-1], data["action"].shape[-1], ctx.device
     )
     first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
     assert set(first) >= {"world_model_val_loss", "uncertainty_val_loss"}
-    fresh, fresh_u = control_stages.build_models(
+    fresh, fresh_u = build_models(
         ctx.cfg, data["observation"].shape[-1], data["action"].shape[-1], ctx.device
     )
     again = fit_stage(ctx, "models", data, {"world_model": fresh, "uncertainty": fresh_u})

@@ -21,7 +21,7 @@ from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
 from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
-from torchrl_recon.experiments.registry import get_type
+from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.experiments.run_dir import (
     RunDirConflict,
     git_info,
@@ -426,6 +426,25 @@ def test_prepare_run_dir_writes_config_and_meta(tmp_path):
     assert meta["resumed"] is False
 
 
+def test_meta_records_no_absolute_path(tmp_path, monkeypatch):
+    inside, outside = tmp_path / "cwd", tmp_path / "elsewhere"
+    inside.mkdir()
+    monkeypatch.chdir(inside)
+    recipe = str(RECIPES / "drone" / "explore_smoke.yaml")
+    for out, expected in ((inside / "runs" / "seed0", "runs/seed0"), (outside / "seed0", "seed0")):
+        cfg = load_recipe(recipe, [f"output_dir={out}"])
+        argv = ["torchrl-recon", "explore", recipe, f"output_dir={out}", "seed=0"]
+        extra = {"job_overrides": [f"output_dir={out}"]}
+        run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra)
+        release_run_dir(run_dir)
+        meta = json.loads((run_dir / "meta.json").read_text())
+        assert meta["run_dir"] == expected
+        # a shipped recipe by its name
+        assert meta["argv"][2:] == ["drone/explore_smoke.yaml", f"output_dir={expected}", "seed=0"]
+        assert meta["job_overrides"] == [f"output_dir={expected}"]
+        assert str(tmp_path) not in json.dumps(meta)
+
+
 def test_git_info_outside_a_checkout(tmp_path):
     assert git_info(tmp_path) == {"commit": "unknown", "dirty": None}
 
@@ -617,16 +636,14 @@ def test_format_table_of_single_results():
 
 
 def _fake_experiments(monkeypatch, stop=False):
-    def fake(kind):
-        def fn(ctx):
-            if stop:
-                raise StopRequested("validation")
-            assert (ctx.run_dir / "config.yaml").is_file()
-            return explore_result(ctx.seed, [10.0, 12.0], [7.0, 8.0], env=ctx.cfg.env.name)
+    def fn(ctx):
+        if stop:
+            raise StopRequested("validation")
+        assert (ctx.run_dir / "config.yaml").is_file()
+        return explore_result(ctx.seed, [10.0, 12.0], [7.0, 8.0], env=ctx.cfg.env.name)
 
-        return fn
-
-    monkeypatch.setattr(runner, "_experiment_fn", fake)
+    explore = dataclasses.replace(EXPERIMENT_TYPES["explore"], run=fn)
+    monkeypatch.setitem(EXPERIMENT_TYPES, "explore", explore)
 
 
 def test_runner_writes_results_figures_and_table(tmp_path, monkeypatch, capsys):
@@ -688,7 +705,7 @@ def test_cli_help_lists_experiments(capsys):
         assert word in out
     with pytest.raises(SystemExit):
         main(["explore", "--help"])
-    assert "recipes/drone/explore.yaml" in capsys.readouterr().out
+    assert "\n  drone/explore\n" in capsys.readouterr().out  # the shipped recipes, by name
 
 
 def test_cli_summarize(tmp_path, capsys):

@@ -1,42 +1,26 @@
-"""The paper's experiments (and the estimator comparison), resumable, launched from YAML recipes.
+"""The paper's experiments (and the calibrate experiment), resumable, launched from YAML recipes.
 
-Reads top down: the CLI → :mod:`.registry` (every experiment kind) → a kind
-(:mod:`.explore`, :mod:`.control`, :mod:`.estimator_comparison`: an
-:class:`~.experiment_type.ExperimentType`) → its stages (``*_stages``, each taking the run's
-:class:`~.context.RunContext`) → the shared builders (:mod:`.common`) and the library.
+Reads top down: the CLI → :mod:`.registry` (every experiment kind) → a kind (:mod:`.explore`,
+:mod:`.control`, :mod:`.calibrate`: an :class:`~.experiment_type.ExperimentType`) → its stages
+(``*_stages``, each taking the run's :class:`~.context.RunContext`) → the shared builders
+(:mod:`.common`) and the library.
 
-Importing this package imports nothing heavy; import the modules you use.
+Importing this package imports nothing heavy: the public names below load on first use.
 """
 
-__all__ = [
-    "ExperimentType",
-    "RunContext",
-    "get_type",
-    "load_recipe",
-    "run",
-]
+import importlib
+
+_HOMES = {
+    "ExperimentType": "experiment_type",
+    "RunContext": "context",
+    "get_type": "registry",
+    "load_recipe": "recipe",
+    "run": "runner",
+}
+__all__ = list(_HOMES)
 
 
 def __getattr__(name: str):
-    """The public names, imported on first use (the package itself stays light)."""
-    if name == "ExperimentType":
-        from torchrl_recon.experiments.experiment_type import ExperimentType
-
-        return ExperimentType
-    if name == "RunContext":
-        from torchrl_recon.experiments.context import RunContext
-
-        return RunContext
-    if name == "get_type":
-        from torchrl_recon.experiments.registry import get_type
-
-        return get_type
-    if name == "load_recipe":
-        from torchrl_recon.experiments.recipe import load_recipe
-
-        return load_recipe
-    if name == "run":
-        from torchrl_recon.experiments.runner import run
-
-        return run
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if name not in _HOMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)

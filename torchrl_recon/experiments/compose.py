@@ -1,14 +1,15 @@
 """Compose a recipe with Hydra's own composition: defaults lists, config groups, packages, sweeps.
 
 The CLI's jobs are composed by Hydra; checking a recipe before any work composes it the same way
-(:func:`compose_recipe`), with the shipped ``recipes/`` folder on Hydra's search path so that a
-recipe anywhere can extend a shipped one (``defaults: [/drone/explore@_here_, _self_]``).
+(:func:`compose_recipe`), with the shipped recipes on Hydra's search path so that a recipe
+anywhere can extend a shipped one (``defaults: [/drone/explore@_here_, _self_]``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,9 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_recon.errors import RecipeError
 
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
-"""The recipes shipped inside the package (the checkout's ``recipes/`` links here)."""
-"""The shipped recipes (``recipes/<env>/<kind>.yaml``), on Hydra's search path of every recipe."""
-
+"""The recipes shipped inside the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``
+links here), on Hydra's search path of every recipe."""
 MAX_SWEEP_JOBS = 10_000
 
 
@@ -33,17 +33,24 @@ def env_name_of(gym_id: str | None) -> str | None:
         >>> env_name_of("Pendulum-v1"), env_name_of("my_envs:Cart-v0"), env_name_of("ALE/Pong-v5")
         ('Pendulum-v1', 'Cart-v0', 'ALE_Pong-v5')
     """
-    if gym_id is None:
-        return None
-    return str(gym_id).rpartition(":")[2].replace("/", "_")
+    return None if gym_id is None else str(gym_id).rpartition(":")[2].replace("/", "_")
 
 
 def register_resolvers() -> None:
-    """``${trr_env_name:<id>}`` (:func:`env_name_of`), used by ``recipes/gym``."""
-    OmegaConf.register_new_resolver("trr_env_name", env_name_of, replace=True)
+    """The resolvers of the recipes and of the CLI's Hydra settings: ``${trr_env_name:<id>}``
+    (:func:`env_name_of`), ``${trr_parent:<path>}`` and ``${trr_abspath:<path>}`` (where a
+    sweep's directories go). Called at import: every path that composes a recipe, and each
+    joblib worker that unpickles a CLI job, imports this module."""
+    resolvers = {
+        "trr_env_name": env_name_of,
+        "trr_parent": lambda p: str(Path(str(p)).parent),
+        "trr_abspath": lambda p: str(Path(str(p)).expanduser().resolve()),
+    }
+    for name, fn in resolvers.items():
+        OmegaConf.register_new_resolver(name, fn, replace=True)
 
 
-register_resolvers()  # at import: every path that composes or resolves a recipe imports this
+register_resolvers()
 
 
 def hydra_error_message(error: BaseException) -> str:
@@ -107,18 +114,16 @@ def compose_recipe(
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"Recipe file not found: {path}")
+    overrides = [search_path_override(), *overrides]
     try:
         with _own_hydra(), initialize_config_dir(str(path.resolve().parent), version_base="1.3"):
-            return compose(
-                config_name=path.stem,
-                overrides=[search_path_override(), *overrides],
-                return_hydra_config=with_hydra,
-            )
+            return compose(path.stem, overrides=overrides, return_hydra_config=with_hydra)
     except (HydraException, OmegaConfBaseException) as e:
         raise RecipeError(f"{path}: {hydra_error_message(e)}") from e
 
 
 def _parse(overrides: Sequence[str]) -> list[Any]:
+    """Hydra's own parse of each override (its key, type, sweep)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     try:
@@ -136,10 +141,9 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
     a key the recipe lacks, or a mapping merged into one of the recipe's (``env.kwargs: {}``).
 
     Hydra only overrides keys a recipe has, and cannot merge new keys into a mapping; the
-    schema has more keys (``threads``, ``env.kwargs``, ...). This lets
-    ``env.kwargs={delta: 0.1}`` work as written; the schema check afterwards refuses a key
-    that is not a field. ``base`` is the composed recipe with its
-    ``hydra`` node (for the config group names).
+    schema has more keys (``threads``, ``env.kwargs``, ...); the schema check afterwards refuses
+    a key that is not a field. ``base`` is the composed recipe with its ``hydra`` node (for the
+    config group names).
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "control.yaml", with_hydra=True)
@@ -149,10 +153,9 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
     groups = set(base.hydra.runtime.choices) if "hydra" in base else set()
     out = []
     for text, o in zip(overrides, _parse(overrides), strict=True):
-        key = o.key_or_group
         plain = o.type.name == "CHANGE" and o.package is None and not o.is_hydra_override()
-        if plain and key not in groups:
-            absent = OmegaConf.select(base, key, default=_ABSENT) is _ABSENT
+        if plain and o.key_or_group not in groups:
+            absent = OmegaConf.select(base, o.key_or_group, default=_ABSENT) is _ABSENT
             if absent or (not o.is_sweep_override() and isinstance(o.value(), dict)):
                 text = f"++{text}"  # add the key, or merge a mapping into a closed one
         out.append(text)
@@ -169,18 +172,18 @@ def sweep_jobs(
 
     Sweeps come from the command line (``seed=0,1``) and from the recipe's own
     ``hydra.sweeper.params`` (unless ``recipe_params`` is False, as for a single run; a
-    command-line sweep of the same key wins). A job's list holds
-    ``key=value`` for each swept key plus the other overrides unchanged. Sweeps that need the
-    config to expand (``glob(...)``) are left to Hydra and checked by its jobs.
+    command-line sweep of the same key wins). A job's list holds ``key=value`` for each swept
+    key plus the other overrides unchanged. Sweeps that need the config to expand
+    (``glob(...)``) are left to Hydra and checked by its jobs.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", with_hydra=True)
         >>> sweep_jobs(base, ["seed=0,1", "threads=1"])
         [['threads=1', 'seed=0'], ['threads=1', 'seed=1']]
     """
-    params = dict(base.hydra.sweeper.get("params") or {}) if "hydra" in base else {}
-    if not recipe_params:
-        params = {}
+    params = (
+        dict(base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
+    )
     fixed, swept = [], {}
     for text, o in zip(overrides, _parse(overrides), strict=True):
         if o.is_sweep_override() and not o.is_hydra_override():
@@ -195,16 +198,13 @@ def sweep_jobs(
             from_recipe[key] = o
         else:
             fixed.append(f"{key}={value}")
-    swept = {**from_recipe, **swept}
     values = []
-    for key, o in swept.items():
+    for key, o in {**from_recipe, **swept}.items():
         try:
             values.append([f"{key}={_text(v)}" for v in o.sweep_iterator()])
         except Exception:  # glob() and other sweeps that need the config: left to the jobs
             continue
-    count = 1
-    for v in values:
-        count *= len(v)
+    count = math.prod(len(v) for v in values)
     if count > MAX_SWEEP_JOBS:
         raise RecipeError(f"the sweep has {count} jobs; at most {MAX_SWEEP_JOBS} are checked.")
     return [[*fixed, *combo] for combo in itertools.product(*values)]

@@ -37,8 +37,8 @@ class RunContext:
         stages: the run's resumable stage records.
         logger: a TorchRL logger, or None.
         device: where the networks, planning and fitting run (``cfg.device``).
-        run_child: runs another experiment's config (the estimator comparison's outcomes);
-            None where the caller gives none.
+        run_child: runs another experiment's config (calibrate's outcomes); None where the
+            caller gives none.
         recipes: finds and loads the recipes a child run is made from.
 
     Examples:

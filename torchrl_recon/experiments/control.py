@@ -4,7 +4,6 @@ stages (:mod:`.control_stages`), summary across seeds, tables, figures and headl
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Mapping
 from typing import Any
@@ -12,11 +11,10 @@ from typing import Any
 from torchrl_recon.experiments import control_stages
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
 from torchrl_recon.experiments.control_seeds import TESTED, across_seeds
-from torchrl_recon.experiments.control_stages import METRICS
+from torchrl_recon.experiments.control_stages import METRICS, episode_mean_std
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
 from torchrl_recon.experiments.recipe_checks import control_errors
-from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.experiments.tables import fmt, pm, render
 
 
@@ -29,18 +27,12 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     seeds = [r.get("seed") for r in runs]
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"control results of env {runs[0]['env']!r} repeat a seed: {seeds}")
-    names: list[str] = []
-    for r in runs:
-        names.extend(n for n in r["settings"] if n not in names)
+    names = list(dict.fromkeys(n for r in runs for n in r["settings"]))  # in order of appearance
     settings: dict[str, Any] = {}
     for name in names:
         episodes = [ep for r in runs for ep in r["settings"].get(name, {}).get("episodes", [])]
         metrics = [m for m in METRICS if any(m in ep for ep in episodes)]
-        mean, std = {}, {}
-        for m in metrics:
-            # episodes without a planned step report NaN metrics: left out, as in run_control
-            values = [float(ep[m]) for ep in episodes if m in ep]
-            mean[m], std[m] = mean_std([v for v in values if math.isfinite(v)])
+        mean, std = episode_mean_std(episodes, metrics)
         settings[name] = {
             "mean": mean,
             "std": std,
@@ -50,14 +42,12 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {"seeds": seeds, "settings": settings, "across_seeds": across_seeds(runs, names)}
 
 
-def settings_table(title: str, settings: Mapping[str, Any], count_key: str) -> str:
+def settings_table(title: str, settings: Mapping[str, Any]) -> str:
     """``title`` over one row per setting: its episodes and mean ± std of each metric."""
     metrics = [m for m in METRICS if any(m in s.get("mean", {}) for s in settings.values())]
     rows = []
     for name, s in settings.items():
-        n = s.get(count_key)
-        if n is None:
-            n = len(s.get("episodes", []))
+        n = s.get("n_episodes") or len(s.get("episodes", []))
         rows.append([name, str(n)] + [pm(s["mean"].get(m), s["std"].get(m)) for m in metrics])
     return title + "\n" + render(["setting", "episodes", *metrics], rows)
 
@@ -68,7 +58,7 @@ def result_table(r: Mapping[str, Any]) -> str:
         f"control — {r.get('env')} seed {r.get('seed')}: mean ± std over episodes"
         f" (re-plan threshold {fmt(r.get('replan_threshold'))})"
     )
-    return settings_table(title, r["settings"], "n_episodes")
+    return settings_table(title, r["settings"])
 
 
 def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:
@@ -94,12 +84,9 @@ def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:
         render(header, rows),
     ]
     for metric, trend in seeds["trend"].items():
-        text = f"trend over the u bands ({metric}): "
-        if "order" in trend:
-            text += f"{' < '.join(trend['order'])}: L = {fmt(trend['statistic'])}, p = {fmt(trend['p_value'], 3)}"
-        else:
-            text += trend["note"]
-        lines.append(text)
+        test = f"L = {fmt(trend.get('statistic'))}, p = {fmt(trend.get('p_value'), 3)}"
+        found = f"{' < '.join(trend['order'])}: {test}" if "order" in trend else trend["note"]
+        lines.append(f"trend over the u bands ({metric}): {found}")
     return "\n".join(lines)
 
 
@@ -108,7 +95,7 @@ def summary_table(r: Mapping[str, Any]) -> str:
     parts = []
     for env, s in r["envs"].items():
         title = f"control — {env}, seeds {s['seeds']}: mean ± std over all episodes"
-        parts.append(settings_table(title, s["settings"], "n_episodes"))
+        parts.append(settings_table(title, s["settings"]))
         if s.get("across_seeds"):
             parts.append(seeds_table(env, s["across_seeds"]))
     return "\n\n".join(parts)
@@ -124,7 +111,7 @@ def headline(results: Mapping[str, Any]) -> dict[str, float]:
 
 
 def outcome(results: Mapping[str, Any]) -> dict[str, Any]:
-    """The numbers the estimator comparison keeps of a control run: per setting, the means."""
+    """The numbers calibrate keeps of a control run: per setting, the means."""
     return {
         name: {k: s["mean"][k] for k in ("prediction_mse", "cost_error", "real_cost", "replans")}
         for name, s in results["settings"].items()
@@ -149,12 +136,8 @@ def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]
             name: {**entry, "per_seed": seeds.get(name, {}).get("per_seed", {})}
             for name, entry in s["settings"].items()
         }
-        figures.append(
-            (
-                f"control_errors_{env}.png",
-                plot_control_errors({"env": env, **s, "settings": settings}),
-            )
-        )
+        figure = plot_control_errors({"env": env, **s, "settings": settings})
+        figures.append((f"control_errors_{env}.png", figure))
     return figures
 
 

@@ -4,7 +4,6 @@ settings with an uncertainty band, paired by seed."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -24,8 +23,8 @@ def seed_mean(record: Mapping[str, Any], metric: str) -> float:
         >>> seed_mean({"episodes": [{"real_cost": 1.0}, {"real_cost": 3.0}]}, "real_cost")
         2.0
     """
-    values = [float(e[metric]) for e in record.get("episodes", []) if metric in e]
-    return mean_std(v for v in values if math.isfinite(v))[0]
+    episodes = record.get("episodes", [])
+    return mean_std((e[metric] for e in episodes if metric in e), finite=True)[0]
 
 
 def band_order(runs: Sequence[Mapping[str, Any]], names: Sequence[str]) -> list[str]:

@@ -1,37 +1,39 @@
 """The stages of the uncertainty-aware control experiment (the paper's §3.1 and Fig. 3).
 
 ``random_data`` → ``models`` → ``setting_<name>`` for each setting (one part record per batch
-of ``num_envs`` episodes);
-each stage takes the :class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
+of ``num_envs`` episodes); each stage takes the
+:class:`~torchrl_recon.experiments.context.RunContext` and is resumable.
 """
 
 from __future__ import annotations
 
-import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
-from torchrl.record.loggers import Logger
 
-from torchrl_recon.data import cut_sequences
 from torchrl_recon.envs import close_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.common import (
     build_env,
-    build_models,
     build_planner,
     env_entry,
-    fit_stage,
     planning_model,
     random_data_stage,
     state_scale,
 )
 from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.explore_stages import models_stage
 from torchrl_recon.experiments.stats import mean_std
-from torchrl_recon.planners import Objective, PlanningModel, UncertaintyBand, cost_to_u_ratio
+from torchrl_recon.planners import (
+    Objective,
+    PlanningModel,
+    UncertaintyBand,
+    cost_to_u_ratio,
+    window_uncertainty,
+)
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
 
@@ -44,6 +46,8 @@ METRICS = (
     "mean_u",
     "feasible_fraction",
 )
+STAGES = ("random_data", "models", "setting_{setting}")
+"""Stage name templates, in run order (``{setting}`` a setting's name)."""
 
 
 def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]:
@@ -71,40 +75,17 @@ def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]
     }
 
 
-def episode_mean_std(episodes: list[dict]) -> tuple[dict, dict]:
-    """Mean and std over episodes of each metric in :data:`METRICS` (NaN episodes skipped;
-    :func:`~torchrl_recon.experiments.stats.mean_std`'s rule for one episode).
+def episode_mean_std(episodes: list[dict], metrics: Sequence[str] = METRICS) -> tuple[dict, dict]:
+    """Mean and std over episodes of each of ``metrics`` (non-finite values, from episodes
+    without a planned step, left out; :func:`~torchrl_recon.experiments.stats.mean_std`).
 
     Examples:
         >>> mean, std = episode_mean_std([{k: 1.0 for k in METRICS}, {k: 3.0 for k in METRICS}])
         >>> mean["prediction_mse"], round(std["prediction_mse"], 3)
         (2.0, 1.414)
     """
-    mean, std = {}, {}
-    for key in METRICS:
-        values = [float(e[key]) for e in episodes if key in e]
-        mean[key], std[key] = mean_std(v for v in values if not math.isnan(v))
-    return mean, std
-
-
-STAGES = ("random_data", "models", "setting_{setting}")
-"""Stage name templates, in run order (``{setting}`` a setting's name)."""
-
-
-def models_stage(ctx: RunContext, data: TensorDictBase):
-    """Build the world model and the estimator and fit both on ``data`` (stage ``models``)."""
-    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
-    world, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
-    fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
-    return world, estimator
-
-
-def window_uncertainty(ctx: RunContext, data: TensorDictBase, estimator) -> torch.Tensor:
-    """The estimator's u of every window of the random data (on the CPU)."""
-    cfg = ctx.cfg
-    with torch.no_grad():
-        seqs = cut_sequences(data, max(cfg.models.window, cfg.training.slice_len)).to(ctx.device)
-        return estimator.score(seqs["observation"], seqs["action"]).flatten().cpu()
+    stats = {m: mean_std((e[m] for e in episodes if m in e), finite=True) for m in metrics}
+    return {m: s[0] for m, s in stats.items()}, {m: s[1] for m, s in stats.items()}
 
 
 def replan_threshold(cfg: DictConfig, per_window_u: torch.Tensor) -> float:
@@ -112,9 +93,7 @@ def replan_threshold(cfg: DictConfig, per_window_u: torch.Tensor) -> float:
     it bounds Σu over the steps between plans)."""
     r = cfg.replan
     threshold = float(per_window_u.quantile(r.threshold_quantile)) * r.threshold_scale
-    if r.threshold_on == "cumulative":
-        threshold *= r.every  # Σu over `every` steps at the same per-step level
-    return threshold
+    return threshold * r.every if r.threshold_on == "cumulative" else threshold
 
 
 @dataclass
@@ -130,11 +109,8 @@ class Controller:
 
 def setting_objective(setting: DictConfig, beta_unit: float) -> tuple[Objective, float]:
     """The setting's objective and its β (× ``beta_unit`` when relative)."""
-    band = (
-        None
-        if setting.band is None
-        else UncertaintyBand(setting.band.low, setting.band.high, setting.band.kind)
-    )
+    b = setting.band
+    band = None if b is None else UncertaintyBand(b.low, b.high, b.kind)
     beta = setting.beta * beta_unit if setting.beta_relative else setting.beta
     objective = Objective(
         alpha=setting.alpha, beta=beta, band=band, cost_threshold=setting.cost_threshold
@@ -163,9 +139,7 @@ def first_done_lengths(td: TensorDictBase) -> list[int]:
         [2, 3]
     """
     done = td["next", "done"].flatten(2).any(-1)  # [B, T]
-    steps = done.shape[1]
-    first = torch.where(done.any(1), done.int().argmax(1) + 1, steps)
-    return first.tolist()
+    return torch.where(done.any(1), done.int().argmax(1) + 1, done.shape[1]).tolist()
 
 
 def episode_batch(
@@ -179,24 +153,20 @@ def episode_batch(
     episode's seed and shared by the batch. Envs that ended wait (TorchRL partial steps)
     until every env is done or ``env.episode_steps`` have run.
     """
-    cfg, name = ctx.cfg, f"setting_{setting.name}"
+    cfg, r = ctx.cfg, ctx.cfg.replan
     policy = MPCPolicy(
         planner,
-        replan=cfg.replan.mode,
-        replan_every=cfg.replan.every,
-        threshold=controller.threshold if cfg.replan.mode == "uncertainty" else None,
-        threshold_on=cfg.replan.threshold_on,
-        error_threshold=cfg.replan.error_threshold,
+        replan=r.mode,
+        replan_every=r.every,
+        threshold=controller.threshold if r.mode == "uncertainty" else None,
+        threshold_on=r.threshold_on,
+        error_threshold=r.error_threshold,
         warmup_steps=max(cfg.warmup_random_steps, controller.model.context_length),
     )
-    seeds = [ctx.stage_seed(f"{name}_{e}") for e in batch]
+    seeds = [ctx.stage_seed(f"setting_{setting.name}_{e}") for e in batch]
     steps = cfg.env.episode_steps
-    env = build_env(
-        cfg,
-        seed=seeds if len(seeds) > 1 else seeds[0],
-        episode_steps=steps,
-        policy_device=ctx.device,
-    )
+    seed = seeds if len(seeds) > 1 else seeds[0]
+    env = build_env(cfg, seed=seed, episode_steps=steps, policy_device=ctx.device)
     env.append_transform(policy.make_tensordict_primer())
     torch.manual_seed(seeds[0])
     if len(seeds) == 1:
@@ -208,37 +178,29 @@ def episode_batch(
     return tds
 
 
-def episode_record(
-    ctx: RunContext, setting: DictConfig, controller: Controller, e: int, td: TensorDictBase
-) -> dict:
-    """Episode ``e``'s metrics (logged) and, for episode 0, its trajectory."""
-    metrics = episode_metrics(td, controller.scale)
-    if ctx.logger is not None:
-        for key, value in metrics.items():
-            if not (isinstance(value, float) and math.isnan(value)):
-                ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
-    state_names = env_entry(ctx.cfg).state_names
-    example = _trajectory(td, setting.name, state_names) if e == 0 else None
-    return {"metrics": metrics, "trajectory_example": example}
-
-
 def batch_part(
     ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
 ) -> dict:
     """The part record of one batch of episodes: ``{"metrics", "trajectory_example"}`` for a
     batch of one (the record of a run with ``num_envs = 1``), else ``{"episodes": [metrics
-    per episode], "trajectory_example"}``."""
-    tds = episode_batch(ctx, setting, planner, controller, batch)
-    records = [
-        episode_record(ctx, setting, controller, e, td) for e, td in zip(batch, tds, strict=True)
-    ]
-    if len(records) == 1:
-        return records[0]
-    example = next((r["trajectory_example"] for r in records if r["trajectory_example"]), None)
-    return {"episodes": [r["metrics"] for r in records], "trajectory_example": example}
+    per episode], "trajectory_example"}``; the metrics are logged, and episode 0's trajectory
+    kept."""
+    episodes, example = [], None
+    for e, td in zip(batch, episode_batch(ctx, setting, planner, controller, batch), strict=True):
+        metrics = episode_metrics(td, controller.scale)
+        episodes.append(metrics)
+        if ctx.logger is not None:
+            for key, value in metrics.items():
+                if value == value:  # NaN metrics (no planned step) are not logged
+                    ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
+        if e == 0:
+            example = _trajectory(td, setting.name, env_entry(ctx.cfg).state_names)
+    if len(episodes) == 1:
+        return {"metrics": episodes[0], "trajectory_example": example}
+    return {"episodes": episodes, "trajectory_example": example}
 
 
-def part_episodes(part: dict, batch: range, marker: Path) -> list[dict]:
+def part_episodes(part: dict, batch: range, marker) -> list[dict]:
     """The metrics of each episode a part record holds (checked against its batch's size)."""
     episodes = part["episodes"] if "episodes" in part else [part.get("metrics")]
     if len(episodes) != len(batch) or not all(isinstance(m, dict) for m in episodes):
@@ -259,13 +221,13 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
         objective, beta = setting_objective(setting, controller.beta_unit)
         planner = build_planner(setting.planner, controller.model, objective)
         batches = episode_batches(ctx.cfg.episodes, ctx.cfg.num_envs)
-        folder = ctx.stages.run_dir / "stages" / name
         parts = ctx.stages.run_parts(
             name,
             len(batches),
             lambda b: batch_part(ctx, setting, planner, controller, batches[b]),
             show_progress=ctx.cfg.progress,
         )
+        folder = ctx.stages.run_dir / "stages" / name
         episodes = [
             metrics
             for b, (part, batch) in enumerate(zip(parts, batches, strict=True))
@@ -284,21 +246,19 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
 def run(ctx: RunContext) -> dict:
     """Run (or resume) the control experiment; return its results."""
     cfg = ctx.cfg
+    frames = cfg.random_episodes * cfg.random_episode_steps
     data = random_data_stage(
-        ctx,
-        "random_data",
-        frames=cfg.random_episodes * cfg.random_episode_steps,
-        episode_steps=cfg.random_episode_steps,
+        ctx, "random_data", frames=frames, episode_steps=cfg.random_episode_steps
     )
     scale = state_scale(data)
-    world, estimator = models_stage(ctx, data)
-    per_window_u = window_uncertainty(ctx, data, estimator)
+    world, estimator = models_stage(ctx, data, "models")
+    length = max(cfg.models.window, cfg.training.slice_len)
+    per_window_u = window_uncertainty(data, estimator, sequence_length=length)
     threshold = replan_threshold(cfg, per_window_u)
     relative = any(s.beta_relative for s in cfg.settings)
     beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
     model = planning_model(cfg, world, estimator)  # the env's action bounds
     controller = Controller(model, threshold, beta_unit, scale)
-
     results, example = {}, None
     for setting in cfg.settings:
         record = setting_stage(ctx, setting, controller)
@@ -306,7 +266,6 @@ def run(ctx: RunContext) -> dict:
         example = example or first
         record.pop("wall_time_s", None)
         results[setting.name] = record
-
     return {
         **ctx.results_header(),
         "replan_threshold": threshold,
@@ -316,11 +275,6 @@ def run(ctx: RunContext) -> dict:
         "trajectory_example": example,
         "wall_time_s": dict(ctx.stages.wall_time_s),
     }
-
-
-def run_control(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
-    """Run (or resume) the control experiment in ``run_dir``; return its results."""
-    return run(RunContext.create(cfg, run_dir, logger))
 
 
 def _trajectory(td: TensorDictBase, setting: str, state_names: tuple[str, ...] = ()) -> dict:

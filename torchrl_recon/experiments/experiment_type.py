@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from types import ModuleType
 from typing import Any
 
@@ -18,24 +18,6 @@ from torchrl_recon.experiments.context import RecipeLoader, RunContext
 Results = Mapping[str, Any]
 Figures = list[tuple[str, Figure]]
 """Figures as (file name, figure) pairs."""
-
-
-MODULE_FUNCTIONS = (
-    "check",
-    "summarize_env",
-    "result_table",
-    "summary_table",
-    "headline",
-    "figures",
-    "summary_figures",
-    "stage_values",
-    "outcome",
-)
-"""The fields :meth:`ExperimentType.of_module` reads from a kind's module by name."""
-
-
-def _no_figures(_: Results) -> Figures:
-    return []
 
 
 @dataclass(frozen=True)
@@ -71,23 +53,24 @@ class ExperimentType:
     result_table: Callable[[Results], str]
     summary_table: Callable[[Results], str]
     headline: Callable[[Results], dict[str, float]]
-    figures: Callable[[Results], Figures] = _no_figures
+    figures: Callable[[Results], Figures] = lambda results: []
     summary_figures: Callable[[Results, list[Results]], Figures] = lambda s, r: []
     list_field: tuple[str, type] | None = None
-    stage_values: Callable[[DictConfig], Mapping[str, Sequence[str]]] = field(
-        default=lambda cfg: {}
-    )
+    stage_values: Callable[[DictConfig], Mapping[str, Sequence[str]]] = lambda cfg: {}
     outcome: Callable[[Results], dict[str, Any]] | None = None
 
     @classmethod
-    def of_module(cls, module: ModuleType, stages: ModuleType, **fields: Any) -> ExperimentType:
-        """The kind a module defines: ``name``, ``help`` and ``schema`` given, ``run`` and
-        ``STAGES`` from its ``stages`` module, and each of :data:`MODULE_FUNCTIONS` the module
-        defines (``check``, ``summarize_env``, ``result_table``, ...)."""
-        found = {f: getattr(module, f) for f in MODULE_FUNCTIONS if hasattr(module, f)}
-        return cls(run=stages.run, stages=stages.STAGES, **found, **fields)
+    def of_module(cls, module: ModuleType, stages: ModuleType, **given: Any) -> ExperimentType:
+        """The kind a module defines: the ``given`` fields (``name``, ``help``, ``schema``, ...),
+        ``run`` and ``STAGES`` from its ``stages`` module, and each other field the module
+        defines by name (``check``, ``summarize_env``, ``result_table``, ...)."""
+        found = {f.name: getattr(module, f.name) for f in fields(cls) if hasattr(module, f.name)}
+        return cls(**{**found, "run": stages.run, "stages": stages.STAGES, **given})
 
-    def stage_list(self, cfg: DictConfig) -> list[str]:
+    def _fields(self, cfg: DictConfig | None) -> Mapping[str, Sequence[str]]:
+        return self.stage_values(cfg) if cfg is not None else {}
+
+    def stage_list(self, cfg: DictConfig | None) -> list[str]:
         """The stage names of ``cfg``'s run; a template whose fields the recipe leaves open is
         shown as ``guided_data_<n>``.
 
@@ -96,31 +79,27 @@ class ExperimentType:
             >>> get_type("explore").stage_list(None)[3]
             'guided_data_<n>'
         """
-        values = self.stage_values(cfg) if cfg is not None else {}
-        names: list[str] = []
+        values, names = self._fields(cfg), []
         for template in self.stages:
             fields = re.findall(r"\{(\w+)\}", template)
-            if all(f in values for f in fields):
-                for combo in itertools.product(*(values[f] for f in fields)):
-                    names.append(template.format(**dict(zip(fields, combo, strict=True))))
-            else:
+            if not all(f in values for f in fields):
                 names.append(re.sub(r"\{(\w+)\}", r"<\1>", template))
+                continue
+            for combo in itertools.product(*(values[f] for f in fields)):
+                names.append(template.format(**dict(zip(fields, combo, strict=True))))
         return names
 
-    def is_stage(self, cfg: DictConfig, name: str) -> bool:
+    def is_stage(self, cfg: DictConfig | None, name: str) -> bool:
         """Whether ``name`` is a stage of ``cfg``'s run (what ``stop_after`` may name)."""
-        values = self.stage_values(cfg)
+        values = self._fields(cfg)
 
-        def pattern(template: str) -> str:
-            parts = re.split(r"\{(\w+)\}", template)
-            out = []
-            for i, part in enumerate(parts):
-                if i % 2 == 0:
-                    out.append(re.escape(part))
-                elif part in values:
-                    out.append("(" + "|".join(re.escape(str(v)) for v in values[part]) + ")")
-                else:
-                    out.append(r"\d+" if part == "n" else ".+")
-            return "".join(out)
+        def field(f: str) -> str:
+            if f not in values:
+                return r"\d+" if f == "n" else ".+"
+            return "(" + "|".join(re.escape(str(v)) for v in values[f]) + ")"
 
-        return any(re.fullmatch(pattern(t), name) for t in self.stages)
+        parts = [re.split(r"\{(\w+)\}", t) for t in self.stages]
+        patterns = [
+            "".join(field(p) if i % 2 else re.escape(p) for i, p in enumerate(t)) for t in parts
+        ]
+        return any(re.fullmatch(p, name) for p in patterns)

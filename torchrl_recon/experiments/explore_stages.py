@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import copy
 import math
-from pathlib import Path
 
 import torch
-from omegaconf import DictConfig
 from scipy import stats
 from tensordict import TensorDictBase
-from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import (
     collect,
@@ -84,11 +81,12 @@ def random_steps_stage(ctx: RunContext, name: str, frames: int) -> TensorDictBas
     return random_data_stage(ctx, name, frames=frames, episode_steps=episode, keys=DATA_KEYS)
 
 
-def models_stage(ctx: RunContext, initial: TensorDictBase, name: str = "initial_models"):
-    """Build the world model and the estimator and fit both on ``initial``; returns them."""
-    obs_dim, action_dim = initial["observation"].shape[-1], initial["action"].shape[-1]
+def models_stage(ctx: RunContext, data: TensorDictBase, name: str):
+    """Build the world model and the estimator and fit both on ``data`` (stage ``name``:
+    explore's ``initial_models``, control's ``models``); returns them."""
+    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
     world, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
-    fit_stage(ctx, name, initial, {"world_model": world, "uncertainty": estimator})
+    fit_stage(ctx, name, data, {"world_model": world, "uncertainty": estimator})
     return world, estimator
 
 
@@ -101,12 +99,9 @@ def validation_stage(ctx: RunContext) -> TensorDictBase:
     def run():
         seed = ctx.stage_seed("validation")
         env = build_env(cfg, seed=seed, episode_steps=length, num_envs=cfg.num_envs)
+        count = cfg.validation.trajectories
         val = validation_trajectories(
-            env,
-            count=cfg.validation.trajectories,
-            length=length,
-            seed=seed,
-            policy=cfg.validation.policy,
+            env, count=count, length=length, seed=seed, policy=cfg.validation.policy
         )
         close_env(env)
         ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
@@ -128,23 +123,13 @@ def guided_round_stage(
         model = planning_model(cfg, world, estimator)  # the env's action bounds
         objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
         policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
-        seed = ctx.stage_seed(name)
+        seed, steps = ctx.stage_seed(name), cfg.env.episode_steps
         env = build_env(
-            cfg,
-            seed=seed,
-            episode_steps=cfg.env.episode_steps,
-            policy_device=policy.device,
-            num_envs=cfg.num_envs,
+            cfg, seed=seed, episode_steps=steps, policy_device=policy.device, num_envs=cfg.num_envs
         )
         env.append_transform(policy.make_tensordict_primer())
-        data = collect(
-            env,
-            policy,
-            frames=frames,
-            seed=seed,
-            progress=cfg.progress,
-            desc=f"guided exploration {r + 1}/{rounds}",
-        )
+        desc = f"guided exploration {r + 1}/{rounds}"
+        data = collect(env, policy, frames=frames, seed=seed, progress=cfg.progress, desc=desc)
         close_env(env)  # the collector has closed a batched env already
         planned = data[REPLANNED].squeeze(-1)
         ctx.stages.save_data(name, data.select(*DATA_KEYS))
@@ -214,26 +199,19 @@ def retrain_stage(
     obs_dim, action_dim = first["observation"].shape[-1], first["action"].shape[-1]
 
     def run():
-        split_seed = ctx.stage_seed("retrain_split")
-        members, buffers, val_buffers, seeds = [], [], [], []
-        initial = {}
-        for i in retrainings:
-            seed = ctx.stage_seed(f"retrain_{i}")
+        seeds, initial = [ctx.stage_seed(f"retrain_{i}") for i in retrainings], []
+        for seed in seeds:
             torch.manual_seed(seed)
-            world = build_world_model(cfg, obs_dim, action_dim).to(ctx.device)
-            initial[i] = (world, seed)
-        for arm in ARMS:
-            rb, val_rb = split_buffers(cfg, arms[arm], split_seed)
-            for i in retrainings:
-                world, seed = initial[i]
-                members.append(world if arm == ARMS[-1] else copy.deepcopy(world))
-                buffers.append(rb)
-                val_buffers.append(val_rb)
-                seeds.append(seed)
+            initial.append(build_world_model(cfg, obs_dim, action_dim).to(ctx.device))
+        n, members, buffers, val_buffers = len(retrainings), [], [], []
+        for arm in ARMS:  # the last arm takes the initial networks, the others copies
+            rb, val_rb = split_buffers(cfg, arms[arm], ctx.stage_seed("retrain_split"))
+            members += [w if arm == ARMS[-1] else copy.deepcopy(w) for w in initial]
+            buffers, val_buffers = buffers + [rb] * n, val_buffers + [val_rb] * n
         fits = fit_population(
             members,
             buffers,
-            seeds=seeds,
+            seeds=seeds * len(ARMS),
             val_buffers=val_buffers,
             mode=cfg.training.world_model_mode,
             shared_sampling=True,
@@ -242,7 +220,6 @@ def retrain_stage(
         population = WorldModelPopulation.from_members(members)
         errors = population_multi_step_errors(population, validation, window=window, scale=scale)
         mse = errors.mean((-2, -1)).tolist()
-        n = len(retrainings)
         return {
             "retrainings": list(retrainings),
             **{
@@ -268,14 +245,14 @@ def explore_results(
     cfg = ctx.cfg
     summary = {}
     for arm, v in mse.items():
-        mean, std = mean_std(v, dtype=torch.float32)
+        mean, std = mean_std(v, dtype=torch.float32)  # as recorded since the first runs
         summary[arm] = {"mse": v, "mean": mean, "std": std}
     if cfg.retrainings > 1:
         test = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
         statistic, p_value = float(test.statistic), float(test.pvalue)
     else:
         statistic = p_value = float("nan")
-    plans = sum(p for _, p in feasible_counts)
+    plans, feasible = sum(p for _, p in feasible_counts), sum(f for f, _ in feasible_counts)
     return {
         **ctx.results_header(),
         "mse_units": MSE_UNITS,
@@ -286,12 +263,7 @@ def explore_results(
             "statistic": statistic,
             "p_value": p_value,
         },
-        "data": {
-            **steps,
-            "active_feasible_fraction": (sum(f for f, _ in feasible_counts) / plans)
-            if plans
-            else float("nan"),
-        },
+        "data": {**steps, "active_feasible_fraction": feasible / plans if plans else float("nan")},
         "wall_time_s": dict(ctx.stages.wall_time_s),
     }
 
@@ -301,7 +273,7 @@ def run(ctx: RunContext) -> dict:
     cfg = ctx.cfg
     initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
     scale = state_scale(initial)
-    world, estimator = models_stage(ctx, initial)
+    world, estimator = models_stage(ctx, initial, "initial_models")
     validation = validation_stage(ctx)
     guided_parts, feasible_counts = guided_stages(ctx, initial, world, estimator)
     random_arm = random_steps_stage(ctx, "random_arm", cfg.random_steps)
@@ -323,8 +295,3 @@ def run(ctx: RunContext) -> dict:
         "active_arm_steps": sum(p.numel() for p in guided_parts),
     }
     return explore_results(ctx, mse, steps, feasible_counts)
-
-
-def run_explore(cfg: DictConfig, run_dir: Path, logger: Logger | None) -> dict:
-    """Run (or resume) one repeat of the exploration experiment in ``run_dir``; return its results."""
-    return run(RunContext.create(cfg, run_dir, logger))

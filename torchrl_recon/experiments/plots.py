@@ -21,12 +21,16 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 ARM_COLORS = {"random": "tab:gray", "active": "tab:orange"}
-
 CONTROL_PANELS = (
     ("prediction_mse", "prediction MSE\n(predicted vs real states)"),
     ("cost_error", "|predicted − real|\ncumulative cost"),
     ("real_cost", "real cumulative cost"),
     ("replans", "re-plans per episode"),
+)
+CALIBRATION_PANELS = (
+    (("spearman", "auroc_error_above_median"), "ranks the real error", False),
+    (("ood_auroc_state_shift", "ood_auroc_action_bound"), "out-of-distribution AUROC", False),
+    (("score_ratio_H{h}", "cem_ratio_H{h}"), "time relative to the autoencoder", True),
 )
 
 
@@ -36,8 +40,15 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
-def _nan_to_zero(values: Sequence[float]) -> list[float]:
+def _finite(values: Sequence[float]) -> list[float]:
+    """The values with None, NaN and ±inf drawn as 0."""
     return [0.0 if v is None or not math.isfinite(float(v)) else float(v) for v in values]
+
+
+def _name_axis(ax, names: Sequence[str], title: str, rotation: int) -> None:
+    ax.set_xticks(range(len(names)), names, rotation=rotation, ha="right", fontsize=7)
+    ax.set_title(title, fontsize=9)
+    ax.tick_params(axis="y", labelsize=7)
 
 
 def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
@@ -58,32 +69,21 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
     envs = list(by_env)
     fig = _figure(max(5.5, 2.2 * len(envs) + 1.5), 4.2)
     ax = fig.add_subplot()
-    width = 0.38
-    ratios = []
+    width, ratios = 0.38, []
     units = by_env[envs[0]][0].get("mse_units", "")
     for i, env in enumerate(envs):
-        runs = by_env[env]
-        means = {}
+        runs, means = by_env[env], {}
         for j, arm in enumerate(("random", "active")):
-            if len(runs) == 1:
-                points = [float(v) for v in runs[0]["arms"][arm]["mse"]]
-                mean = float(runs[0]["arms"][arm]["mean"])
-                std = float(runs[0]["arms"][arm]["std"])
-            else:
+            if len(runs) == 1:  # one seed: its retrainings
+                one = runs[0]["arms"][arm]
+                points, mean, std = [float(v) for v in one["mse"]], one["mean"], one["std"]
+            else:  # several seeds: the per-seed means
                 points = [float(r["arms"][arm]["mean"]) for r in runs]
-                mean = float(np.mean(points))
-                std = float(np.std(points, ddof=1))
-            means[arm] = mean
-            x = i + (j - 0.5) * width
+                mean, std = np.mean(points), np.std(points, ddof=1)
+            means[arm], std, x = float(mean), float(std), i + (j - 0.5) * width
+            style = dict(capsize=4, color=ARM_COLORS[arm], label=arm if i == 0 else None)
             ax.bar(
-                x,
-                mean,
-                width,
-                yerr=std if math.isfinite(std) else 0.0,
-                capsize=4,
-                color=ARM_COLORS[arm],
-                label=arm if i == 0 else None,
-                alpha=0.85,
+                x, means[arm], width, yerr=std if math.isfinite(std) else 0.0, alpha=0.85, **style
             )
             jitter = np.linspace(-0.08, 0.08, len(points)) if len(points) > 1 else [0.0]
             ax.scatter(x + np.asarray(jitter), points, s=10, color="black", zorder=3, linewidths=0)
@@ -91,11 +91,8 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
         ratios.append(f"{env} {ratio:.3g} ({len(runs)} seed{'s' if len(runs) > 1 else ''})")
     ax.set_xticks(range(len(envs)), envs)
     ax.set_ylabel("validation MSE")
-    ax.set_title(
-        "Table 1: validation MSE, random vs active exploration\nactive / random: "
-        + "; ".join(ratios),
-        fontsize=9,
-    )
+    title = "Table 1: validation MSE, random vs active exploration\nactive / random: "
+    ax.set_title(title + "; ".join(ratios), fontsize=9)
     if units:
         fig.supxlabel(textwrap.fill(f"MSE: {units}", 110), fontsize=6)
     top = max(b.get_height() for b in ax.patches)
@@ -117,34 +114,21 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
         raise ValueError("plot_control_errors needs results with at least one setting.")
     names = list(settings)
     fig = _figure(max(10.0, 1.0 * len(names) * 4 / 2.5), 3.6)
-    axes = fig.subplots(1, len(CONTROL_PANELS))
     colors = [f"C{i % 10}" for i in range(len(names))]
-    for ax, (key, label) in zip(axes, CONTROL_PANELS, strict=True):
-        means = _nan_to_zero([settings[n]["mean"].get(key, float("nan")) for n in names])
-        stds = _nan_to_zero([settings[n]["std"].get(key, float("nan")) for n in names])
+    for ax, (key, label) in zip(fig.subplots(1, len(CONTROL_PANELS)), CONTROL_PANELS, strict=True):
+        means = _finite([settings[n]["mean"].get(key, math.nan) for n in names])
+        stds = _finite([settings[n]["std"].get(key, math.nan) for n in names])
         ax.bar(range(len(names)), means, yerr=stds, capsize=3, color=colors, alpha=0.85)
         for i, n in enumerate(names):  # a summary's per-seed means, as dots
             points = (settings[n].get("per_seed") or {}).get(key, [])
             if points:
                 ax.plot([i] * len(points), points, "o", color="black", ms=3, alpha=0.7)
-        ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=7)
-        ax.set_title(label, fontsize=9)
-        ax.tick_params(axis="y", labelsize=7)
-    env = results.get("env", "")
-    seed = results.get("seed")
-    title = "Uncertainty-aware control"
-    if env:
-        title += f" — {env}"
-    if seed is not None:
-        title += f", seed {seed}"
+        _name_axis(ax, names, label, rotation=45)
+    env, seed = results.get("env", ""), results.get("seed")
+    title = "Uncertainty-aware control" + (f" — {env}" if env else "")
+    title += f", seed {seed}" if seed is not None else ""
     fig.suptitle(title + " (mean ± std over episodes)", fontsize=10)
     return fig
-
-
-def _dims_to_show(real: np.ndarray, max_dims: int) -> list[int]:
-    std = real.std(axis=0) if real.shape[0] > 1 else np.abs(real[0])
-    order = np.argsort(-np.nan_to_num(std, nan=-1.0), kind="stable")
-    return sorted(int(i) for i in order[:max_dims])
 
 
 def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
@@ -162,9 +146,12 @@ def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
         )
     length, n = real.shape
     u = np.asarray(example.get("uncertainty", []), dtype=float)
-    replanned = np.asarray(example.get("replanned", []), dtype=bool)
+    replans = np.flatnonzero(np.asarray(example.get("replanned", []), dtype=bool)[:length])
     names = list(example.get("state_names") or [f"s{i}" for i in range(n)])
-    dims = _dims_to_show(real, max_dims)
+    spread = real.std(axis=0) if length > 1 else np.abs(real[0])
+    dims = sorted(
+        int(i) for i in np.argsort(-np.nan_to_num(spread, nan=-1.0), kind="stable")[:max_dims]
+    )
     fig = _figure(8.0, 1.9 * len(dims) + 0.6)
     axes = np.atleast_1d(fig.subplots(len(dims), 1, sharex=True))
     t = np.arange(length)
@@ -172,40 +159,25 @@ def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
         ax.plot(t, real[:, d], color="black", lw=1.2, label="real")
         ax.plot(t, predicted[:, d], color="tab:blue", lw=1.2, ls="--", label="predicted")
         ax.set_ylabel(names[d] if d < len(names) else f"s{d}", fontsize=8)
-        for i in np.flatnonzero(replanned[:length]):
-            ax.axvline(
-                i,
-                color="tab:red",
-                lw=0.7,
-                alpha=0.6,
-                label="re-plan" if i == np.flatnonzero(replanned)[0] else None,
-            )
+        for i in replans:
+            label = "re-plan" if i == replans[0] else None
+            ax.axvline(i, color="tab:red", lw=0.7, alpha=0.6, label=label)
+        handles, labels = ax.get_legend_handles_labels()
         if u.size:
             twin = ax.twinx()
             twin.plot(t[: u.size], u[:length], color="tab:green", lw=0.9, alpha=0.8, label="u")
             twin.set_ylabel("u", color="tab:green", fontsize=8)
             twin.tick_params(axis="y", labelsize=7, colors="tab:green")
-            if k == 0:
-                handles, labels = ax.get_legend_handles_labels()
-                h2, l2 = twin.get_legend_handles_labels()
-                ax.legend(
-                    handles + h2, labels + l2, fontsize=7, ncol=4, loc="upper left", frameon=False
-                )
-        elif k == 0:
-            ax.legend(fontsize=7, ncol=3, loc="upper left", frameon=False)
+            h2, l2 = twin.get_legend_handles_labels()
+            handles, labels = handles + h2, labels + l2
+        if k == 0:
+            ncol = 4 if u.size else 3
+            ax.legend(handles, labels, fontsize=7, ncol=ncol, loc="upper left", frameon=False)
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("time step")
-    fig.suptitle(
-        f"Predicted vs real trajectory — setting {example.get('setting', '?')}", fontsize=10
-    )
+    setting = example.get("setting", "?")
+    fig.suptitle(f"Predicted vs real trajectory — setting {setting}", fontsize=10)
     return fig
-
-
-CALIBRATION_PANELS = (
-    (("spearman", "auroc_error_above_median"), "ranks the real error", False),
-    (("ood_auroc_state_shift", "ood_auroc_action_bound"), "out-of-distribution AUROC", False),
-    (("score_ratio_H{h}", "cem_ratio_H{h}"), "time relative to the autoencoder", True),
-)
 
 
 def plot_calibration(results: Mapping[str, Any]) -> Figure:
@@ -215,27 +187,21 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
     rows = results.get("estimators") or {}
     if not rows:
         raise ValueError("plot_calibration needs calibrate results with at least one estimator.")
-    names, horizon = list(rows), (results.get("horizons") or [0])[0]
+    names, horizon, width = list(rows), (results.get("horizons") or [0])[0], 0.38
     fig = _figure(max(9.0, 1.2 * len(names) * 3), 3.6)
-    axes = fig.subplots(1, len(CALIBRATION_PANELS))
-    width = 0.38
-    for ax, (keys, title, log) in zip(axes, CALIBRATION_PANELS, strict=True):
-        for j, key in enumerate(keys):
-            key = key.format(h=horizon)
-            values = _nan_to_zero([rows[n].get(key, float("nan")) for n in names])
+    panels = zip(fig.subplots(1, len(CALIBRATION_PANELS)), CALIBRATION_PANELS, strict=True)
+    for ax, (keys, title, log) in panels:
+        for j, key in enumerate(k.format(h=horizon) for k in keys):
+            values = _finite([rows[n].get(key, math.nan) for n in names])
             x = np.arange(len(names)) + (j - 0.5) * width
             ax.bar(x, values, width, label=key, color=f"C{j}", alpha=0.85)
-        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=7)
-        ax.set_title(title, fontsize=9)
-        ax.tick_params(axis="y", labelsize=7)
+        _name_axis(ax, names, title, rotation=30)
         ax.legend(
             fontsize=6, frameon=False, loc="upper center", bbox_to_anchor=(0.5, -0.28), ncol=2
         )
         if log:
             ax.set_yscale("log")
             ax.axhline(1.0, color="k", lw=0.6)
-    fig.suptitle(
-        f"Uncertainty estimators — {results.get('env', '')}, seed {results.get('seed')}",
-        fontsize=10,
-    )
+    env, seed = results.get("env", ""), results.get("seed")
+    fig.suptitle(f"Uncertainty estimators — {env}, seed {seed}", fontsize=10)
     return fig

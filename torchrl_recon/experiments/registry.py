@@ -9,11 +9,11 @@ recipes (``experiment: <name>``).
 from __future__ import annotations
 
 from torchrl_recon.errors import RecipeError
-from torchrl_recon.experiments import control, estimator_comparison, explore
+from torchrl_recon.experiments import calibrate, control, explore
 from torchrl_recon.experiments.experiment_type import ExperimentType
 
 EXPERIMENT_TYPES: dict[str, ExperimentType] = {
-    t.name: t for t in (explore.EXPERIMENT, control.EXPERIMENT, estimator_comparison.EXPERIMENT)
+    t.name: t for t in (explore.EXPERIMENT, control.EXPERIMENT, calibrate.EXPERIMENT)
 }
 """Every experiment kind by name, in the order the CLI lists them."""
 

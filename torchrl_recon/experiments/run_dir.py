@@ -14,23 +14,23 @@ import platform
 import socket
 import subprocess
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from filelock import FileLock, Timeout
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.files import read_json, write_atomically
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
-# Keys added to the schema since runs were first published, with the value that reproduces the
-# behaviour from before the key existed: a run directory without the key resumes when the new
-# config holds that value.
-KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
-
+KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
+"""Keys added to the schema since runs were first published, with the value that reproduces the
+behaviour from before the key existed: a run directory without the key resumes at that value."""
 VERSION_PACKAGES = (
     "torch",
     "torchrl",
@@ -46,24 +46,16 @@ VERSION_PACKAGES = (
 
 
 class RunDirConflict(RuntimeError):
-    """The run directory holds a run made with a different configuration."""
+    """The run directory holds a run made with a different configuration, or is in use."""
 
 
 def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
-    """Flatten nested dicts / lists into ``{"a.b.0.c": value}``."""
+    """Flatten nested dicts / lists into ``{"a.b.0.c": value}`` (empty ones kept as values)."""
+    if not isinstance(obj, (Mapping, list, tuple)) or (not obj and prefix):
+        return {prefix: obj}
     out: dict[str, Any] = {}
-    if isinstance(obj, Mapping):
-        if not obj and prefix:
-            out[prefix] = {}
-        for k, v in obj.items():
-            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-    elif isinstance(obj, (list, tuple)):
-        if not obj and prefix:
-            out[prefix] = []
-        for i, v in enumerate(obj):
-            out.update(_flatten(v, f"{prefix}.{i}" if prefix else str(i)))
-    else:
-        out[prefix] = obj
+    for k, v in obj.items() if isinstance(obj, Mapping) else enumerate(obj):
+        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
     return out
 
 
@@ -82,19 +74,24 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     Examples:
         >>> config_differences({"env": {"name": "drone"}}, {"env": {"name": "drone", "id": None}})
         []
+        >>> config_differences({"seed": 0, "logger": {"backend": "csv"}}, {"seed": 1})
+        ['seed: 0 -> 1']
     """
 
-    def keep(key: str) -> bool:
-        return key.split(".", 1)[0] not in RESUME_IGNORED_KEYS
+    def flat(cfg: Mapping[str, Any]) -> dict[str, Any]:
+        return {
+            k: v
+            for k, v in _flatten(dict(cfg)).items()
+            if k.split(".", 1)[0] not in RESUME_IGNORED_KEYS
+        }
 
-    a = {k: v for k, v in _flatten(dict(old)).items() if keep(k)}
-    b = {k: v for k, v in _flatten(dict(new)).items() if keep(k)}
+    a, b = flat(old), flat(new)
     diffs = []
     for key in sorted(set(a) | set(b)):
         if key not in a:
-            if b[key] is None or (key in KEYS_ADDED_SINCE and b[key] == KEYS_ADDED_SINCE[key]):
-                continue
-            diffs.append(f"{key}: (absent) -> {b[key]!r}")
+            added_since = key in KEYS_ADDED_SINCE and KEYS_ADDED_SINCE[key] == b[key]
+            if b[key] is not None and not added_since:
+                diffs.append(f"{key}: (absent) -> {b[key]!r}")
         elif key not in b:
             diffs.append(f"{key}: {a[key]!r} -> (absent)")
         elif a[key] != b[key]:
@@ -102,7 +99,7 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     return diffs
 
 
-def package_versions(names: Iterable[str] = VERSION_PACKAGES) -> dict[str, str | None]:
+def package_versions(names: Sequence[str] = VERSION_PACKAGES) -> dict[str, str | None]:
     """Installed versions (``importlib.metadata``) of ``names``, plus ``python``; None if absent."""
     versions: dict[str, str | None] = {"python": platform.python_version()}
     for name in names:
@@ -119,71 +116,91 @@ def git_info(directory: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     Read-only: ``git rev-parse HEAD`` and ``git --no-optional-locks status --porcelain``.
     ``commit`` is ``"unknown"`` (and ``dirty`` None) when it is not a checkout or git is missing.
     """
-    if directory is None:
-        directory = Path(__file__).resolve().parents[1]
-    directory = Path(directory)
-    info: dict[str, Any] = {"commit": "unknown", "dirty": None}
+    cwd = Path(__file__).resolve().parents[1] if directory is None else Path(directory)
 
     def git(*args: str) -> str | None:
         try:
             proc = subprocess.run(
-                ["git", *args],
-                cwd=directory,
-                capture_output=True,
-                text=True,
-                timeout=20,
-                check=False,
+                ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=20, check=False
             )
         except (OSError, subprocess.SubprocessError):
             return None
         return proc.stdout if proc.returncode == 0 else None
 
-    commit = git("rev-parse", "HEAD")
-    if commit is None or not commit.strip():
-        return info
-    info["commit"] = commit.strip()
+    commit = (git("rev-parse", "HEAD") or "").strip()
+    if not commit:
+        return {"commit": "unknown", "dirty": None}
     status = git("--no-optional-locks", "status", "--porcelain")
-    info["dirty"] = None if status is None else bool(status.strip())
-    return info
+    return {"commit": commit, "dirty": None if status is None else bool(status.strip())}
+
+
+def portable_path(path: str | os.PathLike[str]) -> str:
+    """``path`` as a record may keep it, with no machine path: a relative path as given, a
+    shipped recipe by its name, a path inside the working directory relative to it, any other
+    absolute path by its last part.
+
+    Examples:
+        >>> portable_path("out/run"), portable_path(Path.cwd() / "out" / "run")
+        ('out/run', 'out/run')
+        >>> portable_path(RECIPES_DIR / "drone" / "explore.yaml"), portable_path("/elsewhere/run")
+        ('drone/explore.yaml', 'run')
+    """
+    p = Path(path)
+    if not p.is_absolute():
+        return str(path)
+    if p.resolve().is_relative_to(RECIPES_DIR):
+        return p.resolve().relative_to(RECIPES_DIR).as_posix()
+    cwd = Path.cwd()
+    return p.relative_to(cwd).as_posix() if p.is_relative_to(cwd) and p != cwd else p.name
+
+
+def portable_argv(argv: Sequence[str]) -> list[str]:
+    """A command line (or Hydra overrides) with each absolute path, alone or as the value of a
+    ``key=value``, made :func:`portable_path`.
+
+    Examples:
+        >>> portable_argv(["torchrl-recon", "explore", "x.yaml", "output_dir=/scratch/run/seed3"])
+        ['torchrl-recon', 'explore', 'x.yaml', 'output_dir=seed3']
+    """
+    out = []
+    for item in map(str, argv):
+        key, eq, value = item.rpartition("=") if "=" in item else ("", "", item)
+        out.append(f"{key}{eq}{portable_path(value)}" if value.startswith("/") else item)
+    return out
 
 
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def _write(path: Path, text: str) -> None:
     write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
-_LOCKS: dict[str, Any] = {}
+_LOCKS: dict[str, FileLock] = {}
 
 
 def _lock(run_dir: Path) -> None:
-    """Hold an exclusive lock on ``run_dir`` for this process (two jobs sharing one dir fail)."""
-    key = str(run_dir)
-    if key in _LOCKS:
+    """Hold ``<run_dir>/.lock`` (an ``flock`` through ``filelock``) for this process: a second
+    process on the same directory is refused."""
+    if str(run_dir) in _LOCKS:
         return
+    lock = FileLock(run_dir / ".lock", timeout=0)
     try:
-        import fcntl
-    except ImportError:  # not POSIX: no lock
-        return
-    handle = open(run_dir / ".lock", "w")  # noqa: SIM115 - held until release_run_dir
-    try:
-        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as e:
-        handle.close()
+        lock.acquire()
+    except Timeout as e:
         raise RunDirConflict(
             f"Another process is running in {run_dir}. Give each run its own output_dir "
             "(e.g. interpolate ${seed} in it when sweeping seeds)."
         ) from e
-    _LOCKS[key] = handle
+    _LOCKS[str(run_dir)] = lock
 
 
 def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
     """Release the lock taken by :func:`prepare_run_dir` (also released when the process exits)."""
-    handle = _LOCKS.pop(str(Path(run_dir).resolve()), None)
-    if handle is not None:
-        handle.close()
+    lock = _LOCKS.pop(str(Path(run_dir).resolve()), None)
+    if lock is not None:
+        lock.release(force=True)
 
 
 def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
@@ -197,14 +214,10 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
         RunDirConflict: naming the keys that differ.
     """
     new = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(new, dict)
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     if not (run_dir / "config.yaml").exists():
         return new
-    saved = read_config(run_dir)
-    old = OmegaConf.to_container(saved, resolve=False)
-    assert isinstance(old, dict)
-    diffs = config_differences(old, new)
+    diffs = config_differences(OmegaConf.to_container(read_config(run_dir)), new)
     if diffs:
         shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
         raise RunDirConflict(
@@ -214,6 +227,10 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
             "change between a run and its resumption.)"
         )
     return new
+
+
+_START_KEYS = ("started_utc", "git", "argv", "hostname")
+"""What ``meta.json`` keeps of each earlier start of a resumed run."""
 
 
 def prepare_run_dir(
@@ -229,7 +246,8 @@ def prepare_run_dir(
 
     ``meta.json`` holds the seed, package versions, the git commit and dirty flag of the source
     checkout, the host name, the UTC start time and the command line (plus ``extra_meta``, e.g.
-    the Hydra job overrides); on a resume the earlier starts are kept under ``previous``.
+    the Hydra job overrides); on a resume the earlier starts are kept under ``previous``. Paths
+    in it are :func:`portable_path`: shared results hold no machine path.
 
     Returns:
         The absolute run directory.
@@ -243,45 +261,43 @@ def prepare_run_dir(
     _lock(run_dir)
     try:
         new = check_run_dir(cfg)
+        resumed = (run_dir / "config.yaml").exists()
+        previous: list[dict[str, Any]] = []
+        if resumed and (run_dir / "meta.json").exists():  # read before anything is written
+            old = read_meta(run_dir)
+            previous = [*(old.get("previous") or []), {k: old.get(k) for k in _START_KEYS}]
     except (RunDirConflict, DamagedFileError):
         release_run_dir(run_dir)
         raise
-    config_path = run_dir / "config.yaml"
-    resumed = config_path.exists()
-    meta_path = run_dir / "meta.json"
-    previous: list[dict[str, Any]] = []
-    if resumed and meta_path.exists():
-        try:  # read before anything is written: a refused resume changes no file
-            old_meta = read_meta(run_dir)
-        except DamagedFileError:
-            release_run_dir(run_dir)
-            raise
-        previous = list(old_meta.get("previous") or [])
-        previous.append({k: old_meta.get(k) for k in ("started_utc", "git", "argv", "hostname")})
-    _atomic_write(config_path, OmegaConf.to_yaml(OmegaConf.create(new)))
-
+    _write(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(new)))
+    for start in previous:
+        if start.get("argv"):
+            start["argv"] = portable_argv(start["argv"])
+    extra = dict(extra_meta or {})
+    if "job_overrides" in extra:
+        extra["job_overrides"] = portable_argv(extra["job_overrides"])
     meta = {
         "experiment": cfg.experiment,
         "env": cfg.env.name,
         "seed": int(cfg.seed),
-        "run_dir": str(cfg.output_dir),  # as configured: no machine path in shared results
+        "run_dir": portable_path(cfg.output_dir),
         "versions": package_versions(),
         "git": git_info(),
         "hostname": socket.gethostname(),
         "started_utc": _utc_now(),
-        "argv": list(sys.argv if argv is None else argv),
+        "argv": portable_argv(sys.argv if argv is None else argv),
         "resumed": resumed,
         "previous": previous,
-        **dict(extra_meta or {}),
+        **extra,
     }
-    if previous and previous[-1].get("git", {}).get("commit") != meta["git"]["commit"]:
+    before = previous[-1].get("git", {}).get("commit") if previous else meta["git"]["commit"]
+    if before != meta["git"]["commit"]:
         print(
-            f"warning: {run_dir} was started at commit "
-            f"{previous[-1].get('git', {}).get('commit')} and is resumed at "
+            f"warning: {run_dir} was started at commit {before} and is resumed at "
             f"{meta['git']['commit']}.",
             file=sys.stderr,
         )
-    _atomic_write(meta_path, json.dumps(meta, indent=1))
+    _write(run_dir / "meta.json", json.dumps(meta, indent=1))
     return run_dir
 
 
@@ -303,13 +319,10 @@ def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -
     Non-finite floats are written as JSON ``NaN`` / ``Infinity`` (Python's ``json`` reads them).
     """
     run_dir = Path(run_dir)
-    meta: dict[str, Any] = {}
-    if (run_dir / "meta.json").exists():
-        meta = read_meta(run_dir)
+    meta = read_meta(run_dir) if (run_dir / "meta.json").exists() else {}
     meta["finished_utc"] = _utc_now()
-    payload = {**dict(results), "meta": meta}
     path = run_dir / "results.json"
-    _atomic_write(path, json.dumps(payload, indent=1, default=_json_default))
+    _write(path, json.dumps({**results, "meta": meta}, indent=1, default=_json_default))
     return path
 
 
@@ -342,16 +355,15 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
 
     saved = upgrade_legacy_config(saved)  # planner blocks written flat, before `kwargs`
     kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
-    if kind is not None:
-        # Keys added to the schema after the run was made compare at their defaults.
-        try:
-            saved = OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
-        except Exception as err:
-            reason = str(err).strip().splitlines()[0]
-            raise DamagedFileError(
-                f"{path} does not fit the {saved.get('experiment')!r} schema ({reason}); {remedy}"
-            ) from None
-    return saved
+    if kind is None:
+        return saved
+    try:  # keys added to the schema after the run was made compare at their defaults
+        return OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
+    except Exception as err:
+        reason = str(err).strip().splitlines()[0]
+        raise DamagedFileError(
+            f"{path} does not fit the {saved.get('experiment')!r} schema ({reason}); {remedy}"
+        ) from None
 
 
 def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
@@ -386,8 +398,7 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
         'drone'
     """
     path = Path(path)
-    if path.is_dir():
-        path = path / "results.json"
+    path = path / "results.json" if path.is_dir() else path
     if not path.is_file():
         raise FileNotFoundError(f"No results file at {path}.")
     remedy = "re-run the experiment to write it again, or leave that run directory out."

@@ -5,8 +5,8 @@ registry) and store the results, figures and table."""
 from __future__ import annotations
 
 import os
-import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -25,20 +25,14 @@ from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.experiments.summary import format_table, save_figures
 
 
-def _experiment_fn(kind: str) -> Callable[[RunContext], dict[str, Any]]:
-    """The run function of experiment ``kind`` (from the registry)."""
-    return get_type(kind).run
-
-
-def _run_child(cfg: DictConfig) -> dict[str, Any] | None:
-    """Run a child experiment (the estimator comparison's outcomes); its headline numbers."""
-    results = run(cfg)
-    if results is None:
-        return None
+def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
+    """Run a child experiment (calibrate's outcomes) made by the command ``argv``; its
+    headline numbers."""
+    results = run(cfg, argv=argv)
     outcome = get_type(cfg.experiment).outcome
     if outcome is None:
         raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
-    return outcome(results)
+    return None if results is None else outcome(results)
 
 
 def last_finished_stage(run_dir: str | os.PathLike[str]) -> str | None:
@@ -55,9 +49,7 @@ def last_finished_stage(run_dir: str | os.PathLike[str]) -> str | None:
         'random_data'
     """
     records = [p for p in Path(run_dir).glob("stages/*.json") if p.is_file()]
-    if not records:
-        return None
-    return max(records, key=lambda p: p.stat().st_mtime_ns).stem
+    return max(records, key=lambda p: p.stat().st_mtime_ns).stem if records else None
 
 
 def interrupted_message(run_dir: str | os.PathLike[str] | None) -> str:
@@ -74,17 +66,6 @@ def interrupted_message(run_dir: str | os.PathLike[str] | None) -> str:
     return f"interrupted after stage '{stage}'{where}; run the same command to resume"
 
 
-def _log_results(logger, results: Mapping[str, Any]) -> None:
-    """Log the headline numbers of a results dict as scalars under ``results/``."""
-    if logger is None:
-        return
-    for name, value in get_type(results.get("experiment")).headline(results).items():
-        try:
-            logger.log_scalar(f"results/{name}", float(value), step=0)
-        except (TypeError, ValueError):
-            continue
-
-
 def run(
     cfg: DictConfig,
     argv: Sequence[str] | None = None,
@@ -96,9 +77,9 @@ def run(
     records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` and
     :func:`~torchrl_recon.allocator.keep_freed_memory` (recorded in ``meta.json``) →
     :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
-    :func:`make_logger` → the kind's ``run`` with the run's :class:`RunContext` →
-    ``results.json`` → figures →
-    the results table on stdout → logger shutdown.
+    :func:`make_logger` → the kind's ``run`` (from the registry) with the run's
+    :class:`RunContext` → ``results.json`` → figures → the results table on stdout → logger
+    shutdown.
 
     Returns:
         The results dict, or None when the experiment stopped after ``cfg.stop_after``
@@ -117,33 +98,36 @@ def run(
     }
     verify_run_dir(Path(cfg.output_dir).expanduser())  # a damaged resume: refused before writing
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
-    print(f"[{cfg.experiment}] {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
+    tag = f"[{cfg.experiment}]"
+    print(f"{tag} {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
     logger = None
     try:
-        fn = _experiment_fn(cfg.experiment)
+        kind = get_type(cfg.experiment)
         logger = make_logger(cfg, run_dir)
+        recipes = RecipeLoader(resolve_recipe_path, load_recipe)
+        child = partial(_run_child, argv=argv)
+        ctx = RunContext.create(cfg, run_dir, logger, run_child=child, recipes=recipes)
         try:
-            recipes = RecipeLoader(resolve_recipe_path, load_recipe)
-            ctx = RunContext.create(cfg, run_dir, logger, run_child=_run_child, recipes=recipes)
-            results = fn(ctx)
+            results = kind.run(ctx)
         except StopRequested as stop:
             stage = stop.args[0] if stop.args else cfg.stop_after
             print(
-                f"[{cfg.experiment}] stopped after stage '{stage}' (stop_after={cfg.stop_after}). "
-                f"Its outputs are in {run_dir}. Re-running the same command resumes from there: "
-                "stages already done are skipped (drop stop_after, or name a later stage, to go "
+                f"{tag} stopped after stage '{stage}' (stop_after={cfg.stop_after}). Its outputs "
+                f"are in {run_dir}. Re-running the same command resumes from there: stages "
+                "already done are skipped (drop stop_after, or name a later stage, to go "
                 "further).",
                 flush=True,
             )
             return None
         results_path = write_results(run_dir, results)
         figures = save_figures(results, run_dir)
-        _log_results(logger, results)
+        if logger is not None:  # the headline numbers, as scalars under results/
+            for name, value in kind.headline(results).items():
+                if isinstance(value, (int, float)):
+                    logger.log_scalar(f"results/{name}", float(value), step=0)
         print(format_table(results))
         print(f"results: {results_path}")
-        for path in figures:
-            print(f"figure: {path}")
-        sys.stdout.flush()
+        print("".join(f"figure: {path}\n" for path in figures), end="", flush=True)
         return results
     finally:
         try:

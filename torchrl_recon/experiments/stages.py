@@ -79,12 +79,8 @@ class Stages:
         stop_after: str | None = None,
         logger: Logger | None = None,
     ):
-        self.run_dir, self.seed, self.stop_after, self.logger = (
-            Path(run_dir),
-            seed,
-            stop_after,
-            logger,
-        )
+        self.run_dir, self.seed = Path(run_dir), seed
+        self.stop_after, self.logger = stop_after, logger
         self.wall_time_s: dict[str, float] = {}
         self._earlier_s: dict[str, float] = {}  # parts of a stage finished by earlier runs
         self._pending: dict[str, Path] = {}  # files written since the last stage boundary
@@ -117,14 +113,10 @@ class Stages:
         Raises:
             DamagedFileError: one line naming the file, the stage and what to delete.
         """
-        marker, remedy = self._marker(name), self._remedy(name)
-        record = read_record(marker, required=("wall_time_s",), remedy=remedy)
-        if not isinstance(record["wall_time_s"], (int, float)):
-            raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
+        record = _read_timed(self._marker(name), self._remedy(name))
         files = record.pop(FILES_KEY, None)
         if files is not None and name not in self._verified:
-            owner = f"stage '{name}'"
-            verify_files(self.run_dir, files, owner=owner, remedy=remedy)
+            verify_files(self.run_dir, files, owner=f"stage '{name}'", remedy=self._remedy(name))
             self._owner.update(dict.fromkeys(files, name))
         self._verified.add(name)
         return record
@@ -166,11 +158,8 @@ class Stages:
                 self._rng_file(name).parent.mkdir(parents=True, exist_ok=True)
                 write_atomically(self._rng_file(name), lambda tmp: torch.save(rng_state, tmp))
                 self._pending[self._relative(self._rng_file(name))] = self._rng_file(name)
-                files = {
-                    rel: file_entry(path)
-                    for rel, path in sorted(self._pending.items())
-                    if path.is_file()
-                }
+                pending = sorted(self._pending.items())
+                files = {rel: file_entry(path) for rel, path in pending if path.is_file()}
                 text = json.dumps(with_hash({**record, FILES_KEY: files}), indent=1)
                 write_atomically(self._marker(name), lambda tmp: tmp.write_text(text))
             finally:
@@ -217,9 +206,7 @@ class Stages:
             marker = folder / f"part_{i}.json"
             if marker.exists():
                 remedy = f"delete {marker} to compute that part of stage '{name}' again."
-                record = read_record(marker, required=("wall_time_s",), remedy=remedy)
-                if not isinstance(record["wall_time_s"], (int, float)):
-                    raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
+                record = _read_timed(marker, remedy)
                 records.append(record)
                 self._earlier_s[name] = self._earlier_s.get(name, 0.0) + record["wall_time_s"]
                 continue
@@ -336,9 +323,15 @@ def verify_run_dir(run_dir: str | Path) -> None:
         remedy = f"delete {marker} to compute that part of stage '{name}' again."
         if stages.done(name):  # its parts are read again only when the stage runs again
             remedy = f"delete {marker} and {stages._marker(name)} to compute stage '{name}' again."
-        record = read_record(marker, required=("wall_time_s",), remedy=remedy)
-        if not isinstance(record["wall_time_s"], (int, float)):
-            raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
+        _read_timed(marker, remedy)
+
+
+def _read_timed(marker: Path, remedy: str) -> dict[str, Any]:
+    """A stage or part record, checked against its SHA-256, with a numeric ``wall_time_s``."""
+    record = read_record(marker, required=("wall_time_s",), remedy=remedy)
+    if not isinstance(record["wall_time_s"], (int, float)):
+        raise DamagedFileError(f"{marker}: wall_time_s is not a number; {remedy}")
+    return record
 
 
 def progress(iterable, *, desc: str, enabled: bool, total: int | None = None):

@@ -25,6 +25,7 @@ from torchrl_recon.experiments import control_stages
 from torchrl_recon.experiments.common import build_models, fit_module
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.runner import validate
+from torchrl_recon.planners import window_uncertainty
 
 
 def cut_trajectories(ids: torch.Tensor, chunk: int) -> torch.Tensor:
@@ -67,7 +68,8 @@ def main() -> None:
         torch.manual_seed(seed)  # the initial weights
         _, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
         val = fit_module(ctx, estimator, train, seed=seed, prefix="sampler_check/")
-        u = control_stages.window_uncertainty(ctx, data, estimator)
+        length = max(ctx.cfg.models.window, ctx.cfg.training.slice_len)  # as control_stages.run
+        u = window_uncertainty(data, estimator, sequence_length=length)
         threshold = control_stages.replan_threshold(ctx.cfg, u)
         sampling = ctx.cfg.training.window_sampling
         print(

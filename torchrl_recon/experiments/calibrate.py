@@ -1,7 +1,6 @@
-"""The estimator comparison (uncertainty estimators side by side) as an
+"""The calibrate experiment (uncertainty estimators side by side) as an
 :class:`~torchrl_recon.experiments.experiment_type.ExperimentType`: its stages
-(:mod:`.estimator_comparison_stages`), summary across seeds, tables, figures and headline
-numbers. Its command and recipes' ``experiment`` are ``calibrate``."""
+(:mod:`.calibrate_stages`), summary across seeds, tables, figures and headline numbers."""
 
 from __future__ import annotations
 
@@ -9,7 +8,7 @@ import sys
 from collections.abc import Mapping
 from typing import Any
 
-from torchrl_recon.experiments import estimator_comparison_stages
+from torchrl_recon.experiments import calibrate_stages
 from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_calibration
@@ -36,11 +35,8 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
         rows = [r["estimators"][name] for r in runs if name in r["estimators"]]
         keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
         stats = {k: mean_std([row[k] for row in rows]) for k in keys}
-        estimators[name] = {
-            "mean": {k: m for k, (m, _) in stats.items()},
-            "std": {k: sd for k, (_, sd) in stats.items()},
-            "n_seeds": len(rows),
-        }
+        mean, std = ({k: s[i] for k, s in stats.items()} for i in (0, 1))
+        estimators[name] = {"mean": mean, "std": std, "n_seeds": len(rows)}
     return {
         "seeds": [r.get("seed") for r in runs],
         "horizons": runs[0].get("horizons", []),
@@ -57,7 +53,7 @@ def estimators_table(title: str, rows_by_name: Mapping[str, Any], horizon: int) 
 
 
 def result_table(r: Mapping[str, Any]) -> str:
-    """The table of one comparison's results: one row per estimator."""
+    """The table of one calibrate results dict: one row per estimator."""
     title = (
         f"uncertainty estimators — {r.get('env')} seed {r.get('seed')} "
         f"(times as ratios to {r.get('reference_estimator')!r}, measured in the same run)"
@@ -66,7 +62,7 @@ def result_table(r: Mapping[str, Any]) -> str:
 
 
 def summary_table(r: Mapping[str, Any]) -> str:
-    """One table per env of a comparison summary (means across seeds)."""
+    """One table per env of a calibrate summary (means across seeds)."""
     parts = []
     for env, s in r["envs"].items():
         title = f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds"
@@ -108,13 +104,13 @@ def stage_values(cfg) -> dict:
     """``{estimator}`` and ``{kind}`` of the stage names."""
     return {
         "estimator": [s.name for s in cfg.estimators],
-        "kind": estimator_comparison_stages.OUTCOME_KINDS,
+        "kind": calibrate_stages.OUTCOME_KINDS,
     }
 
 
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    estimator_comparison_stages,
+    calibrate_stages,
     name="calibrate",
     help="uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
     schema=CalibrateConfig,

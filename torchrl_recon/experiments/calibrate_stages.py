@@ -1,4 +1,4 @@
-"""The stages of the estimator comparison: uncertainty estimators side by side on calibration,
+"""The stages of the calibrate experiment: uncertainty estimators side by side on calibration,
 out-of-distribution detection, cost, and the outcome of the two experiments with each.
 
 Stages (each resumable): ``random_data`` → ``world_model`` → ``fit_<estimator>`` for each →
@@ -13,6 +13,7 @@ takes the :class:`~torchrl_recon.experiments.context.RunContext`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import torch
@@ -76,20 +77,14 @@ def calibration_metrics(
     }
 
 
-def _score_no_grad(estimator: UncertaintyEstimator, x: torch.Tensor) -> torch.Tensor:
-    with torch.no_grad():
-        return estimator.score_sequence(x)
-
-
-def _timing(
-    cfg: DictConfig,
-    world: LSTMWorldModel,
-    estimators: dict[str, UncertaintyEstimator],
-    data,
+def timing(
+    cfg: DictConfig, world: LSTMWorldModel, estimators: dict[str, UncertaintyEstimator], data
 ) -> dict[str, Any]:
-    """Scoring and CEM planning time per estimator (and CEM without u), per horizon, interleaved."""
+    """Scoring and CEM planning time per estimator (and CEM without u), per horizon, interleaved
+    (stage ``timing``); on a CUDA device each call is timed until the device is done."""
     t, window = cfg.timing, cfg.models.window
     device = module_device(world)
+    score = torch.no_grad()(lambda est, x: est.score_sequence(x))
     seqs = cut_sequences(data, window + 1).to(device)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
     features = torch.cat([data["observation"], data["action"]], -1).to(device)
@@ -105,15 +100,11 @@ def _timing(
         plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
         fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
         for name, est in estimators.items():
-            planner = CEMPlanner(
-                PlanningModel(world, cost, uncertainty=est),
-                Objective(beta=0.1),
-                horizon=horizon,
-                **cem,
-            )
-            fns[f"{name}/score"] = lambda e=est, x=x: _score_no_grad(e, x)
+            model = PlanningModel(world, cost, uncertainty=est)
+            planner = CEMPlanner(model, Objective(beta=0.1), horizon=horizon, **cem)
+            fns[f"{name}/score"] = lambda e=est, x=x: score(e, x)
             fns[f"{name}/cem"] = lambda p=planner: p.plan(*ctx)
-        times = interleaved_median_ms(fns, t.repeats)
+        times = interleaved_median_ms(fns, t.repeats, device=device)
         row: dict[str, Any] = {"cem_without_u_ms": times["cem_without_u"]}
         for name in estimators:
             row[name] = {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}
@@ -121,14 +112,8 @@ def _timing(
     return out
 
 
-STAGES = (
-    "random_data",
-    "world_model",
-    "fit_{estimator}",
-    "evaluation",
-    "timing",
-    "outcome_{estimator}_{kind}",
-)
+STAGES = ("random_data", "world_model", "fit_{estimator}", "evaluation", "timing")
+STAGES += ("outcome_{estimator}_{kind}",)
 """Stage name templates, in run order (``{estimator}`` an estimator's name, ``{kind}`` explore
 or control)."""
 OUTCOME_KINDS = ("explore", "control")
@@ -199,19 +184,11 @@ def evaluation_stage(
         high = env.action_spec.high.to(torch.float32)
         close_env(env)
         windows = cut_sequences(held_out, window)
+        kw = dict(window=window, scale=scale, state_shift=ev.ood_state_shift, action_high=high)
         out = {}
         for name, est in estimators.items():
             torch.manual_seed(seed)  # MC dropout draws its masks from the global RNG
-            out[name] = calibration_metrics(
-                world,
-                est,
-                trajectories,
-                windows,
-                window=window,
-                scale=scale,
-                state_shift=ev.ood_state_shift,
-                action_high=high,
-            )
+            out[name] = calibration_metrics(world, est, trajectories, windows, **kw)
         return {"estimators": out, "trajectories": ev.trajectories, "ood_windows": len(windows)}
 
     return ctx.stages.run("evaluation", run)
@@ -221,6 +198,10 @@ def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
     """The two experiments with each estimator (stages ``outcome_<estimator>_<kind>``), run
     through ``ctx.run_child``; their headline numbers."""
     cfg = ctx.cfg
+
+    def outcome(spec: DictConfig, kind: str) -> dict:
+        return {"result": ctx.run_child(outcome_config(ctx, spec, kind))}
+
     outcomes: dict[str, dict[str, Any]] = {}
     for spec in cfg.estimators:
         outcomes[spec.name] = {}
@@ -229,21 +210,16 @@ def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
                 continue
             if ctx.run_child is None or ctx.recipes is None:
                 raise ValueError(
-                    "the estimator comparison's outcomes run other recipes: run it through "
+                    "calibrate's outcomes run other recipes: run it through "
                     "torchrl_recon.experiments.runner.run (or set outcomes.*_recipe to null)."
                 )
-            record = ctx.stages.run(
-                f"outcome_{spec.name}_{kind}",
-                lambda spec=spec, kind=kind: {
-                    "result": ctx.run_child(outcome_config(ctx, spec, kind))
-                },
-            )
+            record = ctx.stages.run(f"outcome_{spec.name}_{kind}", partial(outcome, spec, kind))
             outcomes[spec.name][kind] = record["result"]
     return outcomes
 
 
-def comparison_results(
-    ctx: RunContext, fits: dict, evaluation: dict, timing: dict, outcomes: dict
+def calibrate_results(
+    ctx: RunContext, fits: dict, evaluation: dict, times: dict, outcomes: dict
 ) -> dict[str, Any]:
     """The results dict: one row per estimator, times as ratios to the reference estimator."""
     cfg = ctx.cfg
@@ -258,7 +234,7 @@ def comparison_results(
         row["fit_val_loss"] = fits[spec.name]["val_loss"]
         row["fit_wall_time_s"] = fits[spec.name]["wall_time_s"]
         for horizon in cfg.timing.horizons:
-            t = timing[f"H{horizon}"]
+            t = times[f"H{horizon}"]
             row[f"score_ms_H{horizon}"] = t[spec.name]["score_ms"]
             row[f"cem_ms_H{horizon}"] = t[spec.name]["cem_ms"]
             row[f"score_ratio_H{horizon}"] = t[spec.name]["score_ms"] / t[reference]["score_ms"]
@@ -274,13 +250,13 @@ def comparison_results(
         "deviation in the random data, averaged over the imagined steps",
         "estimators": table,
         "world_model_val_loss": fits["world_model"]["val_loss"],
-        "timing": timing,
+        "timing": times,
         "wall_time_s": dict(ctx.stages.wall_time_s),
     }
 
 
 def run(ctx: RunContext) -> dict[str, Any]:
-    """Run (or resume) the estimator comparison; return its results."""
+    """Run (or resume) the calibrate experiment; return its results."""
     cfg = ctx.cfg
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.random_episode_steps
@@ -288,6 +264,5 @@ def run(ctx: RunContext) -> dict[str, Any]:
     scale = state_scale(data)
     world, estimators, fits = fit_stages(ctx, data)
     evaluation = evaluation_stage(ctx, world, estimators, scale)
-    timing = ctx.stages.run("timing", lambda: _timing(cfg, world, estimators, data))
-    outcomes = outcome_stages(ctx)
-    return comparison_results(ctx, fits, evaluation, timing, outcomes)
+    times = ctx.stages.run("timing", lambda: timing(cfg, world, estimators, data))
+    return calibrate_results(ctx, fits, evaluation, times, outcome_stages(ctx))

@@ -326,6 +326,34 @@ class ReplanConfig:
     )
 
 
+class WarmupMode(Choice):
+    random = "random"
+    zeros = "zeros"
+    plan = "plan"
+
+
+@dataclass
+class OnlineConfig(RunConfig):
+    """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
+    rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit of both
+    networks (``refit_steps`` from the current weights; the first fit takes
+    ``training.*.steps``). The planner plans for Σ(α·r − β·u) with ``alpha``, ``beta``;
+    ``warmup``: what the steps before each episode's first plan do (``random``, ``zeros`` or
+    ``plan``, see :class:`~torchrl_recon.policies.MPCPolicy`)."""
+
+    experiment: str = "online"
+    output_dir: str = checked("outputs/online", _directory)
+    random_steps: int = count(1000)
+    iterations: int = count(10)
+    steps_per_iteration: int = count(200)
+    refit_steps: int = count(300)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))
+    beta: float = 0.0
+    warmup: WarmupMode = WarmupMode.random
+    replan: ReplanConfig = field(default_factory=lambda: ReplanConfig(mode=ReplanMode.every_step))
+
+
 @dataclass
 class ControlConfig(RunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3)."""

@@ -521,3 +521,27 @@ def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | N
                 f"'{key}' (with outcomes.{kind}_overrides {overrides} and this recipe's "
                 f"models.window = {cfg.models.window}): {e}"
             )
+
+
+def online_errors(cfg: DictConfig, errors: _Errors) -> None:
+    """The online recipe's own checks: random data that holds two training slices, episodes
+    long enough to plan in, and the planner built with the recipe's objective."""
+    from torchrl_recon.planners import Objective
+
+    _data_errors(
+        errors,
+        frames_key="random_steps",
+        frames=cfg.random_steps,
+        episode_key="env.episode_steps",
+        episode=cfg.env.episode_steps,
+        slice_len=cfg.training.slice_len,
+    )
+    errors.extend(
+        _planner_errors(
+            cfg.planner,
+            "planner",
+            cfg.models.window,
+            lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
+            f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
+        )
+    )

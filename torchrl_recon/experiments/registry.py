@@ -9,11 +9,12 @@ recipes (``experiment: <name>``).
 from __future__ import annotations
 
 from torchrl_recon.errors import RecipeError
-from torchrl_recon.experiments import calibrate, control, explore
+from torchrl_recon.experiments import calibrate, control, explore, online
 from torchrl_recon.experiments.experiment_type import ExperimentType
 
 EXPERIMENT_TYPES: dict[str, ExperimentType] = {
-    t.name: t for t in (explore.EXPERIMENT, control.EXPERIMENT, calibrate.EXPERIMENT)
+    t.name: t
+    for t in (explore.EXPERIMENT, control.EXPERIMENT, calibrate.EXPERIMENT, online.EXPERIMENT)
 }
 """Every experiment kind by name, in the order the CLI lists them."""
 

@@ -141,6 +141,30 @@ def episode_returns(data: TensorDictBase) -> list[float]:
     return sums[ended].tolist()
 
 
+def append_steps(data: TensorDictBase, new: TensorDictBase) -> TensorDictBase:
+    """``data`` followed by ``new``, on the keys both hold (the env's: the policy's own keys
+    and a storage's ``index`` are left out), with distinct trajectory ids.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> a = TensorDict({"x": torch.zeros(2), "index": torch.arange(2),
+        ...     ("collector", "traj_ids"): torch.zeros(2, dtype=torch.long)}, [2])
+        >>> b = TensorDict({"x": torch.ones(3), "mpc_plan": torch.ones(3),
+        ...     ("collector", "traj_ids"): torch.zeros(3, dtype=torch.long)}, [3])
+        >>> out = append_steps(a, b)
+        >>> sorted(out.keys()), out["collector", "traj_ids"].tolist()
+        (['collector', 'x'], [0, 0, 1, 1, 1])
+    """
+    shared = shared_keys(data, new)
+    return concat_trajectories(data.select(*shared), new.select(*shared))
+
+
+def shared_keys(data: TensorDictBase, new: TensorDictBase) -> list:
+    """The leaf keys of ``data`` that ``new`` holds too, in ``data``'s order."""
+    keys = set(new.keys(True, True))
+    return [k for k in data.keys(True, True) if k in keys]
+
+
 @torch.no_grad()
 def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) -> float:
     """The world model's one-step (teacher-forced) error on ``data``: mean square of the
@@ -292,7 +316,7 @@ def learn_online(
         error = model_error(world_model, new, schedule.slice_len)
         u = mean_uncertainty(estimator, new)
         replans = int(new[REPLANNED].sum())
-        data = concat_trajectories(data, new.select(*data.keys(True, True)))  # the env's keys
+        data = append_steps(data, new)
         start = time.perf_counter()
         fit_models(
             world_model,

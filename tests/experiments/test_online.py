@@ -1,0 +1,90 @@
+"""The online experiment kind: smoke runs on a shipped env and on a gymnasium env through
+``env.id``, resumed after a stop, and its recipe checks."""
+
+from __future__ import annotations
+
+import json
+import math
+import uuid
+from pathlib import Path
+
+import pytest
+
+from torchrl_recon.cli import main
+
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+
+COSTS = """
+import torch
+
+
+def pendulum(obs, action, next_obs):
+    theta = torch.atan2(next_obs[..., 1], next_obs[..., 0])
+    return theta.pow(2) + 0.1 * next_obs[..., 2].pow(2) + 0.001 * action[..., 0].pow(2)
+
+
+def spinning(obs, action, next_obs):
+    return next_obs[..., 2].abs() > 7.5
+"""
+
+
+@pytest.fixture
+def costs(tmp_path, monkeypatch) -> str:
+    name = f"online_costs_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{name}.py").write_text(COSTS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return name
+
+
+def _results(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+def test_industrial_benchmark_online_smoke(tmp_path, capsys):
+    out = tmp_path / "ib"
+    code = main(["online", "industrial_benchmark/online_smoke", f"output_dir={out}"])
+    assert code == 0, capsys.readouterr().err
+    r = _results(out)
+    assert [it["iteration"] for it in r["iterations"]] == [1, 2]
+    assert [it["env_steps"] for it in r["iterations"]] == [120, 150]
+    assert len(r["random"]["returns"]) == 3  # 90 random steps in 30-step episodes
+    for it in r["iterations"]:
+        assert len(it["returns"]) == 1 and math.isfinite(it["returns"][0])
+        assert math.isfinite(it["model_error"]) and math.isfinite(it["mean_u"])
+        assert 0 < it["replans"] <= 30 and it["fit_s"] > 0 and it["plan_s"] > 0
+    assert (out / "learning_curve.png").stat().st_size > 0
+    assert "online industrial_benchmark seed 0" in capsys.readouterr().out
+
+
+def test_pendulum_online_smoke_with_a_termination_resumes_to_the_same_numbers(
+    costs, tmp_path, capsys
+):
+    args = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    args += [f"env.termination={costs}:spinning"]
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    assert main([*args, f"output_dir={whole}"]) == 0, capsys.readouterr().err
+    assert main([*args, f"output_dir={parts}", "stop_after=play_1"]) == 0
+    assert not (parts / "results.json").exists()
+    assert main([*args, f"output_dir={parts}"]) == 0, capsys.readouterr().err
+    a, b = _results(whole), _results(parts)
+    for r in (a, b):
+        for it in r["iterations"]:
+            for key in ("fit_s", "plan_s", "env_s", "wall_time_s"):
+                it.pop(key)
+        r.pop("first_fit"), r.pop("meta")  # wall times; when and how each ran
+    assert a == b
+    assert a["env"] == "Pendulum-v1" and len(a["iterations"]) == 2
+
+
+def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
+    out = tmp_path / "bad"
+    base = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    for override, expected in (
+        ("planner.kind=mpc", "'planner.kind'"),
+        ("random_steps=20", "'random_steps'"),
+        ("warmup=sometimes", "'warmup'"),
+    ):
+        assert main([*base, f"output_dir={out}", override]) == 2
+        err = capsys.readouterr().err
+        assert expected in err, err
+        assert not out.exists()

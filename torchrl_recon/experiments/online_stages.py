@@ -1,0 +1,169 @@
+"""The online experiment's stages: random data, a first fit, then per iteration an MPC play
+stage and a warm-started refit (:mod:`torchrl_recon.training.online` does the work)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_recon.envs import close_env
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_models,
+    build_planner,
+    fit_stage,
+    planning_model,
+    random_data_stage,
+)
+from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
+from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.policies.mpc import REPLANNED
+from torchrl_recon.training import load_checkpoint, save_checkpoint
+from torchrl_recon.training.online import (
+    FitSchedule,
+    append_steps,
+    episode_returns,
+    fit_models,
+    mean_uncertainty,
+    model_error,
+    play,
+    shared_keys,
+)
+
+STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
+"""Stage name templates, in run order (``{n}`` the iteration, from 1)."""
+
+
+def schedule(cfg) -> FitSchedule:
+    """The refits' schedule: the recipe's ``training`` sizes, ``refit_steps`` warm steps."""
+    t, fit = cfg.training, cfg.training.world_model
+    return FitSchedule(
+        steps=fit.steps,
+        refit_steps=cfg.refit_steps,
+        lr=fit.lr,
+        eval_every=fit.eval_every,
+        patience=fit.patience,
+        slice_len=t.slice_len,
+        num_slices=t.num_slices,
+        val_fraction=t.val_fraction,
+        mode=str(t.world_model_mode),
+    )
+
+
+def policy(ctx: RunContext, model: PlanningModel, data: TensorDictBase) -> MPCPolicy:
+    """The iteration's MPC policy; its re-planning threshold (``replan.mode: uncertainty``) is
+    the ``threshold_quantile`` of the windows' u on all data so far, times ``threshold_scale``."""
+    cfg, r = ctx.cfg, ctx.cfg.replan
+    threshold = None
+    if str(r.mode) == "uncertainty":
+        u = window_uncertainty(data, model.uncertainty, sequence_length=cfg.training.slice_len)
+        threshold = float(u.quantile(r.threshold_quantile)) * r.threshold_scale
+        threshold *= r.every if str(r.threshold_on) == "cumulative" else 1
+    planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
+    return MPCPolicy(
+        planner,
+        replan=str(r.mode),
+        replan_every=r.every,
+        threshold=threshold,
+        threshold_on=str(r.threshold_on),
+        error_threshold=r.error_threshold,
+        warmup=str(cfg.warmup),
+    )
+
+
+def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
+    """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
+    ``buffers/play_<n>``); the record holds the episodes' returns, the model's error on the new
+    steps, their mean u, the re-plans, and the seconds spent planning and in the env."""
+    cfg, name = ctx.cfg, f"play_{n}"
+
+    def run() -> dict:
+        start = time.perf_counter()
+        mpc = policy(ctx, model, data)
+        seed = ctx.stage_seed(name)
+        env = build_env(
+            cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy_device=ctx.device
+        )
+        env.append_transform(mpc.make_tensordict_primer())
+        new, plan_s = play(
+            env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
+        )
+        close_env(env)
+        ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
+        record = {
+            "returns": episode_returns(new),
+            "model_error": model_error(model.world_model, new, cfg.training.slice_len),
+            "mean_u": mean_uncertainty(model.uncertainty, new),
+            "replans": int(new[REPLANNED].sum()),
+            "plan_s": plan_s,
+            "env_s": time.perf_counter() - start - plan_s,
+        }
+        if ctx.logger is not None:
+            for key in ("model_error", "mean_u", "replans"):
+                ctx.logger.log_scalar(f"online/{key}", record[key], step=n)
+        return record
+
+    return ctx.stages.run(name, run)
+
+
+def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
+    """Stage ``refit_<n>``: both networks refitted on all data so far, from their current
+    weights (checkpointed as ``checkpoints/refit_<n>.pt``, loaded back on resume)."""
+    name = f"refit_{n}"
+    path = ctx.stages.path("checkpoints", f"{name}.pt")
+    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
+
+    def run() -> dict:
+        start = time.perf_counter()
+        losses = fit_models(
+            model.world_model,
+            model.uncertainty,
+            data,
+            schedule(ctx.cfg),
+            seed=ctx.stage_seed(name),
+            warm=True,
+            progress=ctx.cfg.progress,
+            logger=ctx.logger,
+            log_prefix=f"{name}/",
+        )
+        save_checkpoint(path, modules)
+        return {"val_loss": losses, "fit_s": time.perf_counter() - start}
+
+    record = ctx.stages.run(name, run)
+    load_checkpoint(path, modules)
+    return record
+
+
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) the online experiment; return its results."""
+    cfg = ctx.cfg
+    data = random_data_stage(
+        ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
+    )
+    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
+    world, estimator = build_models(cfg, obs_dim, action_dim, ctx.device)
+    first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
+    model = planning_model(cfg, world, estimator)
+    iterations = []
+    for n in range(1, cfg.iterations + 1):
+        played = play_stage(ctx, n, model, data)
+        data = append_steps(data, ctx.stages.load_data(f"play_{n}"))
+        refit = refit_stage(ctx, n, model, data)
+        iterations.append({"iteration": n, "env_steps": len(data), **played, **refit})
+    random_returns = episode_returns(data[: cfg.random_steps])
+    late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]
+    return ctx.results_header() | {
+        "random": {"returns": random_returns, "mean_return": _mean(random_returns)},
+        "first_fit": first,
+        "iterations": iterations,
+        "mean_return_last_half": _mean(late),
+        "env_steps": len(data),
+    }
+
+
+def _mean(values: list[float]) -> float:
+    return float(torch.tensor(values, dtype=torch.float64).mean()) if values else math.nan

@@ -137,7 +137,7 @@ def test_fit_stage_resumes_from_its_checkpoint(tmp_path):
 
 
 def test_stage_names_of_the_registry():
-    assert list(EXPERIMENT_TYPES) == ["explore", "control", "calibrate"]
+    assert list(EXPERIMENT_TYPES) == ["explore", "control", "calibrate", "online"]
     cfg = load_recipe(RECIPES / "control_smoke.yaml")
     control = get_type("control")
     names = control.stage_list(cfg)

@@ -132,6 +132,14 @@ BENCHMARK_STEPS = [
         ["--rows", "2", "--horizon", "5", "--repeats", "2"],
     ),
     benchmark(
+        "planner quality at equal budget (shooting, CEM, MPPI, iCEM)",
+        "planner_quality.py",
+        60,
+        ["--envs", "industrial_benchmark", "drone", "--fit-steps", "200", "--seeds", "2"],
+        ["--envs", "drone", "--frames", "600", "--fit-steps", "2", "--contexts", "3"]
+        + ["--candidates", "16", "--iterations", "2", "--horizon", "4", "--seeds", "1"],
+    ),
+    benchmark(
         "control batching",
         "control_batching.py",
         90,
@@ -139,7 +147,7 @@ BENCHMARK_STEPS = [
         ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
     ),
 ]
-EXPERIMENT_KINDS = ("explore", "control", "calibrate")
+EXPERIMENT_KINDS = ("explore", "control", "calibrate", "online")
 EXTRA_OVERRIDES = {"calibrate": ["outcomes.control_recipe=null", "outcomes.explore_recipe=null"]}
 
 

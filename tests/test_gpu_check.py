@@ -52,7 +52,7 @@ def test_every_device_benchmark_is_a_step_of_the_check():
     }
     assert with_device == in_check
     steps = check.build_steps("cuda", tiny=False, out=Path("out"))
-    assert [s.kind for s in steps].count("experiment") == 3
+    assert [s.kind for s in steps].count("experiment") == 4
     assert all("--device" in s.argv for s in steps if s.kind == "benchmark")
     assert all("device=cuda" in s.argv for s in steps if s.kind == "experiment")
     assert sum(s.timeout_s for s in steps if s.kind != "tests") > check.BUDGET_S  # budget caps
@@ -70,7 +70,7 @@ def test_dry_run_finds_every_step_wired(tmp_path):
     assert len(sections) == len(_load().build_steps("cuda", tiny=False, out=tmp_path))
     assert all(status.startswith("dry run: wired") for status in sections.values()), sections
     kinds = [title.split(":")[0] for title in sections]
-    assert kinds.count("benchmark") == 7 and kinds.count("experiment") == 3, sections
+    assert kinds.count("benchmark") == 8 and kinds.count("experiment") == 4, sections
 
 
 def test_a_flag_a_benchmark_lacks_is_reported_unwired():
@@ -100,5 +100,5 @@ def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     report = (tmp_path / "gpu_check.md").read_text()
     assert set(_sections(report).values()) == {"passed"}, report
     assert "its arithmetic limit" in report and "speed-up" in report
-    assert report.count("results.json: device cpu (") == 3, report
+    assert report.count("results.json: device cpu (") == 4, report
     assert "torch.compile (default) vs eager" in report, report

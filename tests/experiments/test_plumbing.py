@@ -322,7 +322,7 @@ def test_overrides_and_seed_interpolation():
             ["wrong type", "validation.trajectories"],
         ),
         ("explore_smoke", ["env.name=pendulum"], ["env.name", "pendulum", "drone"]),
-        ("explore_smoke", ["guided.planner.kind=mppi"], ["guided.planner.kind", "mppi"]),
+        ("explore_smoke", ["guided.planner.kind=mpc"], ["guided.planner.kind", "mpc", "mppi"]),
         ("explore_smoke", ["logger.backend=tensorboard"], ["logger.backend"]),
         ("explore_smoke", ["experiment=train"], ["experiment"]),
         ("control_smoke", ["settings.2.foo=1"], ["unknown key", "settings[2].foo"]),

@@ -91,8 +91,9 @@ def control_result(seed: int, mses: dict[str, list[float]], env: str = "drone") 
     settings = {}
     for name, values in mses.items():
         eps = [episode(v) for v in values]
-        mean = {k: stats_mean([e[k] for e in eps if not math.isnan(e[k])]) for k in METRICS}
-        std = {k: 0.1 for k in METRICS}
+        keys = [k for k in METRICS if k in eps[0]]
+        mean = {k: stats_mean([e[k] for e in eps if not math.isnan(e[k])]) for k in keys}
+        std = {k: 0.1 for k in keys}
         settings[name] = {"episodes": eps, "mean": mean, "std": std}
     length, n = 12, 4
     return {

@@ -15,6 +15,7 @@ from torchrl_recon.experiments.control_stages import METRICS, episode_mean_std
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
 from torchrl_recon.experiments.recipe_checks import control_errors
+from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.experiments.tables import fmt, pm, render
 
 
@@ -37,18 +38,32 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "mean": mean,
             "std": std,
             "n_episodes": len(episodes),
+            "ended_in_warmup": sum(
+                r["settings"].get(name, {}).get("ended_in_warmup", 0) for r in runs
+            ),
             "seeds": [r.get("seed") for r in runs if name in r["settings"]],
+        }
+    randoms = [x for r in runs for x in r.get("random_policy", {}).get("env_returns", [])]
+    if randoms:
+        mean, std = mean_std(randoms)
+        settings["random policy"] = {
+            "mean": {"env_return": mean},
+            "std": {"env_return": std},
+            "n_episodes": len(randoms),
         }
     return {"seeds": seeds, "settings": settings, "across_seeds": across_seeds(runs, names)}
 
 
 def settings_table(title: str, settings: Mapping[str, Any]) -> str:
-    """``title`` over one row per setting: its episodes and mean ± std of each metric."""
+    """``title`` over one row per setting: its episodes (those that ended before their first
+    plan, whose planned-step metrics are left out, in brackets) and mean ± std of each metric."""
     metrics = [m for m in METRICS if any(m in s.get("mean", {}) for s in settings.values())]
     rows = []
     for name, s in settings.items():
         n = s.get("n_episodes") or len(s.get("episodes", []))
-        rows.append([name, str(n)] + [pm(s["mean"].get(m), s["std"].get(m)) for m in metrics])
+        unplanned = s.get("ended_in_warmup")
+        n_text = f"{n} ({unplanned} in warm-up)" if unplanned else str(n)
+        rows.append([name, n_text] + [pm(s["mean"].get(m), s["std"].get(m)) for m in metrics])
     return title + "\n" + render(["setting", "episodes", *metrics], rows)
 
 
@@ -58,7 +73,12 @@ def result_table(r: Mapping[str, Any]) -> str:
         f"control — {r.get('env')} seed {r.get('seed')}: mean ± std over episodes"
         f" (re-plan threshold {fmt(r.get('replan_threshold'))})"
     )
-    return settings_table(title, r["settings"])
+    settings = dict(r["settings"])
+    if "random_policy" in r:
+        settings["random policy"] = r["random_policy"] | {
+            "n_episodes": len(r["random_policy"]["env_returns"])
+        }
+    return settings_table(title, settings)
 
 
 def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:

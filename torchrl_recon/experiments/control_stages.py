@@ -38,6 +38,7 @@ from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
 
 METRICS = (
+    "env_return",
     "prediction_mse",
     "cost_error",
     "real_cost",
@@ -46,24 +47,32 @@ METRICS = (
     "mean_u",
     "feasible_fraction",
 )
-STAGES = ("random_data", "models", "setting_{setting}")
+STAGES = ("random_data", "models", "setting_{setting}", "random_policy")
 """Stage name templates, in run order (``{setting}`` a setting's name)."""
 
 
 def episode_metrics(td: TensorDictBase, scale: torch.Tensor) -> dict[str, float]:
-    """Predicted-vs-real metrics of one MPC episode (steps taken from a plan only).
+    """Predicted-vs-real metrics of one MPC episode (steps taken from a plan only), and its
+    ``env_return`` (the env's reward summed over every step, the warm-up's too).
 
-    ``prediction_mse`` is in units of ``scale`` per state dim; costs are summed over planned steps.
+    ``prediction_mse`` is in units of ``scale`` per state dim; costs are summed over planned
+    steps. An episode that ended before its first plan has ``env_return`` and NaN for the rest.
     """
     planned = ~torch.isnan(td[PRED_COST].squeeze(-1))
     replanned = td[REPLANNED].squeeze(-1)
+    env_return = float(td["next", "reward"].double().sum())
     if not planned.any():
-        return {k: float("nan") for k in METRICS} | {"replans": 0, "steps": int(td.shape[0])}
+        return {k: float("nan") for k in METRICS} | {
+            "env_return": env_return,
+            "replans": 0,
+            "steps": int(td.shape[0]),
+        }
     err = (td[PRED_NEXT][planned] - td["next", "observation"][planned]) / scale
     predicted_cost = float(td[PRED_COST].squeeze(-1)[planned].sum())
     real_cost = float(-td["next", "reward"].squeeze(-1)[planned].sum())
     feasible = td[FEASIBLE].squeeze(-1)[replanned]
     return {
+        "env_return": env_return,
         "prediction_mse": float(err.pow(2).mean()),
         "cost_error": abs(predicted_cost - real_cost),
         "real_cost": real_cost,
@@ -235,12 +244,45 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
         ]
         first = parts[0]["trajectory_example"] if parts else None
         mean, std = episode_mean_std(episodes)
+        unplanned = sum(1 for e in episodes if not _planned(e))
         record = {"episodes": episodes, "mean": mean, "std": std, "trajectory_example": first}
+        record["ended_in_warmup"] = unplanned
         if setting.band is not None:  # the across-seed trend test orders the settings by it
             record["band"] = {k: setting.band[k] for k in ("low", "high", "kind")}
         return record | ({"beta_effective": beta} if setting.beta_relative else {})
 
     return ctx.stages.run(name, run)
+
+
+def _planned(episode: dict) -> bool:
+    """Whether an episode's record has a planned step (its predicted cost is a number)."""
+    return episode.get("predicted_cost") == episode.get("predicted_cost")  # NaN: none
+
+
+def random_policy_stage(ctx: RunContext) -> dict:
+    """Stage ``random_policy``: ``episodes`` episodes of uniform random actions, of the
+    settings' length, played side by side (TorchRL's random rollout); their env returns."""
+    cfg = ctx.cfg
+
+    def run() -> dict:
+        seeds = [ctx.stage_seed(f"random_policy_{e}") for e in range(cfg.episodes)]
+        steps, returns = cfg.env.episode_steps, []
+        for batch in episode_batches(cfg.episodes, cfg.num_envs):
+            group = [seeds[e] for e in batch]
+            env = build_env(cfg, seed=group if len(group) > 1 else group[0], episode_steps=steps)
+            torch.manual_seed(group[0])
+            td = env.rollout(steps, break_when_all_done=True).reshape(len(group), -1).cpu()
+            close_env(env)
+            lengths = first_done_lengths(td)
+            returns += [
+                float(td[i, :n]["next", "reward"].double().sum()) for i, n in enumerate(lengths)
+            ]
+        mean, std = mean_std(returns)
+        return {"env_returns": returns, "mean": {"env_return": mean}, "std": {"env_return": std}}
+
+    record = ctx.stages.run("random_policy", run)
+    record.pop("wall_time_s", None)
+    return record
 
 
 def run(ctx: RunContext) -> dict:
@@ -272,6 +314,7 @@ def run(ctx: RunContext) -> dict:
         **({"beta_unit": beta_unit} if relative else {}),
         "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
         "settings": results,
+        "random_policy": random_policy_stage(ctx),
         "trajectory_example": example,
         "wall_time_s": dict(ctx.stages.wall_time_s),
     }

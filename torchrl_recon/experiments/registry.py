@@ -27,7 +27,7 @@ def get_type(name: str) -> ExperimentType:
 
     Examples:
         >>> get_type("control").stage_list(None)
-        ['random_data', 'models', 'setting_<setting>']
+        ['random_data', 'models', 'setting_<setting>', 'random_policy']
     """
     try:
         return EXPERIMENT_TYPES[name]

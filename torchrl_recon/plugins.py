@@ -34,7 +34,7 @@ def import_object(spec: str, what: str) -> Any:
         >>> import_object("torchrl_recon.planners:NoSuchPlanner", "planner")
         Traceback (most recent call last):
         ...
-        ValueError: planner 'torchrl_recon.planners:NoSuchPlanner': module 'torchrl_recon.planners' has no attribute 'NoSuchPlanner'.
+        ValueError: planner 'torchrl_recon.planners:NoSuchPlanner': module 'torchrl_recon.planners' has no attribute 'NoSuchPlanner'; its own: [].
     """
     module, _, name = str(spec).partition(":")
     if not module or not name or ":" in name:
@@ -52,8 +52,21 @@ def import_object(spec: str, what: str) -> Any:
             f"{where}: importing module {module!r} failed: {type(e).__name__}: {e}"
         ) from None
     if not hasattr(mod, name):
-        raise ValueError(f"{where}: module {module!r} has no attribute {name!r}.")
+        raise ValueError(
+            f"{where}: module {module!r} has no attribute {name!r}; its own: {_own_names(mod)}."
+        )
     return getattr(mod, name)
+
+
+def _own_names(module: Any) -> list[str]:
+    """The public functions and classes ``module`` defines itself (not those it imports)."""
+    return sorted(
+        n
+        for n, v in vars(module).items()
+        if callable(v)
+        and not n.startswith("_")
+        and getattr(v, "__module__", None) == module.__name__
+    )
 
 
 def resolve_class(spec: str, registry: Mapping[str, type[T]], base: type[T], what: str) -> type[T]:

@@ -12,18 +12,9 @@ from typing import Any
 import gymnasium as gym
 import torch
 
+from torchrl_recon.plugins import import_object
+
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-def _own_functions(module: Any) -> list[str]:
-    """Public callables defined in ``module`` itself (not imported into it)."""
-    return sorted(
-        n
-        for n, v in vars(module).items()
-        if callable(v)
-        and not n.startswith("_")
-        and getattr(v, "__module__", None) == module.__name__
-    )
 
 
 def import_cost(path: str, *, what: str = "cost") -> CostFn:
@@ -54,23 +45,7 @@ def import_cost(path: str, *, what: str = "cost") -> CostFn:
             f"-> [...] in an importable module), got {path!r}."
         )
     where = f"{what} {path!r}"
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as e:
-        raise ValueError(
-            f"{where}: cannot import module {module!r} ({e}); put the folder holding "
-            f"{module.split('.')[0]}.py on PYTHONPATH (e.g. PYTHONPATH=. torchrl-recon ...)."
-        ) from None
-    except Exception as e:  # the user's module fails while importing
-        raise ValueError(
-            f"{where}: importing module {module!r} failed: {type(e).__name__}: {e}"
-        ) from None
-    fn = getattr(mod, attr, None)
-    if fn is None:
-        raise ValueError(
-            f"{where}: module {module!r} has no attribute {attr!r}; "
-            f"its functions: {_own_functions(mod)}."
-        )
+    fn = import_object(path, what)
     if not callable(fn):
         raise ValueError(f"{where}: {module}.{attr} is a {type(fn).__name__}, not a function.")
     try:

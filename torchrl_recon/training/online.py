@@ -245,7 +245,8 @@ def learn_online(
     ``steps_per_iteration`` MPC steps, refitting both networks after each round.
 
     Args:
-        env: the TorchRL env (episodes of its own length; terminations end them early).
+        env: the TorchRL env (episodes of its own length; terminations end them early); the
+            MPC policy's primer is appended to it.
         world_model, estimator: the networks the planner's model holds (``estimator`` may be
             None for β = 0).
         make_planner: returns the planner (its model built on ``world_model`` and

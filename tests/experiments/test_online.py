@@ -88,3 +88,49 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         err = capsys.readouterr().err
         assert expected in err, err
         assert not out.exists()
+
+
+SHORT_ENV = '''
+import gymnasium as gym
+import numpy as np
+import torch
+
+
+class Short(gym.Env):
+    """Ends after 3 steps, like InvertedPendulum's random episodes."""
+
+    observation_space = gym.spaces.Box(-10, 10, (2,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+
+    def __init__(self, **kwargs):  # TorchRL's GymEnv may pass frameskip
+        super().__init__()
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.s = 0, np.zeros(2, np.float32)
+        return self.s.copy(), {}
+
+    def step(self, action):
+        self.t += 1
+        self.s = (self.s + np.asarray(action, np.float32)[0]).clip(-10, 10)
+        return self.s.copy(), -float(self.s[0] ** 2), self.t >= 3, False, {}
+
+
+def cost(obs, action, next_obs):
+    return next_obs[..., 0].pow(2)
+
+
+gym.register(id="{env_id}", entry_point="{module}:Short", max_episode_steps=50)
+'''
+
+
+def test_episodes_shorter_than_a_training_window_are_one_clear_error(tmp_path, monkeypatch, capsys):
+    module, env_id = f"short_env_{uuid.uuid4().hex[:8]}", f"Short{uuid.uuid4().hex[:6]}-v0"
+    source = SHORT_ENV.replace("{env_id}", env_id).replace("{module}", module)
+    (tmp_path / f"{module}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "short"
+    args = ["online", "gym/online_smoke", f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
+    assert main([*args, f"output_dir={out}"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "training.slice_len = 10 steps (the longest has 3)" in err[0], err

@@ -13,9 +13,11 @@ from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
+from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
+from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
 from torchrl_recon.planners import (
@@ -189,9 +191,40 @@ def build_models(
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
 
+def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
+    """Refuse data whose train or validation split could hold no training window: fewer than
+    two trajectories of ``training.slice_len`` steps (an env whose episodes end early, e.g.
+    InvertedPendulum's random episodes of 3-8 steps).
+
+    Raises:
+        RecipeError: naming the longest episode and the keys to change.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"training": {"slice_len": 8}, "models": {"window": 4}})
+        >>> short = TensorDict({("collector", "traj_ids"): torch.arange(30) // 5}, [30])
+        >>> check_episode_lengths(cfg, short)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        torchrl_recon.errors.RecipeError: 0 of the 6 episodes in the data have training.slice_len = 8 steps (the longest has 5)...
+    """
+    ids = data.get(TRAJ_KEY)
+    _, lengths = torch.unique_consecutive(ids, return_counts=True)
+    slice_len = cfg.training.slice_len
+    long = int((lengths >= slice_len).sum())
+    if long < 2:
+        raise RecipeError(
+            f"{long} of the {len(lengths)} episodes in the data have training.slice_len = "
+            f"{slice_len} steps (the longest has {int(lengths.max())}); the fits sample windows of "
+            "slice_len steps inside one episode, and two such episodes at least (one to "
+            f"validate): lower training.slice_len (above models.window = {cfg.models.window}) "
+            "and models.window, or collect longer episodes."
+        )
+
+
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
     """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)
     with the recipe's ``training`` sizes and window sampling."""
+    check_episode_lengths(cfg, data)
     train, val = split_by_trajectory(data, cfg.training.val_fraction, seed=seed)
     t = cfg.training
     sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)

@@ -19,17 +19,16 @@ from torchrl_recon.experiments.common import (
     random_data_stage,
 )
 from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.control_stages import replan_threshold
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import MPCPolicy
-from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.training import load_checkpoint, save_checkpoint
 from torchrl_recon.training.online import (
     FitSchedule,
     append_steps,
     episode_returns,
     fit_models,
-    mean_uncertainty,
-    model_error,
+    new_steps_metrics,
     play,
     shared_keys,
 )
@@ -61,8 +60,7 @@ def policy(ctx: RunContext, model: PlanningModel, data: TensorDictBase) -> MPCPo
     threshold = None
     if str(r.mode) == "uncertainty":
         u = window_uncertainty(data, model.uncertainty, sequence_length=cfg.training.slice_len)
-        threshold = float(u.quantile(r.threshold_quantile)) * r.threshold_scale
-        threshold *= r.every if str(r.threshold_on) == "cumulative" else 1
+        threshold = replan_threshold(cfg, u)
     planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
     return MPCPolicy(
         planner,
@@ -94,11 +92,8 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
         )
         close_env(env)
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
-        record = {
-            "returns": episode_returns(new),
-            "model_error": model_error(model.world_model, new, cfg.training.slice_len),
-            "mean_u": mean_uncertainty(model.uncertainty, new),
-            "replans": int(new[REPLANNED].sum()),
+        seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
+        record = seen | {
             "plan_s": plan_s,
             "env_s": time.perf_counter() - start - plan_s,
         }

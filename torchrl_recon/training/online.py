@@ -195,6 +195,23 @@ def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBas
     )
 
 
+def new_steps_metrics(
+    world_model: LSTMWorldModel,
+    estimator: UncertaintyEstimator | None,
+    new: TensorDictBase,
+    slice_len: int,
+) -> dict:
+    """How the models did on an iteration's new MPC steps, before they are refitted on them:
+    the returns of the episodes that ended, the world model's one-step error, the mean u and
+    the number of re-plans."""
+    return {
+        "returns": episode_returns(new),
+        "model_error": model_error(world_model, new, slice_len),
+        "mean_u": mean_uncertainty(estimator, new),
+        "replans": int(new[REPLANNED].sum()),
+    }
+
+
 class _Timed(TensorDictModuleBase):
     """``policy`` with the wall time of its calls summed in ``seconds``."""
 
@@ -314,9 +331,7 @@ def learn_online(
             env, policy, frames=steps_per_iteration, seed=seed + i, progress=progress
         )
         env_s = time.perf_counter() - start - plan_s
-        error = model_error(world_model, new, schedule.slice_len)
-        u = mean_uncertainty(estimator, new)
-        replans = int(new[REPLANNED].sum())
+        seen = new_steps_metrics(world_model, estimator, new, schedule.slice_len)
         data = append_steps(data, new)
         start = time.perf_counter()
         fit_models(
@@ -333,10 +348,10 @@ def learn_online(
         record = IterationRecord(
             i,
             len(data),
-            episode_returns(new),
-            error,
-            u,
-            replans,
+            seen["returns"],
+            seen["model_error"],
+            seen["mean_u"],
+            seen["replans"],
             time.perf_counter() - start,
             plan_s,
             env_s,

@@ -173,10 +173,22 @@ def episode_batch(
         warmup_steps=max(cfg.warmup_random_steps, controller.model.context_length),
     )
     seeds = [ctx.stage_seed(f"setting_{setting.name}_{e}") for e in batch]
-    steps = cfg.env.episode_steps
+    return play_episodes(ctx, seeds, policy)
+
+
+def play_episodes(
+    ctx: RunContext, seeds: list[int], policy: MPCPolicy | None = None
+) -> list[TensorDictBase]:
+    """One episode per seed, side by side (a batch of ``len(seeds)`` envs, the torch RNG seeded
+    with the first seed), cut at each one's first done; ``policy`` None takes uniform random
+    actions (TorchRL's random rollout). Envs that ended wait (TorchRL partial steps) until
+    every env is done or ``env.episode_steps`` have run."""
+    steps = ctx.cfg.env.episode_steps
     seed = seeds if len(seeds) > 1 else seeds[0]
-    env = build_env(cfg, seed=seed, episode_steps=steps, policy_device=ctx.device)
-    env.append_transform(policy.make_tensordict_primer())
+    device = None if policy is None else ctx.device
+    env = build_env(ctx.cfg, seed=seed, episode_steps=steps, policy_device=device)
+    if policy is not None:
+        env.append_transform(policy.make_tensordict_primer())
     torch.manual_seed(seeds[0])
     if len(seeds) == 1:
         tds = [env.rollout(steps, policy, break_when_any_done=True).cpu()]
@@ -266,17 +278,11 @@ def random_policy_stage(ctx: RunContext) -> dict:
 
     def run() -> dict:
         seeds = [ctx.stage_seed(f"random_policy_{e}") for e in range(cfg.episodes)]
-        steps, returns = cfg.env.episode_steps, []
-        for batch in episode_batches(cfg.episodes, cfg.num_envs):
-            group = [seeds[e] for e in batch]
-            env = build_env(cfg, seed=group if len(group) > 1 else group[0], episode_steps=steps)
-            torch.manual_seed(group[0])
-            td = env.rollout(steps, break_when_all_done=True).reshape(len(group), -1).cpu()
-            close_env(env)
-            lengths = first_done_lengths(td)
-            returns += [
-                float(td[i, :n]["next", "reward"].double().sum()) for i, n in enumerate(lengths)
-            ]
+        returns = [
+            float(td["next", "reward"].double().sum())
+            for batch in episode_batches(cfg.episodes, cfg.num_envs)
+            for td in play_episodes(ctx, [seeds[e] for e in batch])
+        ]
         mean, std = mean_std(returns)
         return {"env_returns": returns, "mean": {"env_return": mean}, "std": {"env_return": std}}
 

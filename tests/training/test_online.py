@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from torchrl_recon.data import split_by_trajectory
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.policies import exploration_objective
 from torchrl_recon.training.online import FitSchedule, learn_online
 
 SCHEDULE = FitSchedule(
@@ -87,3 +89,47 @@ def test_refits_keep_the_first_normalisation():
     assert torch.equal(world.obs_norm.loc, first.obs_norm.loc)
     assert torch.equal(world.obs_norm.scale, first.obs_norm.scale)
     assert math.isnan(records[1].mean_uncertainty)  # no estimator
+
+
+def test_exploration_phase_plays_the_first_rounds():
+    torch.manual_seed(3)
+    env = make_env("Pendulum-v1", seed=3, max_episode_steps=15)
+    world = LSTMWorldModel(3, 1, window=4)
+    estimator = ReconstructionUncertainty(3, 1, window=4)
+    model = PlanningModel.from_env(world, pendulum_cost, env, uncertainty=estimator)
+
+    def planner(objective):
+        return lambda: CEMPlanner(
+            model, objective, horizon=5, num_candidates=16, iterations=2, num_elites=4
+        )
+
+    records, data = learn_online(
+        env,
+        world,
+        estimator,
+        planner(Objective()),
+        iterations=3,
+        steps_per_iteration=30,
+        random_steps=45,
+        schedule=SCHEDULE,
+        seed=3,
+        explore_iterations=2,
+        make_explorer=planner(exploration_objective(ratio=1.2, cap=2.0)),
+    )
+    assert [r.policy for r in records] == ["random", "explore", "explore", "mpc"]
+    assert len(data) == 45 + 3 * 30
+    # the explorer runs each 5-step plan open loop; the MPC policy re-plans at every step
+    assert all(r.replans <= 30 // 5 + 1 for r in records[1:3])
+    assert records[3].replans > 2 * max(r.replans for r in records[1:3])
+
+
+def test_exploration_phase_needs_an_explorer_and_an_estimator():
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=15)
+    world = LSTMWorldModel(3, 1, window=4)
+    model = PlanningModel.from_env(world, pendulum_cost, env)
+    make = lambda: CEMPlanner(model, Objective(), horizon=4, num_candidates=8)  # noqa: E731
+    common = dict(iterations=1, steps_per_iteration=15, random_steps=30, schedule=SCHEDULE)
+    with pytest.raises(ValueError, match="explore_iterations=1 needs make_explorer"):
+        learn_online(env, world, None, make, explore_iterations=1, make_explorer=make, **common)
+    with pytest.raises(ValueError, match="explore_iterations=2 must be between 0 and"):
+        learn_online(env, world, None, make, explore_iterations=2, **common)

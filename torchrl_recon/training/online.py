@@ -2,8 +2,10 @@
 
 random warm-up data → fit world model and estimator → repeat {play steps with an
 :class:`~torchrl_recon.policies.MPCPolicy` through TorchRL's ``Collector``; append them to the
-data; refit, warm-started}. Each iteration is recorded: env return, the model's error on the
-new data before the refit, mean u, re-plans, and the wall time split into fit / plan / env.
+data; refit, warm-started}. The first rounds may explore instead (an
+:class:`~torchrl_recon.policies.ExplorationPolicy`: the paper's capped-u objective, α = 0).
+Each iteration is recorded: env return, the model's error on the new data before the refit,
+mean u, re-plans, and the wall time split into fit / plan / env.
 
 The pieces are public so that a run can be staged and resumed step by step (the ``online``
 experiment does); :func:`learn_online` chains them for a Python user.
@@ -18,7 +20,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect, collect_random, concat_trajectories
@@ -27,7 +29,7 @@ from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase
-from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.training.fit import fit_uncertainty, fit_world_model
 
@@ -58,6 +60,7 @@ class IterationRecord:
     iteration's steps. ``model_error``: the world model's one-step error (standardised Δs,
     mean square) on this iteration's new data before it was refitted on them (NaN for the
     random data). ``mean_uncertainty``: the estimator's mean u of the new data's windows.
+    ``policy``: what played the steps (``"random"``, ``"explore"`` or ``"mpc"``).
     """
 
     iteration: int
@@ -70,6 +73,7 @@ class IterationRecord:
     plan_s: float
     env_s: float
     extra: dict = field(default_factory=dict)
+    policy: str = "mpc"
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -253,17 +257,20 @@ def learn_online(
     random_steps: int,
     schedule: FitSchedule | None = None,
     policy_kwargs: dict | None = None,
+    explore_iterations: int = 0,
+    make_explorer: Callable[[], PlannerBase] | None = None,
     seed: int = 0,
     progress: bool = False,
     logger: Logger | None = None,
     on_iteration: Callable[[IterationRecord], None] | None = None,
 ) -> tuple[list[IterationRecord], TensorDictBase]:
     """Learn a task online: ``random_steps`` random steps, then ``iterations`` rounds of
-    ``steps_per_iteration`` MPC steps, refitting both networks after each round.
+    ``steps_per_iteration`` MPC steps, refitting both networks after each round; the first
+    ``explore_iterations`` of those rounds explore instead of controlling.
 
     Args:
-        env: the TorchRL env (episodes of its own length; terminations end them early); the
-            MPC policy's primer is appended to it.
+        env: the TorchRL env (episodes of its own length; terminations end them early); each
+            policy plays it through a ``TransformedEnv`` that adds the policy's primer.
         world_model, estimator: the networks the planner's model holds (``estimator`` may be
             None for β = 0).
         make_planner: returns the planner (its model built on ``world_model`` and
@@ -271,6 +278,13 @@ def learn_online(
 
     Keyword Args:
         policy_kwargs: keywords of :class:`~torchrl_recon.policies.MPCPolicy` (re-planning).
+        explore_iterations: how many of the ``iterations`` rounds (the first ones) an
+            :class:`~torchrl_recon.policies.ExplorationPolicy` plays, seeking high but capped u
+            (paper §2.4) to widen the data before control starts; needs ``make_explorer``
+            and an ``estimator``.
+        make_explorer: returns the exploring planner, whose objective comes from
+            :func:`~torchrl_recon.policies.exploration_objective`; called once, after the
+            first fit.
         on_iteration: called with each record as it is made (e.g. to log or save).
 
     Returns:
@@ -293,6 +307,15 @@ def learn_online(
         >>> [r.iteration for r in records], [r.env_steps for r in records], len(data)
         ([0, 1], [60, 80], 80)
     """
+    if not 0 <= explore_iterations <= iterations:
+        raise ValueError(
+            f"explore_iterations={explore_iterations} must be between 0 and iterations={iterations}."
+        )
+    if explore_iterations and (make_explorer is None or estimator is None):
+        raise ValueError(
+            f"explore_iterations={explore_iterations} needs make_explorer and an estimator "
+            "(exploration seeks the estimator's uncertainty)."
+        )
     schedule = schedule or FitSchedule()
     start = time.perf_counter()
     data = collect_random(env, frames=random_steps, seed=seed, progress=progress)
@@ -319,16 +342,23 @@ def learn_online(
         time.perf_counter() - start,
         0.0,
         env_s,
+        policy="random",
     )
     records = [record]
     if on_iteration is not None:
         on_iteration(record)
-    policy = MPCPolicy(make_planner(), **(policy_kwargs or {}))
-    env.append_transform(policy.make_tensordict_primer())
+    policies = {"mpc": MPCPolicy(make_planner(), **(policy_kwargs or {}))}
+    if explore_iterations:
+        policies["explore"] = ExplorationPolicy(make_explorer())
+    envs = {
+        k: TransformedEnv(env, p.make_tensordict_primer(), auto_unwrap=False)
+        for k, p in policies.items()
+    }
     for i in range(1, iterations + 1):
+        kind = "explore" if i <= explore_iterations else "mpc"
         start = time.perf_counter()
         new, plan_s = play(
-            env, policy, frames=steps_per_iteration, seed=seed + i, progress=progress
+            envs[kind], policies[kind], frames=steps_per_iteration, seed=seed + i, progress=progress
         )
         env_s = time.perf_counter() - start - plan_s
         seen = new_steps_metrics(world_model, estimator, new, schedule.slice_len)
@@ -355,6 +385,7 @@ def learn_online(
             time.perf_counter() - start,
             plan_s,
             env_s,
+            policy=kind,
         )
         records.append(record)
         if on_iteration is not None:

@@ -51,7 +51,7 @@ DOCS = RESULTS_ROOT.parent
 SKIPPED_DIRS = ("buffers", "checkpoints", "wandb")
 TOP_FILES = ("results.json", "config.yaml", "meta.json")
 KEPT_NAMES = (*TOP_FILES, "results_partial.json", "README.md", MANIFEST, ARCHIVE)
-"""Files that stay files wherever they are (scripts, ``*.py``, stay too)."""
+"""Files that stay files wherever they are (scripts, ``*.py`` and ``*.sh``, stay too)."""
 
 ABSOLUTE = re.compile(r"(?<![\w.~/-])/(?=[\w.])[^\s\"',;}\]=]*")
 """An absolute POSIX path inside a text: a ``/`` not after a word character, then no space,
@@ -88,7 +88,12 @@ def kept(rel: str, shown: set[str]) -> bool:
     """Whether a file (``rel`` relative to ``docs/results``) stays a file, not an archive member:
     the files ``summarize`` and the scripts read, the plots the docs show, and summaries."""
     parts = rel.split("/")
-    return parts[-1] in KEPT_NAMES or rel.endswith(".py") or "summary" in parts[:-1] or rel in shown
+    return (
+        parts[-1] in KEPT_NAMES
+        or rel.endswith((".py", ".sh"))
+        or "summary" in parts[:-1]
+        or rel in shown
+    )
 
 
 def relative_paths(text: str, root: Path, base: Path | None = None) -> str:

@@ -132,6 +132,7 @@ def test_pack_moves_an_older_folders_loose_records_into_its_archive(tmp_path, do
             (run / name).write_text(json.dumps(known_explore()[seed]))
     (folder / "drone" / "summary").mkdir()
     (folder / "drone" / "summary" / "summary_explore.json").write_text("{}")
+    (folder / "run_seeds.sh").write_text("echo scripts stay files\n")
     packed = publish_run.repack(folder, results_root=docs / "results")
     assert len(packed) == 4
     assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()) == [
@@ -140,6 +141,7 @@ def test_pack_moves_an_older_folders_loose_records_into_its_archive(tmp_path, do
         "drone/summary/summary_explore.json",
         ARCHIVE,
         MANIFEST,
+        "run_seeds.sh",
     ]
     assert sorted(read_members(folder)) == [
         f"drone/seed{s}/{n}" for s in (0, 1) for n in ("control_errors.png", "stages/models.json")

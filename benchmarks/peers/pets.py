@@ -72,10 +72,19 @@ def pendulum_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
 
 
 def mountain_car_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    """The shaped reward of ``torchrl_recon.envs.gym_costs.mountain_car`` (negated cost)."""
-    position, velocity = next_obs[:, 0], next_obs[:, 1]
-    cost = (0.45 - position).clamp(min=0) - 10 * velocity.pow(2) + 0.1 * act[:, 0].pow(2)
-    return -cost[:, None]
+    """−cost of ``torchrl_recon.envs.gym_costs.mountain_car`` (it reads only the action and the
+    next observation, so both agents optimise the same thing), ``[N, 1]``."""
+
+    def energy(obs):
+        return 0.5 * obs[..., 1].pow(2) + 0.0025 / 3 * torch.sin(3 * obs[..., 0])
+
+    missing = (energy(next_obs.new_tensor([0.45, 0.0])) - energy(next_obs)).clamp(min=0)
+    return -(1000 * missing + 0.1 * act[:, 0].pow(2))[:, None]
+
+
+def mountain_car_termination(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """The env's own end: the car at the goal, x ≥ 0.45 with v ≥ 0, ``[N, 1]``."""
+    return ((next_obs[:, 0] >= 0.45) & (next_obs[:, 1] >= 0))[:, None]
 
 
 def inverted_pendulum_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
@@ -89,7 +98,7 @@ TASKS = {
         "MountainCarContinuous-v0",
         999,
         mountain_car_reward,
-        term_fns.no_termination,
+        mountain_car_termination,
         CARTPOLE,
     ),
     "inverted_pendulum": (  # overrides/pets_inv_pendulum.yaml

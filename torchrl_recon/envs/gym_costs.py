@@ -1,7 +1,10 @@
 """Batched torch costs of standard gymnasium tasks, for ``env.cost`` in recipes.
 
-Each is the negative of the env's own reward, so predicted and real costs compare:
-``env.id=Pendulum-v1 env.cost=torchrl_recon.envs.gym_costs:pendulum``.
+Pendulum's is the negative of the env's own reward, so predicted and real costs compare:
+``env.id=Pendulum-v1 env.cost=torchrl_recon.envs.gym_costs:pendulum``. MountainCarContinuous-v0's
+is shaped (the energy the car still lacks) and comes with the env's termination:
+``env.id=MountainCarContinuous-v0 env.cost=torchrl_recon.envs.gym_costs:mountain_car
+env.termination=torchrl_recon.envs.gym_costs:mountain_car_termination``.
 """
 
 from __future__ import annotations
@@ -19,3 +22,44 @@ def pendulum(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) ->
     """
     theta = torch.atan2(obs[..., 1], obs[..., 0])
     return theta.pow(2) + 0.1 * obs[..., 2].pow(2) + 0.001 * action[..., 0].pow(2)
+
+
+GRAVITY, POWER, GOAL = 0.0025, 0.0015, 0.45
+"""MountainCarContinuous-v0's constants: v += POWER·u − GRAVITY·cos(3x); the goal x ≥ GOAL."""
+
+
+def mountain_car_energy(obs: torch.Tensor) -> torch.Tensor:
+    """The car's mechanical energy per unit mass, ½v² + (GRAVITY/3)·sin(3x): what its
+    dynamics conserve when the engine is off, ``[..., 2]`` → ``[...]``."""
+    return 0.5 * obs[..., 1].pow(2) + GRAVITY / 3 * torch.sin(3 * obs[..., 0])
+
+
+def mountain_car(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """A shaped cost for MountainCarContinuous-v0 (not its reward, whose +100 at the goal a short
+    plan never sees): the energy still missing to reach the goal, scaled to about 0–1.65 a
+    step, plus the env's 0.1·u² action cost; ``[..., 2]``, ``[..., 1]`` → ``[...]``.
+    Pair it with :func:`mountain_car_termination` so a plan stops paying once at the goal.
+
+    Examples:
+        >>> bottom = torch.tensor([[-torch.pi / 6, 0.0]])
+        >>> mountain_car(bottom, torch.zeros(1, 1), bottom)
+        tensor([1.6464])
+        >>> at_goal = torch.tensor([[0.5, 0.01]])
+        >>> mountain_car(at_goal, torch.ones(1, 1), at_goal)
+        tensor([0.1000])
+    """
+    goal = mountain_car_energy(next_obs.new_tensor([GOAL, 0.0]))
+    missing = (goal - mountain_car_energy(next_obs)).clamp(min=0)
+    return 1000 * missing + 0.1 * action[..., 0].pow(2)
+
+
+def mountain_car_termination(
+    obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """MountainCarContinuous-v0's end: the car at the goal, x ≥ 0.45 with v ≥ 0 (bool ``[...]``).
+
+    Examples:
+        >>> mountain_car_termination(None, None, torch.tensor([[0.46, 0.0], [0.46, -0.01]]))
+        tensor([ True, False])
+    """
+    return (next_obs[..., 0] >= GOAL) & (next_obs[..., 1] >= 0)

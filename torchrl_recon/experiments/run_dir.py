@@ -1,7 +1,4 @@
-"""Run directories: prepare the output directory of one run, refuse a conflicting one, store results.
-
-A run directory holds one run (one seed): its resolved ``config.yaml``, ``meta.json`` (versions,
-git commit, host, time, command line), the stage outputs, ``results.json`` and the figures."""
+"""A run directory (one seed): ``config.yaml``, ``meta.json``, stage outputs, ``results.json``."""
 
 from __future__ import annotations
 
@@ -27,8 +24,7 @@ from torchrl_recon.files import read_json, write_atomically
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
-"""Keys added to the schema since runs were first published, with the value that reproduces the
-behaviour from before the key existed: a run directory without the key resumes at that value."""
+"""Keys added to the schema since, with the value an older run directory without them resumes at."""
 VERSION_PACKAGES = ("torch", "torchrl", "tensordict", "gymnasium", "numpy", "pybullet")
 VERSION_PACKAGES += ("torchrl-recon", "hydra-core", "omegaconf", "wandb")
 """The packages whose versions ``meta.json`` records."""
@@ -57,10 +53,8 @@ def flat_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Keys (flattened) whose values differ between two configs, ignoring :data:`RESUME_IGNORED_KEYS`.
-
-    A key the old config lacks is no difference when the new one holds it as null (a schema key
-    added since, at its null default) or at its value in :data:`KEYS_ADDED_SINCE`.
+    """Keys (flattened) whose values differ between two configs, :data:`RESUME_IGNORED_KEYS` aside;
+    a key new since the old one is no difference at null or at its :data:`KEYS_ADDED_SINCE` value.
 
     Examples:
         >>> config_differences({"env": {"name": "drone"}}, {"env": {"name": "drone", "id": None}})
@@ -163,12 +157,8 @@ def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
 
 
 def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as a dict, once checked against ``<output_dir>/config.yaml`` if any:
-    only ``progress``, ``stop_after``, ``logger`` (and the spelling of ``output_dir``) may differ.
-
-    Raises:
-        RunDirConflict: naming the keys that differ.
-    """
+    """The resolved config as a dict; :class:`RunDirConflict` naming the keys that differ from
+    ``<output_dir>/config.yaml`` beyond :data:`RESUME_IGNORED_KEYS`."""
     new = OmegaConf.to_container(cfg, resolve=True)
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     if not (run_dir / "config.yaml").exists():
@@ -188,14 +178,11 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
 def prepare_run_dir(
     cfg: DictConfig, argv: Sequence[str] | None = None, extra_meta: Mapping[str, Any] | None = None
 ) -> Path:
-    """Lock and create ``cfg.output_dir``; write ``config.yaml`` (resolved) and ``meta.json``.
+    """Lock and create ``cfg.output_dir``, write ``config.yaml`` and ``meta.json``; return its path.
 
     A directory with a ``config.yaml`` is a run to resume (:func:`check_run_dir`); its earlier
-    starts are kept in ``meta.json`` under ``previous``. Returns the absolute run directory.
-
-    Raises:
-        RunDirConflict: the directory holds a run with a different config, or another process
-            is running in it.
+    starts stay in ``meta.json`` under ``previous``. :class:`RunDirConflict` when another
+    process runs in it.
     """
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -273,13 +260,8 @@ def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -
 
 
 def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
-    """The ``config.yaml`` of a run directory, read as plain YAML (never runs code), with the keys
-    added to its experiment's schema since at their defaults.
-
-    Raises:
-        FileNotFoundError: the directory has no ``config.yaml``.
-        DamagedFileError: the file is not a YAML mapping that fits the experiment's schema.
-    """
+    """The ``config.yaml`` of a run directory as plain YAML (never runs code), keys added to its
+    schema since at their defaults; :class:`DamagedFileError` when it does not fit the schema."""
     # Imported here: the registry imports the experiments, which import this module.
     from torchrl_recon.experiments.config import upgrade_legacy_config
     from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -308,11 +290,7 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
 
 
 def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
-    """The ``meta.json`` of a run directory (versions, git commit, host, command lines).
-
-    Raises:
-        DamagedFileError: the file is missing, not JSON or not a JSON object.
-    """
+    """The ``meta.json`` of a run directory; :class:`DamagedFileError` when missing or malformed."""
     path = Path(run_dir) / "meta.json"
     remedy = "it only records how and where the run was made: delete it to resume (the record of "
     remedy += "earlier starts is lost)."
@@ -323,11 +301,7 @@ def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a ``results.json`` file (or the one inside a run directory) as plain JSON.
-
-    Raises:
-        FileNotFoundError: there is no such file.
-        DamagedFileError: the file is not JSON, or not the results of an experiment.
+    """A ``results.json`` file (or the one in a run directory) as checked plain JSON.
 
     Examples:
         >>> import tempfile

@@ -64,13 +64,10 @@ def run(
     argv: Sequence[str] | None = None,
     extra_meta: Mapping[str, Any] | None = None,
 ) -> dict[str, Any] | None:
-    """Validate ``cfg``, prepare its run directory and logger, run the experiment, store results.
+    """Validate ``cfg``, check and prepare its run directory, run the experiment, store results.
 
-    Steps: :func:`validate` → the device, threads and allocator (recorded in ``meta.json``) →
-    :func:`verify_run_dir` and :func:`prepare_run_dir` (both refuse before writing) →
-    :func:`make_logger` → the kind's ``run`` → ``results.json``, figures, the results table on
-    stdout. Returns the results, or None when it stopped after ``cfg.stop_after`` (re-running
-    the same command resumes).
+    Returns the results, or None when it stopped after ``cfg.stop_after`` (re-running the same
+    command resumes).
     """
     cfg = validate(cfg)
     try:

@@ -90,12 +90,8 @@ class Stages:
         return self._marker(name).exists()
 
     def verify(self, name: str) -> dict[str, Any]:
-        """The record of the done stage ``name``, checked with the files it lists (sizes, then
-        SHA-256s; hashed once per object). Nothing is written.
-
-        Raises:
-            DamagedFileError: one line naming the file, the stage and what to delete.
-        """
+        """The record of the done stage ``name``, checked with the files it lists (hashed once per
+        object); :class:`DamagedFileError` naming the file, the stage and what to delete."""
         record = _read_timed(self._marker(name), self._remedy(name))
         files = record.pop(FILES_KEY, None)
         if files is not None and name not in self._verified:
@@ -201,12 +197,7 @@ class Stages:
 
     def load_data(self, name: str) -> TensorDictBase:
         """Transitions saved by :meth:`save_data`, read as data once the stage that wrote them is
-        checked (:meth:`verify`).
-
-        Raises:
-            DamagedFileError: a file differs from its record, or is missing, truncated or a pickle.
-            ValueError: the stored buffer is empty.
-        """
+        checked (:meth:`verify`); :class:`DamagedFileError` for any difference."""
         prefix, owner = f"buffers/{name}/", None
         markers = sorted(self.run_dir.glob("stages/*.json"), key=lambda p: (p.stem != name, p.stem))
         for marker in markers:  # the stage of the same name first: it usually wrote the data
@@ -239,9 +230,6 @@ class Stages:
 
 def verify_run_dir(run_dir: str | Path) -> None:
     """Check every stage record of a run directory, the files it lists and each part record.
-
-    Raises:
-        DamagedFileError: one line naming the damaged file and the record to delete.
 
     Examples:
         >>> import tempfile

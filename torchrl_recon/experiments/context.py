@@ -28,18 +28,10 @@ ChildRunner = Callable[[DictConfig], "Mapping[str, Any] | None"]
 
 @dataclass
 class RunContext:
-    """The run an experiment's stages work for: its config, directory, stage records, logger
-    and device, built once by the runner.
-
-    Attributes:
-        cfg: the validated recipe.
-        run_dir: the run directory.
-        stages: the run's resumable stage records.
-        logger: a TorchRL logger, or None.
-        device: where the networks, planning and fitting run (``cfg.device``).
-        run_child: runs another experiment's config (calibrate's outcomes); None where the
-            caller gives none.
-        recipes: finds and loads the recipes a child run is made from.
+    """The run an experiment's stages work for, built once by the runner: the validated recipe
+    ``cfg``, the ``run_dir``, its resumable ``stages``, a TorchRL ``logger`` (or None), the
+    ``device`` of networks, planning and fitting, ``run_child`` (runs another experiment's
+    config, e.g. calibrate's outcomes) and the ``recipes`` a child run is made from.
 
     Examples:
         >>> import tempfile
@@ -69,10 +61,10 @@ class RunContext:
         recipes: RecipeLoader | None = None,
     ) -> RunContext:
         """The context of ``cfg`` run in ``run_dir`` (its stages stop after ``cfg.stop_after``)."""
-        run_dir = Path(run_dir)
         stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
-        device = resolve_device(cfg.device)
-        return cls(cfg, run_dir, stages, logger, device, run_child, recipes)
+        return cls(
+            cfg, Path(run_dir), stages, logger, resolve_device(cfg.device), run_child, recipes
+        )
 
     @property
     def seed(self) -> int:

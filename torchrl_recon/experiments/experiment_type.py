@@ -18,6 +18,7 @@ from torchrl_recon.experiments.context import RecipeLoader, RunContext
 Results = Mapping[str, Any]
 Figures = list[tuple[str, Figure]]
 """Figures as (file name, figure) pairs."""
+_FIELD = re.compile(r"\{(\w+)\}")
 
 
 @dataclass(frozen=True)
@@ -38,8 +39,7 @@ class ExperimentType:
         figures: the figures of one results dict.
         summary_figures: the figures of a summary, ``(summary, results)``.
         list_field: ``(key, item schema)`` of a list whose items have a schema of their own.
-        stage_values: the values of the templates' fields the recipe fixes (``cfg → {field:
-            values}``).
+        stage_values: ``cfg → {field: values}`` of the templates' fields the recipe fixes.
         outcome: the headline numbers of a results dict when run as a child of another.
     """
 
@@ -61,17 +61,13 @@ class ExperimentType:
 
     @classmethod
     def of_module(cls, module: ModuleType, stages: ModuleType, **given: Any) -> ExperimentType:
-        """The kind a module defines: the ``given`` fields (``name``, ``help``, ``schema``, ...),
-        ``run`` and ``STAGES`` from its ``stages`` module, and each other field the module
-        defines by name (``check``, ``summarize_env``, ``result_table``, ...)."""
+        """The kind a module defines: the ``given`` fields, ``run`` and ``STAGES`` from its
+        ``stages`` module, and each other field the module defines by name (``check``, ...)."""
         found = {f.name: getattr(module, f.name) for f in fields(cls) if hasattr(module, f.name)}
         return cls(**{**found, "run": stages.run, "stages": stages.STAGES, **given})
 
-    def _fields(self, cfg: DictConfig | None) -> Mapping[str, Sequence[str]]:
-        return self.stage_values(cfg) if cfg is not None else {}
-
     def stage_list(self, cfg: DictConfig | None) -> list[str]:
-        """The stage names of ``cfg``'s run; a template whose fields the recipe leaves open is
+        """The stage names of ``cfg``'s run; a template with a field the recipe leaves open is
         shown as ``guided_data_<n>``.
 
         Examples:
@@ -79,27 +75,24 @@ class ExperimentType:
             >>> get_type("explore").stage_list(None)[3]
             'guided_data_<n>'
         """
-        values, names = self._fields(cfg), []
+        values, names = self.stage_values(cfg) if cfg is not None else {}, []
         for template in self.stages:
-            fields = re.findall(r"\{(\w+)\}", template)
-            if not all(f in values for f in fields):
-                names.append(re.sub(r"\{(\w+)\}", r"<\1>", template))
+            keys = _FIELD.findall(template)
+            if not all(k in values for k in keys):
+                names.append(_FIELD.sub(r"<\1>", template))
                 continue
-            for combo in itertools.product(*(values[f] for f in fields)):
-                names.append(template.format(**dict(zip(fields, combo, strict=True))))
+            for combo in itertools.product(*(values[k] for k in keys)):
+                names.append(template.format(**dict(zip(keys, combo, strict=True))))
         return names
 
     def is_stage(self, cfg: DictConfig | None, name: str) -> bool:
         """Whether ``name`` is a stage of ``cfg``'s run (what ``stop_after`` may name)."""
-        values = self._fields(cfg)
+        values = self.stage_values(cfg) if cfg is not None else {}
 
-        def field(f: str) -> str:
-            if f not in values:
-                return r"\d+" if f == "n" else ".+"
-            return "(" + "|".join(re.escape(str(v)) for v in values[f]) + ")"
+        def field(match: re.Match[str]) -> str:  # a template's {key} as a pattern
+            if (key := match[1]) not in values:
+                return r"\d+" if key == "n" else ".+"
+            return "(" + "|".join(re.escape(str(v)) for v in values[key]) + ")"
 
-        parts = [re.split(r"\{(\w+)\}", t) for t in self.stages]
-        patterns = [
-            "".join(field(p) if i % 2 else re.escape(p) for i, p in enumerate(t)) for t in parts
-        ]
-        return any(re.fullmatch(p, name) for p in patterns)
+        escaped = [re.escape(t) for t in self.stages]  # {key} is escaped as \{key\}
+        return any(re.fullmatch(re.sub(r"\\\{(\w+)\\\}", field, t), name) for t in escaped)

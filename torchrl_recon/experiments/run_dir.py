@@ -1,9 +1,4 @@
-"""Run directories: prepare the output directory of one run, refuse a conflicting one, store results.
-
-A run directory holds one run (one seed): its resolved ``config.yaml``, ``meta.json`` (versions,
-git commit, host, time, command line), the stage outputs written by the experiment,
-``results.json`` and the figures. Recipes are loaded and checked by :mod:`.recipe`.
-"""
+"""A run directory (one seed): ``config.yaml``, ``meta.json``, stage outputs, ``results.json``."""
 
 from __future__ import annotations
 
@@ -29,20 +24,13 @@ from torchrl_recon.files import read_json, write_atomically
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
-"""Keys added to the schema since runs were first published, with the value that reproduces the
-behaviour from before the key existed: a run directory without the key resumes at that value."""
-VERSION_PACKAGES = (
-    "torch",
-    "torchrl",
-    "tensordict",
-    "gymnasium",
-    "numpy",
-    "pybullet",
-    "torchrl-recon",
-    "hydra-core",
-    "omegaconf",
-    "wandb",
-)
+"""Keys added to the schema since, with the value an older run directory without them resumes at."""
+VERSION_PACKAGES = ("torch", "torchrl", "tensordict", "gymnasium", "numpy", "pybullet")
+VERSION_PACKAGES += ("torchrl-recon", "hydra-core", "omegaconf", "wandb")
+"""The packages whose versions ``meta.json`` records."""
+_START_KEYS = ("started_utc", "git", "argv", "hostname")
+"""What ``meta.json`` keeps of each earlier start of a resumed run."""
+_LOCKS: dict[str, FileLock] = {}
 
 
 class RunDirConflict(RuntimeError):
@@ -65,11 +53,8 @@ def flat_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """Keys (flattened) whose values differ between two configs, ignoring :data:`RESUME_IGNORED_KEYS`.
-
-    A key the old config lacks and the new one holds as null (a schema key added since, at its
-    null default, e.g. ``env.id``), or at its value in :data:`KEYS_ADDED_SINCE`, is no
-    difference.
+    """Keys (flattened) whose values differ between two configs, :data:`RESUME_IGNORED_KEYS` aside;
+    a key new since the old one is no difference at null or at its :data:`KEYS_ADDED_SINCE` value.
 
     Examples:
         >>> config_differences({"env": {"name": "drone"}}, {"env": {"name": "drone", "id": None}})
@@ -77,25 +62,17 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
         >>> config_differences({"seed": 0, "logger": {"backend": "csv"}}, {"seed": 1})
         ['seed: 0 -> 1']
     """
-
-    def flat(cfg: Mapping[str, Any]) -> dict[str, Any]:
-        return {
-            k: v
-            for k, v in _flatten(dict(cfg)).items()
-            if k.split(".", 1)[0] not in RESUME_IGNORED_KEYS
-        }
-
-    a, b = flat(old), flat(new)
+    keep = [{k: v for k, v in dict(c).items() if k not in RESUME_IGNORED_KEYS} for c in (old, new)]
+    a, b = map(_flatten, keep)
+    absent = object()
     diffs = []
     for key in sorted(set(a) | set(b)):
-        if key not in a:
-            added_since = key in KEYS_ADDED_SINCE and KEYS_ADDED_SINCE[key] == b[key]
-            if b[key] is not None and not added_since:
-                diffs.append(f"{key}: (absent) -> {b[key]!r}")
-        elif key not in b:
-            diffs.append(f"{key}: {a[key]!r} -> (absent)")
-        elif a[key] != b[key]:
-            diffs.append(f"{key}: {a[key]!r} -> {b[key]!r}")
+        before, after = a.get(key, absent), b.get(key, absent)
+        if before is absent and after in (None, KEYS_ADDED_SINCE.get(key, absent)):
+            continue
+        if before is absent or after is absent or before != after:
+            shown = ["(absent)" if v is absent else repr(v) for v in (before, after)]
+            diffs.append(f"{key}: {shown[0]} -> {shown[1]}")
     return diffs
 
 
@@ -111,17 +88,14 @@ def package_versions(names: Sequence[str] = VERSION_PACKAGES) -> dict[str, str |
 
 
 def git_info(directory: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Commit and dirty flag of the git checkout holding ``directory`` (default: this package).
-
-    Read-only: ``git rev-parse HEAD`` and ``git --no-optional-locks status --porcelain``.
-    ``commit`` is ``"unknown"`` (and ``dirty`` None) when it is not a checkout or git is missing.
-    """
+    """Commit and dirty flag of the git checkout holding ``directory`` (default: this package),
+    read-only; ``{"commit": "unknown", "dirty": None}`` outside a checkout or without git."""
     cwd = Path(__file__).resolve().parents[1] if directory is None else Path(directory)
 
     def git(*args: str) -> str | None:
         try:
             proc = subprocess.run(
-                ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=20, check=False
+                ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=20
             )
         except (OSError, subprocess.SubprocessError):
             return None
@@ -135,9 +109,8 @@ def git_info(directory: str | os.PathLike[str] | None = None) -> dict[str, Any]:
 
 
 def portable_path(path: str | os.PathLike[str]) -> str:
-    """``path`` as a record may keep it, with no machine path: a relative path as given, a
-    shipped recipe by its name, a path inside the working directory relative to it, any other
-    absolute path by its last part.
+    """``path`` with no machine path: a relative path as given, a shipped recipe by its name, a
+    path inside the working directory relative to it, any other absolute path by its last part.
 
     Examples:
         >>> portable_path("out/run"), portable_path(Path.cwd() / "out" / "run")
@@ -145,18 +118,17 @@ def portable_path(path: str | os.PathLike[str]) -> str:
         >>> portable_path(RECIPES_DIR / "drone" / "explore.yaml"), portable_path("/elsewhere/run")
         ('drone/explore.yaml', 'run')
     """
-    p = Path(path)
+    p, cwd = Path(path), Path.cwd()
     if not p.is_absolute():
         return str(path)
     if p.resolve().is_relative_to(RECIPES_DIR):
         return p.resolve().relative_to(RECIPES_DIR).as_posix()
-    cwd = Path.cwd()
     return p.relative_to(cwd).as_posix() if p.is_relative_to(cwd) and p != cwd else p.name
 
 
 def portable_argv(argv: Sequence[str]) -> list[str]:
-    """A command line (or Hydra overrides) with each absolute path, alone or as the value of a
-    ``key=value``, made :func:`portable_path`.
+    """A command line with each absolute path, alone or as a ``key=value``'s value, made
+    :func:`portable_path`.
 
     Examples:
         >>> portable_argv(["torchrl-recon", "explore", "x.yaml", "output_dir=/scratch/run/seed3"])
@@ -169,31 +141,12 @@ def portable_argv(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
 def _write(path: Path, text: str) -> None:
     write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
-_LOCKS: dict[str, FileLock] = {}
-
-
-def _lock(run_dir: Path) -> None:
-    """Hold ``<run_dir>/.lock`` (an ``flock`` through ``filelock``) for this process: a second
-    process on the same directory is refused."""
-    if str(run_dir) in _LOCKS:
-        return
-    lock = FileLock(run_dir / ".lock", timeout=0)
-    try:
-        lock.acquire()
-    except Timeout as e:
-        raise RunDirConflict(
-            f"Another process is running in {run_dir}. Give each run its own output_dir "
-            "(e.g. interpolate ${seed} in it when sweeping seeds)."
-        ) from e
-    _LOCKS[str(run_dir)] = lock
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
@@ -204,15 +157,8 @@ def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
 
 
 def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
-    """Refuse to resume a run directory that holds a run made with a different config.
-
-    Returns the resolved config as a dict. Compares with ``<output_dir>/config.yaml`` when it
-    exists; only ``progress``, ``stop_after``, ``logger`` (and the spelling of ``output_dir``)
-    may differ.
-
-    Raises:
-        RunDirConflict: naming the keys that differ.
-    """
+    """The resolved config as a dict; :class:`RunDirConflict` naming the keys that differ from
+    ``<output_dir>/config.yaml`` beyond :data:`RESUME_IGNORED_KEYS`."""
     new = OmegaConf.to_container(cfg, resolve=True)
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     if not (run_dir / "config.yaml").exists():
@@ -229,36 +175,26 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     return new
 
 
-_START_KEYS = ("started_utc", "git", "argv", "hostname")
-"""What ``meta.json`` keeps of each earlier start of a resumed run."""
-
-
 def prepare_run_dir(
-    cfg: DictConfig,
-    argv: Sequence[str] | None = None,
-    extra_meta: Mapping[str, Any] | None = None,
+    cfg: DictConfig, argv: Sequence[str] | None = None, extra_meta: Mapping[str, Any] | None = None
 ) -> Path:
-    """Create ``cfg.output_dir`` and write ``config.yaml`` (resolved) and ``meta.json``.
+    """Lock and create ``cfg.output_dir``, write ``config.yaml`` and ``meta.json``; return its path.
 
-    A directory that already holds a ``config.yaml`` is a run to resume: its config must equal
-    the new one except for ``progress``, ``stop_after``, ``logger`` (and the spelling of
-    ``output_dir``), otherwise the stages already done would mix with new ones.
-
-    ``meta.json`` holds the seed, package versions, the git commit and dirty flag of the source
-    checkout, the host name, the UTC start time and the command line (plus ``extra_meta``, e.g.
-    the Hydra job overrides); on a resume the earlier starts are kept under ``previous``. Paths
-    in it are :func:`portable_path`: shared results hold no machine path.
-
-    Returns:
-        The absolute run directory.
-
-    Raises:
-        RunDirConflict: the directory holds a run with a different config, or another process
-            is running in it.
+    A directory with a ``config.yaml`` is a run to resume (:func:`check_run_dir`); its earlier
+    starts stay in ``meta.json`` under ``previous``. :class:`RunDirConflict` when another
+    process runs in it.
     """
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    _lock(run_dir)
+    if str(run_dir) not in _LOCKS:  # an flock: a second process on the directory is refused
+        try:
+            (lock := FileLock(run_dir / ".lock", timeout=0)).acquire()
+        except Timeout as e:
+            raise RunDirConflict(
+                f"Another process is running in {run_dir}. Give each run its own output_dir "
+                "(e.g. interpolate ${seed} in it when sweeping seeds)."
+            ) from e
+        _LOCKS[str(run_dir)] = lock
     try:
         new = check_run_dir(cfg)
         resumed = (run_dir / "config.yaml").exists()
@@ -270,9 +206,7 @@ def prepare_run_dir(
         release_run_dir(run_dir)
         raise
     _write(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(new)))
-    for start in previous:
-        if start.get("argv"):
-            start["argv"] = portable_argv(start["argv"])
+    previous = [{**s, "argv": portable_argv(s["argv"])} if s.get("argv") else s for s in previous]
     extra = dict(extra_meta or {})
     if "job_overrides" in extra:
         extra["job_overrides"] = portable_argv(extra["job_overrides"])
@@ -290,11 +224,11 @@ def prepare_run_dir(
         "previous": previous,
         **extra,
     }
-    before = previous[-1].get("git", {}).get("commit") if previous else meta["git"]["commit"]
-    if before != meta["git"]["commit"]:
+    commit = meta["git"]["commit"]
+    before = previous[-1].get("git", {}).get("commit") if previous else commit
+    if before != commit:
         print(
-            f"warning: {run_dir} was started at commit {before} and is resumed at "
-            f"{meta['git']['commit']}.",
+            f"warning: {run_dir} was started at commit {before} and is resumed at {commit}.",
             file=sys.stderr,
         )
     _write(run_dir / "meta.json", json.dumps(meta, indent=1))
@@ -314,34 +248,29 @@ def _json_default(obj: Any) -> Any:
 
 
 def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -> Path:
-    """Write ``results.json`` = the experiment's results dict plus ``meta`` (from ``meta.json``).
+    """Write ``results.json``: ``results`` plus ``meta`` (``meta.json``, with the finish time).
 
     Non-finite floats are written as JSON ``NaN`` / ``Infinity`` (Python's ``json`` reads them).
     """
     run_dir = Path(run_dir)
     meta = read_meta(run_dir) if (run_dir / "meta.json").exists() else {}
     meta["finished_utc"] = _utc_now()
-    path = run_dir / "results.json"
-    _write(path, json.dumps({**results, "meta": meta}, indent=1, default=_json_default))
-    return path
+    text = json.dumps({**results, "meta": meta}, indent=1, default=_json_default)
+    return write_atomically(run_dir / "results.json", lambda tmp: tmp.write_text(text))
 
 
 def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
-    """The ``config.yaml`` of a run directory, read as plain YAML (never runs code).
+    """The ``config.yaml`` of a run directory as plain YAML (never runs code), keys added to its
+    schema since at their defaults; :class:`DamagedFileError` when it does not fit the schema."""
+    # Imported here: the registry imports the experiments, which import this module.
+    from torchrl_recon.experiments.config import upgrade_legacy_config
+    from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
-    Keys added to the experiment's schema after the run was made are filled with their defaults.
-
-    Raises:
-        FileNotFoundError: the directory has no ``config.yaml``.
-        DamagedFileError: the file is not a YAML mapping that fits the experiment's schema.
-    """
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"{Path(run_dir)} is not a run directory (no config.yaml).")
-    remedy = (
-        "it is the resolved recipe of the run; restore it, or delete the run directory to start "
-        "over."
-    )
+    remedy = "it is the resolved recipe of the run; restore it, or delete the run directory to "
+    remedy += "start over."
     try:
         saved = OmegaConf.load(path)  # a YAML safe loader: tags such as !!python/object are refused
     except Exception as err:
@@ -349,16 +278,10 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
         raise DamagedFileError(f"{path} is not valid YAML ({reason}); {remedy}") from None
     if not isinstance(saved, DictConfig):
         raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
-    # Imported here: the registry imports the experiments, which import this module.
-    from torchrl_recon.experiments.config import upgrade_legacy_config
-    from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
-
     saved = upgrade_legacy_config(saved)  # planner blocks written flat, before `kwargs`
     kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
-    if kind is None:
-        return saved
     try:  # keys added to the schema after the run was made compare at their defaults
-        return OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
+        return saved if kind is None else OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
     except Exception as err:
         reason = str(err).strip().splitlines()[0]
         raise DamagedFileError(
@@ -367,16 +290,10 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
 
 
 def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
-    """The ``meta.json`` of a run directory (versions, git commit, host, command lines).
-
-    Raises:
-        DamagedFileError: the file is missing, not JSON or not a JSON object.
-    """
+    """The ``meta.json`` of a run directory; :class:`DamagedFileError` when missing or malformed."""
     path = Path(run_dir) / "meta.json"
-    remedy = (
-        "it only records how and where the run was made: delete it to resume (the record of "
-        "earlier starts is lost)."
-    )
+    remedy = "it only records how and where the run was made: delete it to resume (the record of "
+    remedy += "earlier starts is lost)."
     meta = read_json(path, remedy=remedy)
     if not isinstance(meta, dict) or not isinstance(meta.get("previous", []), list):
         raise DamagedFileError(f"{path} is not the JSON object meta.json holds; {remedy}")
@@ -384,11 +301,7 @@ def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a ``results.json`` file (or the one inside a run directory) as plain JSON.
-
-    Raises:
-        FileNotFoundError: there is no such file.
-        DamagedFileError: the file is not JSON, or not the results of an experiment.
+    """A ``results.json`` file (or the one in a run directory) as checked plain JSON.
 
     Examples:
         >>> import tempfile
@@ -397,8 +310,7 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
         >>> read_results(run_dir)["env"]
         'drone'
     """
-    path = Path(path)
-    path = path / "results.json" if path.is_dir() else path
+    path = Path(path) / "results.json" if Path(path).is_dir() else Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"No results file at {path}.")
     remedy = "re-run the experiment to write it again, or leave that run directory out."

@@ -1,6 +1,5 @@
-"""Run one experiment from a config: validate it, prepare its run directory and logger, build
-its :class:`~torchrl_recon.experiments.context.RunContext`, run its kind (looked up in the
-registry) and store the results, figures and table."""
+"""Run one experiment from a config: validate it, prepare its run directory and logger, run its
+kind (from the registry) in a :class:`~.context.RunContext`, store the results and figures."""
 
 from __future__ import annotations
 
@@ -26,8 +25,7 @@ from torchrl_recon.experiments.summary import format_table, save_figures
 
 
 def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
-    """Run a child experiment (calibrate's outcomes) made by the command ``argv``; its
-    headline numbers."""
+    """Run a child experiment (calibrate's outcomes) made by ``argv``; its headline numbers."""
     results = run(cfg, argv=argv)
     outcome = get_type(cfg.experiment).outcome
     if outcome is None:
@@ -40,13 +38,8 @@ def last_finished_stage(run_dir: str | os.PathLike[str]) -> str | None:
 
     Examples:
         >>> import tempfile
-        >>> from torchrl_recon.experiments.stages import Stages
-        >>> stages = Stages(Path(tempfile.mkdtemp()), seed=0)
-        >>> last_finished_stage(stages.run_dir) is None
+        >>> last_finished_stage(tempfile.mkdtemp()) is None
         True
-        >>> _ = stages.run("random_data", lambda: {})
-        >>> last_finished_stage(stages.run_dir)
-        'random_data'
     """
     records = [p for p in Path(run_dir).glob("stages/*.json") if p.is_file()]
     return max(records, key=lambda p: p.stat().st_mtime_ns).stem if records else None
@@ -71,19 +64,10 @@ def run(
     argv: Sequence[str] | None = None,
     extra_meta: Mapping[str, Any] | None = None,
 ) -> dict[str, Any] | None:
-    """Validate ``cfg``, prepare its run directory and logger, run the experiment, store results.
+    """Validate ``cfg``, check and prepare its run directory, run the experiment, store results.
 
-    Steps: :func:`validate` (before any work) → the device (``cfg.device``; ``meta.json``
-    records it, its name and the CPU's model) → ``torch.set_num_threads(cfg.threads)`` and
-    :func:`~torchrl_recon.allocator.keep_freed_memory` (recorded in ``meta.json``) →
-    :func:`prepare_run_dir` (``config.yaml``, ``meta.json``; refuses a changed config) →
-    :func:`make_logger` → the kind's ``run`` (from the registry) with the run's
-    :class:`RunContext` → ``results.json`` → figures → the results table on stdout → logger
-    shutdown.
-
-    Returns:
-        The results dict, or None when the experiment stopped after ``cfg.stop_after``
-        (re-running the same command resumes from the stages already done).
+    Returns the results, or None when it stopped after ``cfg.stop_after`` (re-running the same
+    command resumes).
     """
     cfg = validate(cfg)
     try:
@@ -91,11 +75,8 @@ def run(
     except ValueError as e:  # a CUDA device this machine lacks: refused before the run directory
         raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
-    extra_meta = {
-        **dict(extra_meta or {}),
-        "device": describe_device(device),
-        "malloc_keeps_freed_memory": keep_freed_memory(),
-    }
+    extra_meta = {**(extra_meta or {}), "device": describe_device(device)}
+    extra_meta["malloc_keeps_freed_memory"] = keep_freed_memory()
     verify_run_dir(Path(cfg.output_dir).expanduser())  # a damaged resume: refused before writing
     run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
     tag = f"[{cfg.experiment}]"
@@ -105,8 +86,7 @@ def run(
         kind = get_type(cfg.experiment)
         logger = make_logger(cfg, run_dir)
         recipes = RecipeLoader(resolve_recipe_path, load_recipe)
-        child = partial(_run_child, argv=argv)
-        ctx = RunContext.create(cfg, run_dir, logger, run_child=child, recipes=recipes)
+        ctx = RunContext.create(cfg, run_dir, logger, partial(_run_child, argv=argv), recipes)
         try:
             results = kind.run(ctx)
         except StopRequested as stop:

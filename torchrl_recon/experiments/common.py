@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -120,15 +120,7 @@ def random_data_stage(
 
 def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWorldModel:
     """The world model of the recipe's sizes."""
-    m = cfg.models
-    return LSTMWorldModel(
-        obs_dim,
-        action_dim,
-        window=m.window,
-        hidden_size=m.world_model.hidden_size,
-        dense_size=m.world_model.dense_size,
-        activation=m.world_model.activation,
-    )
+    return LSTMWorldModel(obs_dim, action_dim, window=cfg.models.window, **cfg.models.world_model)
 
 
 def build_estimator(
@@ -137,15 +129,8 @@ def build_estimator(
     """The estimator of a ``models.uncertainty`` block or a calibration entry
     (:func:`~torchrl_recon.modules.make_estimator`)."""
     kwargs = OmegaConf.to_container(spec.kwargs, resolve=True) if spec.get("kwargs") else {}
-    return make_estimator(
-        spec.kind,
-        obs_dim,
-        action_dim,
-        window=window,
-        hidden_size=spec.hidden_size,
-        activation=spec.activation,
-        **kwargs,
-    )
+    sizes = dict(window=window, hidden_size=spec.hidden_size, activation=spec.activation)
+    return make_estimator(spec.kind, obs_dim, action_dim, **sizes, **kwargs)
 
 
 def build_models(
@@ -215,10 +200,7 @@ def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
 
 def fit_kwargs(ctx: RunContext, fit: DictConfig, prefix: str) -> dict:
     """The keywords of a fit from a recipe's ``training.world_model`` or ``.uncertainty`` block."""
-    keys = ("steps", "lr", "eval_every", "patience")
-    return {k: fit[k] for k in keys} | dict(
-        progress=ctx.cfg.progress, logger=ctx.logger, log_prefix=prefix
-    )
+    return dict(**fit, progress=ctx.cfg.progress, logger=ctx.logger, log_prefix=prefix)
 
 
 def fit_module(
@@ -241,6 +223,23 @@ def fit_module(
     return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss
 
 
+def checkpoint_stage(
+    ctx: RunContext, name: str, modules: Mapping[str, torch.nn.Module], fit: Callable[[], dict]
+) -> dict:
+    """Stage ``name``: ``fit()`` (returns the record), then ``modules`` checkpointed together as
+    ``checkpoints/<name>.pt`` under their keys (loaded back when the stage is done)."""
+    path = ctx.stages.path("checkpoints", f"{name}.pt")
+
+    def run() -> dict:
+        record = fit()
+        save_checkpoint(path, dict(modules))
+        return record
+
+    record = ctx.stages.run(name, run)
+    load_checkpoint(path, dict(modules))
+    return record
+
+
 def fit_stage(
     ctx: RunContext,
     name: str,
@@ -249,27 +248,21 @@ def fit_stage(
     *,
     fit_normalization: bool = True,
 ) -> dict:
-    """Stage ``name``: ``modules`` fitted on ``data`` (one seed, in order), checkpointed together
-    as ``checkpoints/<name>.pt`` (loaded back on resume); the record holds ``val_loss`` for one
-    module, else ``<key>_val_loss``."""
-    path = ctx.stages.path("checkpoints", f"{name}.pt")
-    single = len(modules) == 1
+    """A :func:`checkpoint_stage` fitting ``modules`` on ``data`` (one seed, in order); the record
+    holds ``val_loss`` for one module, else ``<key>_val_loss``."""
+    one = len(modules) == 1
 
-    def run() -> dict:
-        seed = torch.initial_seed() % (2**31)
-        record = {}
+    def fit() -> dict:
+        seed, record = torch.initial_seed() % (2**31), {}
         for key, module in modules.items():
-            prefix = f"{name}/" if single else f"{name}/{key}/"
+            prefix = f"{name}/" if one else f"{name}/{key}/"
             loss = fit_module(
                 ctx, module, data, seed=seed, prefix=prefix, fit_normalization=fit_normalization
             )
-            record["val_loss" if single else f"{key}_val_loss"] = loss
-        save_checkpoint(path, dict(modules))
+            record["val_loss" if one else f"{key}_val_loss"] = loss
         return record
 
-    record = ctx.stages.run(name, run)
-    load_checkpoint(path, dict(modules))
-    return record
+    return checkpoint_stage(ctx, name, modules, fit)
 
 
 def build_planner(

@@ -110,35 +110,21 @@ def episode_batch(
 def batch_part(
     ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
 ) -> dict:
-    """The part record of one batch of episodes: its episodes' metrics (logged) and episode 0's
-    trajectory (``{"metrics", "trajectory_example"}`` for a batch of one)."""
-    episodes, example = [], None
-    for e, td in zip(batch, episode_batch(ctx, setting, planner, controller, batch), strict=True):
-        episodes.append(episode_metrics(td, controller.scale))
-        if ctx.logger is not None:
-            for key, value in episodes[-1].items():
-                if value == value:  # NaN metrics (no planned step) are not logged
-                    ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
-        if e == 0:
-            names = list(env_entry(ctx.cfg).state_names) or [
-                f"s{i}" for i in range(td["next", "observation"].shape[-1])
-            ]
-            example = {"setting": setting.name, **planned_trajectory(td), "state_names": names}
-    if len(episodes) == 1:
-        return {"metrics": episodes[0], "trajectory_example": example}
-    return {"episodes": episodes, "trajectory_example": example}
-
-
-def part_episodes(part: dict, batch: range, marker) -> list[dict]:
-    """The metrics of each episode a part record holds (checked against its batch's size)."""
-    episodes = part["episodes"] if "episodes" in part else [part.get("metrics")]
-    if len(episodes) != len(batch) or not all(isinstance(m, dict) for m in episodes):
-        raise DamagedFileError(
-            f"{marker}: expected the metrics of episodes {batch.start}..{batch.stop - 1} "
-            f"({len(batch)} dicts), found {len(episodes)}; it was written with another "
-            "num_envs or damaged: delete it to compute those episodes again."
-        )
-    return episodes
+    """The part record of a batch of episodes: their metrics (logged; ``metrics`` for a batch
+    of one, else ``episodes``) and episode 0's ``trajectory_example``."""
+    tds = episode_batch(ctx, setting, planner, controller, batch)
+    episodes = [episode_metrics(td, controller.scale) for td in tds]
+    for e, metrics in zip(batch, episodes, strict=True):
+        for key, value in metrics.items():
+            if ctx.logger is not None and value == value:  # NaN (no planned step): not logged
+                ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
+    example = None
+    if batch[0] == 0:
+        dims = tds[0]["next", "observation"].shape[-1]
+        names = list(env_entry(ctx.cfg).state_names) or [f"s{i}" for i in range(dims)]
+        example = {"setting": setting.name, **planned_trajectory(tds[0]), "state_names": names}
+    part = {"metrics": episodes[0]} if len(episodes) == 1 else {"episodes": episodes}
+    return part | {"trajectory_example": example}
 
 
 def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) -> dict:
@@ -156,12 +142,17 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
             lambda b: batch_part(ctx, setting, planner, controller, groups[b]),
             show_progress=ctx.cfg.progress,
         )
-        folder = ctx.stages.run_dir / "stages" / name
-        episodes = [
-            metrics
-            for b, (part, batch) in enumerate(zip(parts, groups, strict=True))
-            for metrics in part_episodes(part, batch, folder / f"part_{b}.json")
-        ]
+        episodes = []
+        for b, (part, batch) in enumerate(zip(parts, groups, strict=True)):
+            found = part["episodes"] if "episodes" in part else [part.get("metrics")]
+            if len(found) != len(batch) or not all(isinstance(m, dict) for m in found):
+                raise DamagedFileError(
+                    f"{ctx.stages.run_dir / 'stages' / name / f'part_{b}.json'}: expected the "
+                    f"metrics of episodes {batch.start}..{batch.stop - 1} ({len(batch)} dicts), "
+                    f"found {len(found)}; it was written with another num_envs or damaged: "
+                    "delete it to compute those episodes again."
+                )
+            episodes += found
         mean, std = episode_mean_std(episodes)
         record = {"episodes": episodes, "mean": mean, "std": std}
         record["trajectory_example"] = parts[0]["trajectory_example"] if parts else None

@@ -141,18 +141,14 @@ def retrain_stage(
             **fit_kwargs(ctx, cfg.training.world_model, f"{name}/"),
         )
         population = WorldModelPopulation.from_members(members)
-        errors = population_multi_step_errors(
-            population, validation, window=cfg.models.window, scale=scale
-        )
-        mse, arm_fits = errors.mean((-2, -1)).tolist(), {}
+        window = cfg.models.window
+        errors = population_multi_step_errors(population, validation, window=window, scale=scale)
+        mse, record = errors.mean((-2, -1)).tolist(), {"retrainings": list(retrainings)}
         for a, arm in enumerate(ARMS):
-            part = fits[a * n : (a + 1) * n]
-            arm_fits[arm] = {"mse": mse[a * n : (a + 1) * n]}
-            arm_fits[arm] |= {
-                "val_loss": [f.best_val_loss for f in part],
-                "steps": [f.steps for f in part],
-            }
-        return {"retrainings": list(retrainings), **arm_fits}
+            mine = slice(a * n, (a + 1) * n)
+            losses, steps = [f.best_val_loss for f in fits[mine]], [f.steps for f in fits[mine]]
+            record[arm] = {"mse": mse[mine], "val_loss": losses, "steps": steps}
+        return record
 
     return ctx.stages.run(name, run)
 

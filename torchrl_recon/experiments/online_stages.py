@@ -12,6 +12,7 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    checkpoint_stage,
     dims,
     fit_stage,
     mpc_policy,
@@ -22,7 +23,6 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
-from torchrl_recon.training import load_checkpoint, save_checkpoint
 from torchrl_recon.training.online import (
     FitSchedule,
     append_steps,
@@ -70,37 +70,30 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
 
 
 def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
-    """Stage ``refit_<n>``: both networks refitted on all data so far, from their current
-    weights (checkpointed as ``checkpoints/refit_<n>.pt``, loaded back on resume)."""
-    cfg, name = ctx.cfg, f"refit_{n}"
-    path = ctx.stages.path("checkpoints", f"{name}.pt")
-    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
-    t, fit = cfg.training, cfg.training.world_model
+    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks on all
+    data so far, from their current weights."""
+    cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
+    sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
     schedule = FitSchedule(
-        **{k: fit[k] for k in ("steps", "lr", "eval_every", "patience")},
-        refit_steps=cfg.refit_steps,
-        **{k: t[k] for k in ("slice_len", "num_slices", "val_fraction")},
-        mode=str(t.world_model_mode),
+        **t.world_model, refit_steps=cfg.refit_steps, mode=str(t.world_model_mode), **sizes
     )
+    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 
-    def run() -> dict:
-        start = time.perf_counter()
+    def fit() -> dict:
+        start, seed = time.perf_counter(), ctx.stage_seed(name)
         losses = fit_models(
             *modules.values(),
             data,
             schedule,
-            seed=ctx.stage_seed(name),
+            seed=seed,
             warm=True,
             progress=cfg.progress,
             logger=ctx.logger,
             log_prefix=f"{name}/",
         )
-        save_checkpoint(path, modules)
         return {"val_loss": losses, "fit_s": time.perf_counter() - start}
 
-    record = ctx.stages.run(name, run)
-    load_checkpoint(path, modules)
-    return record
+    return checkpoint_stage(ctx, name, modules, fit)
 
 
 def run(ctx: RunContext) -> dict:

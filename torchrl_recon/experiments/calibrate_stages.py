@@ -118,26 +118,10 @@ def evaluation_stage(
     return ctx.stages.run("evaluation", run)
 
 
-def outcome_config(ctx: RunContext, spec: DictConfig, kind: str) -> DictConfig:
-    """The ``kind`` recipe of ``outcomes`` with ``spec`` as its estimator, this run's seed,
-    threads and window, its run directory ``outcomes/<estimator>/<kind>``."""
-    cfg = ctx.cfg
-    sub = ctx.recipes.load(
-        ctx.recipes.resolve(cfg.outcomes[f"{kind}_recipe"]), list(cfg.outcomes[f"{kind}_overrides"])
-    )
-    sub.seed, sub.threads, sub.progress = cfg.seed, cfg.threads, False
-    sub.output_dir = str(ctx.run_dir / "outcomes" / spec.name / kind)
-    sub.logger.backend = "none"
-    sub.models.window = cfg.models.window
-    for key in ("kind", "hidden_size", "activation"):
-        sub.models.uncertainty[key] = spec[key]
-    sub.models.uncertainty.kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
-    return sub
-
-
 def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
-    """Stages ``outcome_<estimator>_<kind>``: the two experiments with each estimator, run
-    through ``ctx.run_child``; their headline numbers."""
+    """Stages ``outcome_<estimator>_<kind>``: the ``outcomes`` recipe of each kind with each
+    estimator (this run's seed, threads and window; run directory ``outcomes/<estimator>/<kind>``),
+    run through ``ctx.run_child``; their headline numbers."""
     cfg = ctx.cfg
     kinds = [k for k in OUTCOME_KINDS if cfg.outcomes[f"{k}_recipe"] is not None]
     if kinds and (ctx.run_child is None or ctx.recipes is None):
@@ -145,14 +129,24 @@ def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
             "calibrate's outcomes run other recipes: run it through "
             "torchrl_recon.experiments.runner.run (or set outcomes.*_recipe to null)."
         )
+
+    def outcome(spec: DictConfig, kind: str) -> dict:
+        recipe = ctx.recipes.resolve(cfg.outcomes[f"{kind}_recipe"])
+        sub = ctx.recipes.load(recipe, list(cfg.outcomes[f"{kind}_overrides"]))
+        sub.seed, sub.threads, sub.progress = cfg.seed, cfg.threads, False
+        sub.output_dir = str(ctx.run_dir / "outcomes" / spec.name / kind)
+        sub.logger.backend, sub.models.window = "none", cfg.models.window
+        for key in ("kind", "hidden_size", "activation"):
+            sub.models.uncertainty[key] = spec[key]
+        sub.models.uncertainty.kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
+        return {"result": ctx.run_child(sub)}
+
     outcomes: dict[str, dict[str, Any]] = {}
     for spec in cfg.estimators:
         outcomes[spec.name] = {}
         for kind in kinds:
-            record = ctx.stages.run(
-                f"outcome_{spec.name}_{kind}",
-                lambda s=spec, k=kind: {"result": ctx.run_child(outcome_config(ctx, s, k))},
-            )
+            name = f"outcome_{spec.name}_{kind}"
+            record = ctx.stages.run(name, lambda s=spec, k=kind: outcome(s, k))
             outcomes[spec.name][kind] = record["result"]
     return outcomes
 

@@ -38,8 +38,8 @@ from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
 from torchrl_recon.training import fit_population
 
-NEXT = ("observation", "reward", "done", "terminated", "truncated")
-DATA_KEYS = ("observation", "action", "is_init", "step_count", *(("next", k) for k in NEXT))
+_NEXT = ("observation", "reward", "done", "terminated", "truncated")
+DATA_KEYS = ("observation", "action", "is_init", "step_count", *(("next", k) for k in _NEXT))
 DATA_KEYS += (("collector", "traj_ids"),)
 """What a dataset keeps of a collection (the policies' planning state is not data)."""
 MSE_UNITS = (

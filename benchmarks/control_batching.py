@@ -21,7 +21,7 @@ from pathlib import Path
 from _common import parse_args
 
 from torchrl_recon.experiments import control_stages, explore_stages
-from torchrl_recon.experiments.common import build_planner, planning_model
+from torchrl_recon.experiments.common import batches, build_planner, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 
@@ -75,7 +75,7 @@ def main() -> None:
             for _ in range(args.repeats):
                 for batch_size in times:
                     start = time.perf_counter()
-                    for batch in control_stages.episode_batches(args.episodes, batch_size):
+                    for batch in batches(args.episodes, batch_size):
                         control_stages.episode_batch(ctx, setting, planner, controller, batch)
                     times[batch_size].append(time.perf_counter() - start)
             one, batched = (min(times[b]) for b in times)

@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_recon.cli import main
+from torchrl_recon.evaluation import episode_metrics
 from torchrl_recon.experiments.control import result_table, settings_table
-from torchrl_recon.experiments.control_stages import episode_metrics
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
 
 

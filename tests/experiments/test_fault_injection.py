@@ -47,7 +47,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torchrl_recon.experiments import explore_stages
+from torchrl_recon.experiments.common import batches
 from torchrl_recon.experiments.compose import compose_recipe
 from torchrl_recon.experiments.registry import get_type
 
@@ -86,7 +86,7 @@ def expected_stages(kind: str) -> list[str]:
     guided = []
     for r in range(rounds):
         guided += [f"guided_data_{r}"] + ([f"guided_refit_{r}"] if r < rounds - 1 else [])
-    groups = explore_stages.retrain_groups(cfg.retrainings, cfg.retrainings_per_fit)
+    groups = batches(cfg.retrainings, cfg.retrainings_per_fit)
     retrain = [f"retrain_{g}" for g in range(len(groups))]
     return ["initial_random", "initial_models", "validation", *guided, "random_arm", *retrain]
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from torchrl_recon.collectors.datasets import concat_trajectories, validation_trajectories
+from torchrl_recon.collectors.datasets import (
+    concat_trajectories,
+    first_episodes,
+    validation_trajectories,
+)
 from torchrl_recon.collectors.policies import OffsetNoisePolicy
 from torchrl_recon.collectors.random_data import collect, collect_random
 
@@ -11,5 +15,6 @@ __all__ = [
     "collect",
     "collect_random",
     "concat_trajectories",
+    "first_episodes",
     "validation_trajectories",
 ]

@@ -36,6 +36,22 @@ def concat_trajectories(*datasets: TensorDictBase) -> TensorDictBase:
     return torch.cat(parts, 0)
 
 
+def first_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
+    """Each env's first episode in a batched rollout ``[B, T]``: its steps up to and including
+    its first done (all ``T`` when it never ends), e.g. of ``env.rollout(...,
+    break_when_all_done=True)``, where envs that ended wait for the others.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> done = torch.tensor([[False, True, True], [False, False, False]])[..., None]
+        >>> [len(e) for e in first_episodes(TensorDict({("next", "done"): done}, [2, 3]))]
+        [2, 3]
+    """
+    done = rollout["next", "done"].flatten(2).any(-1)  # [B, T]
+    lengths = torch.where(done.any(1), done.int().argmax(1) + 1, done.shape[1]).tolist()
+    return [rollout[i, :n] for i, n in enumerate(lengths)]
+
+
 def validation_trajectories(
     env: EnvBase,
     *,

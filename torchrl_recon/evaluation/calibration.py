@@ -88,3 +88,54 @@ def imagined_uncertainty_and_error(
     if scale is not None:
         err = err / scale.to(err.device)
     return u.sum(-1), err.pow(2).mean((-1, -2))
+
+
+def calibration_metrics(
+    world_model,
+    estimator: UncertaintyEstimator,
+    trajectories: TensorDictBase,
+    ood_windows: TensorDictBase,
+    *,
+    window: int,
+    scale: torch.Tensor,
+    state_shift: float,
+    action_high: torch.Tensor,
+) -> dict[str, float]:
+    """How well ``estimator``'s u ranks real prediction error and flags out-of-distribution windows.
+
+    ``trajectories`` ``[V, window + H]``: Σu of each imagined trajectory
+    (:func:`imagined_uncertainty_and_error`) against its real MSE (units of ``scale``): Spearman
+    correlation and AUROC for "MSE above its median". ``ood_windows`` ``[W, T]`` real windows:
+    AUROC of u on them (negatives) against the same windows with the states moved by
+    ``state_shift``·``scale`` and with the actions held at ``action_high`` (positives).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+        >>> _ = torch.manual_seed(0)
+        >>> world, est = LSTMWorldModel(3, 1, window=4), ReconstructionUncertainty(3, 1, window=4)
+        >>> traj = TensorDict({"observation": torch.randn(5, 7, 3), "action": torch.randn(5, 7, 1),
+        ...     ("next", "observation"): torch.randn(5, 7, 3)}, [5, 7])
+        >>> m = calibration_metrics(world, est, traj, traj[:, :4], window=4, scale=torch.ones(3),
+        ...     state_shift=3.0, action_high=torch.ones(1))
+        >>> sorted(m), 0 <= m["ood_auroc_state_shift"] <= 1
+        (['auroc_error_above_median', 'mean_trajectory_mse', 'ood_auroc_action_bound', 'ood_auroc_state_shift', 'spearman'], True)
+    """
+    with torch.no_grad():
+        u_sum, mse = imagined_uncertainty_and_error(
+            world_model, estimator, trajectories, window=window, scale=scale
+        )
+        above = mse > mse.median()
+        device = module_device(estimator)
+        obs, act = ood_windows["observation"].to(device), ood_windows["action"].to(device)
+        scale, action_high = scale.to(device), action_high.to(device)
+        u_in = estimator.score(obs, act)[:, 0]
+        u_shift = estimator.score(obs + state_shift * scale, act)[:, 0]
+        u_bound = estimator.score(obs, action_high.expand_as(act))[:, 0]
+    return {
+        "spearman": spearman(u_sum, mse),
+        "auroc_error_above_median": auroc(u_sum[~above], u_sum[above]),
+        "ood_auroc_state_shift": auroc(u_in, u_shift),
+        "ood_auroc_action_bound": auroc(u_in, u_bound),
+        "mean_trajectory_mse": float(mse.mean()),
+    }

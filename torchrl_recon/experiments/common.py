@@ -1,15 +1,14 @@
-"""Builders the experiments share: envs, models, fitting, planners, metrics scale."""
+"""What the experiments share: envs, models, fits, planners and policies made from a recipe."""
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.envs import DeviceCastTransform, EnvBase
-from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
@@ -19,14 +18,9 @@ from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RunContext
-from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator
-from torchrl_recon.planners import (
-    Objective,
-    PlannerBase,
-    PlanningModel,
-    TerminationFn,
-    make_planner,
-)
+from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator, make_estimator
+from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
+from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
     fit_uncertainty,
     fit_world_model,
@@ -40,16 +34,12 @@ def build_env(
     *,
     seed: int | Sequence[int],
     episode_steps: int,
-    policy_device: torch.device | None = None,
+    policy: MPCPolicy | None = None,
     num_envs: int | None = None,
 ) -> EnvBase:
-    """The recipe's TorchRL env with episodes of ``episode_steps``, simulated on the CPU.
-
-    With ``num_envs > 1`` (or a list of seeds, one per env) it is a ``SerialEnv`` batch (see
-    :func:`~torchrl_recon.envs.make_env`). With a ``policy_device`` other than the CPU,
-    TorchRL's ``DeviceCastTransform`` hands the policy its data on that device and the env
-    its actions back on the CPU.
-    """
+    """The recipe's env (on the CPU) with episodes of ``episode_steps``: a ``SerialEnv`` batch
+    for ``num_envs > 1`` or a list of seeds (:func:`~torchrl_recon.envs.make_env`); with a
+    ``policy``, its primer appended and its data cast to its device (``DeviceCastTransform``)."""
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
     env = make_env(
         cfg.env.id or cfg.env.name,
@@ -59,21 +49,16 @@ def build_env(
         max_episode_steps=episode_steps,
         **kwargs,
     )
-    if policy_device is not None and torch.device(policy_device).type != "cpu":
-        env.append_transform(DeviceCastTransform(policy_device, env.device))
+    if policy is not None:
+        if policy.device.type != "cpu":
+            env.append_transform(DeviceCastTransform(policy.device, env.device))
+        env.append_transform(policy.make_tensordict_primer())
     return env
 
 
 def env_entry(cfg: DictConfig) -> EnvEntry:
-    """The recipe's env as a registry entry: ``env.id`` (else ``env.name``) looked up in the
-    registry, named ``env.name``, with ``env.cost`` and ``env.state_names`` when given.
-
-    A shipped env and a gymnasium id go through the same lookup
-    (:func:`~torchrl_recon.envs.get_entry`); nothing is imported but the env's module (for
-    ``module:EnvId``).
-
-    Raises:
-        ValueError: the env is unknown (the message says how to register one).
+    """The recipe's env as a registry entry: ``env.id`` (else ``env.name``) looked up, named
+    ``env.name``, with ``env.cost`` and ``env.state_names`` when given.
 
     Examples:
         >>> cfg = OmegaConf.create({"env": {"id": "Pendulum-v1", "name": "pendulum",
@@ -95,45 +80,31 @@ def env_entry(cfg: DictConfig) -> EnvEntry:
 
 
 def cost_fn(cfg: DictConfig) -> CostFn:
-    """The env's batched torch cost (``env.cost``, else the registered env's), with the
-    recipe's env keywords where the cost takes them (keyword-only parameters)."""
-    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
-    return env_entry(cfg).cost_fn_with(kwargs)
-
-
-def termination_fn(cfg: DictConfig) -> TerminationFn | None:
-    """The recipe's ``env.termination`` function, imported (None when not given)."""
-    path = cfg.env.get("termination")
-    return None if path is None else import_cost(path, what="termination")
+    """The env's batched torch cost, with the recipe's env keywords it takes."""
+    return env_entry(cfg).cost_fn_with(OmegaConf.to_container(cfg.env.kwargs, resolve=True))
 
 
 def planning_model(
     cfg: DictConfig, world: LSTMWorldModel, uncertainty: UncertaintyEstimator | None = None
 ) -> PlanningModel:
-    """The recipe's :class:`PlanningModel`: its cost and termination, and the action bounds of
-    its env's spec (:meth:`PlanningModel.from_env`; the env is built, read and closed, without
-    stepping)."""
+    """The recipe's :class:`PlanningModel`: its cost, ``env.termination`` and the action bounds
+    of its env (built and closed without stepping)."""
+    path = cfg.env.get("termination")
+    termination = None if path is None else import_cost(path, what="termination")
     env = build_env(cfg, seed=0, episode_steps=1)
     try:
         return PlanningModel.from_env(
-            world, cost_fn(cfg), env, uncertainty=uncertainty, termination_fn=termination_fn(cfg)
+            world, cost_fn(cfg), env, uncertainty=uncertainty, termination_fn=termination
         )
     finally:
         close_env(env)
 
 
 def random_data_stage(
-    ctx: RunContext,
-    name: str,
-    *,
-    frames: int,
-    episode_steps: int,
-    keys: tuple | None = None,
+    ctx: RunContext, name: str, *, frames: int, episode_steps: int, keys: tuple | None = None
 ) -> TensorDictBase:
-    """A resumable stage: ``frames`` uniform random steps in episodes of ``episode_steps``,
-    seeded by (seed, ``name``), stored as ``buffers/<name>`` (only ``keys``, if given); returns
-    the stored data. With the recipe's ``num_envs > 1`` the steps come from that many envs
-    stepped as one batch (each env's trajectories contiguous in the stored data)."""
+    """Stage ``name``: ``frames`` uniform random steps (``num_envs`` envs as one batch), stored
+    as ``buffers/<name>`` (only ``keys``, if given); returns the stored data."""
 
     def run() -> dict:
         seed = ctx.stage_seed(name)
@@ -149,46 +120,40 @@ def random_data_stage(
 
 def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWorldModel:
     """The world model of the recipe's sizes."""
-    m = cfg.models
-    return LSTMWorldModel(
-        obs_dim,
-        action_dim,
-        window=m.window,
-        hidden_size=m.world_model.hidden_size,
-        dense_size=m.world_model.dense_size,
-        activation=m.world_model.activation,
-    )
+    return LSTMWorldModel(obs_dim, action_dim, window=cfg.models.window, **cfg.models.world_model)
 
 
 def build_estimator(
     spec: DictConfig, obs_dim: int, action_dim: int, window: int
 ) -> UncertaintyEstimator:
-    """The estimator a recipe's ``models.uncertainty`` block (or a calibration entry) names:
-    ``kind`` (a key of :data:`~torchrl_recon.modules.ESTIMATORS` or ``module:Class``) built as
-    ``Class(obs_dim, action_dim, window=window, hidden_size=..., activation=..., **kwargs)``."""
-    from torchrl_recon.modules.estimators import make_estimator
-
+    """The estimator of a ``models.uncertainty`` block or a calibration entry
+    (:func:`~torchrl_recon.modules.make_estimator`)."""
     kwargs = OmegaConf.to_container(spec.kwargs, resolve=True) if spec.get("kwargs") else {}
-    return make_estimator(
-        spec.kind,
-        obs_dim,
-        action_dim,
-        window=window,
-        hidden_size=spec.hidden_size,
-        activation=spec.activation,
-        **kwargs,
-    )
+    sizes = dict(window=window, hidden_size=spec.hidden_size, activation=spec.activation)
+    return make_estimator(spec.kind, obs_dim, action_dim, **sizes, **kwargs)
 
 
 def build_models(
     cfg: DictConfig, obs_dim: int, action_dim: int, device: torch.device | None = None
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """World model and estimator of the recipe's sizes, on ``device`` (the run context's; by
-    default the recipe's ``device``)."""
-    m = cfg.models
-    device = resolve_device(cfg.device) if device is None else device
+    """World model and estimator of the recipe's sizes, on ``device`` (default: ``cfg.device``)."""
+    m, device = cfg.models, resolve_device(cfg.device) if device is None else device
     world = build_world_model(cfg, obs_dim, action_dim).to(device)
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
+
+
+def models_stage(
+    ctx: RunContext, data: TensorDictBase, name: str
+) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
+    """Stage ``name``: the world model and the estimator built and fitted on ``data``."""
+    world, estimator = build_models(ctx.cfg, *dims(data), ctx.device)
+    fit_stage(ctx, name, data, {"world_model": world, "uncertainty": estimator})
+    return world, estimator
+
+
+def dims(data: TensorDictBase) -> tuple[int, int]:
+    """The observation and action sizes of ``data``."""
+    return data["observation"].shape[-1], data["action"].shape[-1]
 
 
 def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
@@ -222,31 +187,20 @@ def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
 
 
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
-    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)
-    with the recipe's ``training`` sizes and window sampling."""
+    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)."""
     check_episode_lengths(cfg, data)
-    train, val = split_by_trajectory(data, cfg.training.val_fraction, seed=seed)
     t = cfg.training
     sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
-    rb = make_sequence_buffer(len(train), **sizes)
-    val_rb = make_sequence_buffer(len(val), **sizes)
-    rb.extend(train)
-    val_rb.extend(val)
-    return rb, val_rb
+    parts = split_by_trajectory(data, t.val_fraction, seed=seed)
+    buffers = tuple(make_sequence_buffer(len(part), **sizes) for part in parts)
+    for buffer, part in zip(buffers, parts, strict=True):
+        buffer.extend(part)
+    return buffers
 
 
-def fit_kwargs(fit: DictConfig, progress: bool, logger: Logger | None, prefix: str) -> dict:
-    """The keywords of a fit (``fit_world_model``, ``fit_population``, ...) from a recipe's
-    ``training.world_model`` or ``training.uncertainty`` block."""
-    return dict(
-        steps=fit.steps,
-        lr=fit.lr,
-        eval_every=fit.eval_every,
-        patience=fit.patience,
-        progress=progress,
-        logger=logger,
-        log_prefix=prefix,
-    )
+def fit_kwargs(ctx: RunContext, fit: DictConfig, prefix: str) -> dict:
+    """The keywords of a fit from a recipe's ``training.world_model`` or ``.uncertainty`` block."""
+    return dict(**fit, progress=ctx.cfg.progress, logger=ctx.logger, log_prefix=prefix)
 
 
 def fit_module(
@@ -258,20 +212,32 @@ def fit_module(
     prefix: str,
     fit_normalization: bool = True,
 ) -> float:
-    """Fit the world model or the estimator on ``data`` (validation split by trajectory).
-
-    Returns the best validation loss.
-    """
-    cfg = ctx.cfg
-    rb, val_rb = split_buffers(cfg, data, seed)
+    """Fit the world model or an estimator on ``data``; returns the best validation loss."""
+    t = ctx.cfg.training
+    rb, val_rb = split_buffers(ctx.cfg, data, seed)
+    world = isinstance(module, LSTMWorldModel)
+    kwargs = fit_kwargs(ctx, t.world_model if world else t.uncertainty, prefix)
+    kwargs |= {"mode": t.world_model_mode} if world else {}
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
-    if isinstance(module, LSTMWorldModel):
-        fit_cfg, extra = cfg.training.world_model, {"mode": cfg.training.world_model_mode}
-        fit = fit_world_model
-    else:
-        fit_cfg, extra, fit = cfg.training.uncertainty, {}, fit_uncertainty
-    kwargs = fit_kwargs(fit_cfg, cfg.progress, ctx.logger, prefix)
-    return fit(module, rb, seed=seed, **common, **extra, **kwargs).best_val_loss
+    fit = fit_world_model if world else fit_uncertainty
+    return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss
+
+
+def checkpoint_stage(
+    ctx: RunContext, name: str, modules: Mapping[str, torch.nn.Module], fit: Callable[[], dict]
+) -> dict:
+    """Stage ``name``: ``fit()`` (returns the record), then ``modules`` checkpointed together as
+    ``checkpoints/<name>.pt`` under their keys (loaded back when the stage is done)."""
+    path = ctx.stages.path("checkpoints", f"{name}.pt")
+
+    def run() -> dict:
+        record = fit()
+        save_checkpoint(path, dict(modules))
+        return record
+
+    record = ctx.stages.run(name, run)
+    load_checkpoint(path, dict(modules))
+    return record
 
 
 def fit_stage(
@@ -282,44 +248,64 @@ def fit_stage(
     *,
     fit_normalization: bool = True,
 ) -> dict:
-    """A resumable stage that fits ``modules`` on ``data`` (one seed for all, in order) and
-    checkpoints them together as ``checkpoints/<name>.pt`` under their keys.
+    """A :func:`checkpoint_stage` fitting ``modules`` on ``data`` (one seed, in order); the record
+    holds ``val_loss`` for one module, else ``<key>_val_loss``."""
+    one = len(modules) == 1
 
-    The record holds ``val_loss`` for one module, else ``<key>_val_loss`` for each (logged
-    under ``<name>/`` or ``<name>/<key>/``). On resume the checkpoint is loaded back.
-    """
-    path = ctx.stages.path("checkpoints", f"{name}.pt")
-    single = len(modules) == 1
-
-    def run() -> dict:
-        seed = torch.initial_seed() % (2**31)
-        record = {}
+    def fit() -> dict:
+        seed, record = torch.initial_seed() % (2**31), {}
         for key, module in modules.items():
+            prefix = f"{name}/" if one else f"{name}/{key}/"
             loss = fit_module(
-                ctx,
-                module,
-                data,
-                seed=seed,
-                prefix=f"{name}/" if single else f"{name}/{key}/",
-                fit_normalization=fit_normalization,
+                ctx, module, data, seed=seed, prefix=prefix, fit_normalization=fit_normalization
             )
-            record["val_loss" if single else f"{key}_val_loss"] = loss
-        save_checkpoint(path, dict(modules))
+            record["val_loss" if one else f"{key}_val_loss"] = loss
         return record
 
-    record = ctx.stages.run(name, run)
-    load_checkpoint(path, dict(modules))
-    return record
+    return checkpoint_stage(ctx, name, modules, fit)
 
 
 def build_planner(
     planner_cfg: DictConfig, model: PlanningModel, objective: Objective
 ) -> PlannerBase:
-    """The planner a recipe's planner block names: ``kind`` (a key of
-    :data:`~torchrl_recon.planners.PLANNERS` or ``module:Class``) built as
-    ``Class(model, objective, **kwargs)``."""
+    """The planner of a recipe's planner block (:func:`~torchrl_recon.planners.make_planner`)."""
     kwargs = OmegaConf.to_container(planner_cfg.kwargs, resolve=True)
     return make_planner(planner_cfg.kind, model, objective, **kwargs)
+
+
+def replan_threshold(cfg: DictConfig, per_window_u: torch.Tensor) -> float:
+    """The re-planning threshold on u: a quantile of the windows' u, scaled (× ``every`` when
+    it bounds Σu over the steps between plans)."""
+    r = cfg.replan
+    threshold = float(per_window_u.quantile(r.threshold_quantile)) * r.threshold_scale
+    return threshold * r.every if r.threshold_on == "cumulative" else threshold
+
+
+def mpc_policy(
+    cfg: DictConfig, planner: PlannerBase, threshold: float | None, **kwargs
+) -> MPCPolicy:
+    """The MPC policy of the recipe's ``replan`` block (``threshold`` in mode ``uncertainty``)."""
+    r = cfg.replan
+    return MPCPolicy(
+        planner,
+        replan=str(r.mode),
+        replan_every=r.every,
+        threshold=threshold if r.mode == "uncertainty" else None,
+        threshold_on=str(r.threshold_on),
+        error_threshold=r.error_threshold,
+        **kwargs,
+    )
+
+
+def batches(count: int, size: int | None) -> list[range]:
+    """``range(count)`` in batches of ``size`` (one batch if None; the last may be smaller).
+
+    Examples:
+        >>> [list(b) for b in batches(5, 2)], batches(3, None)
+        ([[0, 1], [2, 3], [4]], [range(0, 3)])
+    """
+    size = size or count
+    return [range(i, min(i + size, count)) for i in range(0, count, size)]
 
 
 def state_scale(data: TensorDictBase) -> torch.Tensor:

@@ -3,10 +3,8 @@ stage and a warm-started refit (:mod:`torchrl_recon.training.online` does the wo
 
 from __future__ import annotations
 
-import math
 import time
 
-import torch
 from tensordict import TensorDictBase
 
 from torchrl_recon.envs import close_env
@@ -14,15 +12,17 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    checkpoint_stage,
+    dims,
     fit_stage,
+    mpc_policy,
     planning_model,
     random_data_stage,
+    replan_threshold,
 )
 from torchrl_recon.experiments.context import RunContext
-from torchrl_recon.experiments.control_stages import replan_threshold
+from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
-from torchrl_recon.policies import MPCPolicy
-from torchrl_recon.training import load_checkpoint, save_checkpoint
 from torchrl_recon.training.online import (
     FitSchedule,
     append_steps,
@@ -37,66 +37,30 @@ STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 """Stage name templates, in run order (``{n}`` the iteration, from 1)."""
 
 
-def schedule(cfg) -> FitSchedule:
-    """The refits' schedule: the recipe's ``training`` sizes, ``refit_steps`` warm steps."""
-    t, fit = cfg.training, cfg.training.world_model
-    return FitSchedule(
-        steps=fit.steps,
-        refit_steps=cfg.refit_steps,
-        lr=fit.lr,
-        eval_every=fit.eval_every,
-        patience=fit.patience,
-        slice_len=t.slice_len,
-        num_slices=t.num_slices,
-        val_fraction=t.val_fraction,
-        mode=str(t.world_model_mode),
-    )
-
-
-def policy(ctx: RunContext, model: PlanningModel, data: TensorDictBase) -> MPCPolicy:
-    """The iteration's MPC policy; its re-planning threshold (``replan.mode: uncertainty``) is
-    the ``threshold_quantile`` of the windows' u on all data so far, times ``threshold_scale``."""
-    cfg, r = ctx.cfg, ctx.cfg.replan
-    threshold = None
-    if str(r.mode) == "uncertainty":
-        u = window_uncertainty(data, model.uncertainty, sequence_length=cfg.training.slice_len)
-        threshold = replan_threshold(cfg, u)
-    planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
-    return MPCPolicy(
-        planner,
-        replan=str(r.mode),
-        replan_every=r.every,
-        threshold=threshold,
-        threshold_on=str(r.threshold_on),
-        error_threshold=r.error_threshold,
-        warmup=str(cfg.warmup),
-    )
-
-
 def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
     """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
-    ``buffers/play_<n>``); the record holds the episodes' returns, the model's error on the new
-    steps, their mean u, the re-plans, and the seconds spent planning and in the env."""
+    ``buffers/play_<n>``, re-planning threshold from all ``data`` so far); the record holds
+    :func:`~torchrl_recon.training.online.new_steps_metrics` and the seconds spent planning and
+    in the env."""
     cfg, name = ctx.cfg, f"play_{n}"
 
     def run() -> dict:
-        start = time.perf_counter()
-        mpc = policy(ctx, model, data)
+        start, threshold = time.perf_counter(), None
+        if str(cfg.replan.mode) == "uncertainty":
+            length = cfg.training.slice_len
+            u = window_uncertainty(data, model.uncertainty, sequence_length=length)
+            threshold = replan_threshold(cfg, u)
+        planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
+        mpc = mpc_policy(cfg, planner, threshold, warmup=str(cfg.warmup))
         seed = ctx.stage_seed(name)
-        env = build_env(
-            cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy_device=ctx.device
-        )
-        env.append_transform(mpc.make_tensordict_primer())
+        env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
         new, plan_s = play(
             env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
         )
         close_env(env)
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
         seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
-        record = seen | {
-            "plan_s": plan_s,
-            "env_s": time.perf_counter() - start - plan_s,
-        }
+        record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}
         if ctx.logger is not None:
             for key in ("model_error", "mean_u", "replans"):
                 ctx.logger.log_scalar(f"online/{key}", record[key], step=n)
@@ -106,31 +70,30 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
 
 
 def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
-    """Stage ``refit_<n>``: both networks refitted on all data so far, from their current
-    weights (checkpointed as ``checkpoints/refit_<n>.pt``, loaded back on resume)."""
-    name = f"refit_{n}"
-    path = ctx.stages.path("checkpoints", f"{name}.pt")
+    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks on all
+    data so far, from their current weights."""
+    cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
+    sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
+    schedule = FitSchedule(
+        **t.world_model, refit_steps=cfg.refit_steps, mode=str(t.world_model_mode), **sizes
+    )
     modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 
-    def run() -> dict:
-        start = time.perf_counter()
+    def fit() -> dict:
+        start, seed = time.perf_counter(), ctx.stage_seed(name)
         losses = fit_models(
-            model.world_model,
-            model.uncertainty,
+            *modules.values(),
             data,
-            schedule(ctx.cfg),
-            seed=ctx.stage_seed(name),
+            schedule,
+            seed=seed,
             warm=True,
-            progress=ctx.cfg.progress,
+            progress=cfg.progress,
             logger=ctx.logger,
             log_prefix=f"{name}/",
         )
-        save_checkpoint(path, modules)
         return {"val_loss": losses, "fit_s": time.perf_counter() - start}
 
-    record = ctx.stages.run(name, run)
-    load_checkpoint(path, modules)
-    return record
+    return checkpoint_stage(ctx, name, modules, fit)
 
 
 def run(ctx: RunContext) -> dict:
@@ -139,8 +102,7 @@ def run(ctx: RunContext) -> dict:
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
     )
-    obs_dim, action_dim = data["observation"].shape[-1], data["action"].shape[-1]
-    world, estimator = build_models(cfg, obs_dim, action_dim, ctx.device)
+    world, estimator = build_models(cfg, *dims(data), ctx.device)
     first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
     model = planning_model(cfg, world, estimator)
     iterations = []
@@ -152,13 +114,9 @@ def run(ctx: RunContext) -> dict:
     random_returns = episode_returns(data[: cfg.random_steps])
     late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]
     return ctx.results_header() | {
-        "random": {"returns": random_returns, "mean_return": _mean(random_returns)},
+        "random": {"returns": random_returns, "mean_return": mean_std(random_returns)[0]},
         "first_fit": first,
         "iterations": iterations,
-        "mean_return_last_half": _mean(late),
+        "mean_return_last_half": mean_std(late)[0],
         "env_steps": len(data),
     }
-
-
-def _mean(values: list[float]) -> float:
-    return float(torch.tensor(values, dtype=torch.float64).mean()) if values else math.nan

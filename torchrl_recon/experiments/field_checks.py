@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from enum import Enum
 from typing import Any
 
@@ -20,8 +20,6 @@ from omegaconf import DictConfig, OmegaConf
 
 Check = Callable[[Any], "str | None"]
 """A field's check: what the value should be when it is refused, None when it fits."""
-
-CHECK, FINITE = "check", "finite"
 
 
 class Choice(str, Enum):
@@ -38,11 +36,23 @@ class Choice(str, Enum):
         return format(self.value, spec)
 
 
+def choice(name: str, values: str | list[str], module: str) -> Any:
+    """A :class:`Choice` ``Enum`` called ``name`` of ``values`` (a space-separated string).
+
+    Examples:
+        >>> Mode = choice("Mode", "fast slow", __name__)
+        >>> Mode.fast, Mode("slow") == "slow"
+        ('fast', True)
+    """
+    values = values.split() if isinstance(values, str) else values
+    return Choice(name, [(v, v) for v in values], module=module)
+
+
 def checked(default: Any = dataclasses.MISSING, check: Check | None = None, **kw: Any) -> Any:
     """A dataclass field whose value (when not None) must pass ``check``; ``finite=False``
     lets its floats be infinite (another check handles them); ``factory`` gives a mutable
     default."""
-    metadata = {CHECK: check, FINITE: kw.pop("finite", True)}
+    metadata = {"check": check, "finite": kw.pop("finite", True)}
     if "factory" in kw:
         return dataclasses.field(default_factory=kw.pop("factory"), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -93,32 +103,43 @@ def _walk(obj: Any, key: str, errors: list[str]) -> None:
         return
     for f in dataclasses.fields(obj):
         value, sub = getattr(obj, f.name), f"{key}.{f.name}" if key else f.name
-        finite = not f.metadata.get(FINITE, True) or _finite(value, sub, errors)
-        check = f.metadata.get(CHECK)
-        if check is not None and value is not None and finite:
+        bad = nonfinite(value, sub) if f.metadata.get("finite", True) else []
+        errors.extend(finite_error(k, v) for k, v in bad)
+        check = f.metadata.get("check")
+        if check is not None and value is not None and not bad:
             expected = check(value)
             if expected:
                 errors.append(f"'{sub}' must be {expected}, got {value!r}")
         _walk(value, sub, errors)
-    more = getattr(obj, "more_errors", None)
-    if more is not None:
-        for sub, text in more():
-            errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
+    for sub, text in getattr(obj, "more_errors", list)():
+        errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
 
 
-def _finite(value: Any, key: str, errors: list[str]) -> bool:
-    """Report every NaN or ±inf in a plain value (dicts and lists at any depth; a dataclass is
-    walked by its own fields); True when there is none."""
-    if isinstance(value, float):
-        if math.isfinite(value):
-            return True
-        errors.append(f"'{key}' must be a finite number, got {value}")
-        return False
-    if isinstance(value, dict):
-        return all([_finite(v, f"{key}.{k}", errors) for k, v in value.items()])
-    if isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
-        return all([_finite(v, f"{key}[{i}]", errors) for i, v in enumerate(value)])
-    return True
+def nonfinite(value: Any, key: str) -> list[tuple[str, float]]:
+    """``(key, value)`` of every NaN or ±inf in a plain value: dicts and lists at any depth (a
+    dataclass, and a list of them, is walked by its own fields).
+
+    Examples:
+        >>> nonfinite({"a": [1.0, float("inf")], "b": float("nan")}, "x")
+        [('x.a[1]', inf), ('x.b', nan)]
+    """
+    return list(_nonfinite(value, key))
+
+
+def _nonfinite(value: Any, key: str) -> Iterator[tuple[str, float]]:
+    if isinstance(value, float) and not math.isfinite(value):
+        yield key, value
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            yield from _nonfinite(v, f"{key}.{k}" if key else str(k))
+    elif isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
+        for i, v in enumerate(value):
+            yield from _nonfinite(v, f"{key}[{i}]")
+
+
+def finite_error(key: str, value: float) -> str:
+    """The message of a NaN or infinite ``value`` at ``key``."""
+    return f"'{key}' must be a finite number, got {value}"
 
 
 def finite(*values: Any) -> bool:

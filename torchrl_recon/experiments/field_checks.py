@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from enum import Enum
 from typing import Any
 
@@ -40,9 +40,8 @@ def choice(name: str, values: str | list[str], module: str) -> Any:
     """A :class:`Choice` ``Enum`` called ``name`` of ``values`` (a space-separated string).
 
     Examples:
-        >>> Mode = choice("Mode", "fast slow", __name__)
-        >>> Mode.fast, Mode("slow") == "slow"
-        ('fast', True)
+        >>> choice("Mode", "fast slow", __name__).fast
+        'fast'
     """
     values = values.split() if isinstance(values, str) else values
     return Choice(name, [(v, v) for v in values], module=module)
@@ -123,18 +122,15 @@ def nonfinite(value: Any, key: str) -> list[tuple[str, float]]:
         >>> nonfinite({"a": [1.0, float("inf")], "b": float("nan")}, "x")
         [('x.a[1]', inf), ('x.b', nan)]
     """
-    return list(_nonfinite(value, key))
-
-
-def _nonfinite(value: Any, key: str) -> Iterator[tuple[str, float]]:
-    if isinstance(value, float) and not math.isfinite(value):
-        yield key, value
-    elif isinstance(value, dict):
-        for k, v in value.items():
-            yield from _nonfinite(v, f"{key}.{k}" if key else str(k))
+    if isinstance(value, float):
+        return [] if math.isfinite(value) else [(key, value)]
+    if isinstance(value, dict):
+        items = [(f"{key}.{k}" if key else str(k), v) for k, v in value.items()]
     elif isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
-        for i, v in enumerate(value):
-            yield from _nonfinite(v, f"{key}[{i}]")
+        items = [(f"{key}[{i}]", v) for i, v in enumerate(value)]
+    else:
+        return []
+    return [bad for k, v in items for bad in nonfinite(v, k)]
 
 
 def finite_error(key: str, value: float) -> str:

@@ -1,15 +1,12 @@
 """The checks of a merged recipe that span several keys or need the env or a registry.
 
-:func:`recipe_errors` is what :func:`torchrl_recon.experiments.recipe.validate` runs after the
-schema merge (which has already checked keys, types and choices). The per-field ranges and
-finiteness are declared on the schema's fields (:mod:`.config`, run by
-:func:`~.field_checks.schema_errors`); the env section is checked by
-:func:`torchrl_recon.envs.entry_errors`; here: the planner and estimator classes a recipe names
+:func:`recipe_errors` runs after the schema merge (keys, types, choices) and the per-field
+ranges (:func:`~.field_checks.schema_errors`): the env section
+(:func:`torchrl_recon.envs.entry_errors`), the planner and estimator classes a recipe names
 (``kind``: shipped or ``module:Class``; ``kwargs`` against the class's signature; built on a
 tiny model), data sizes against ``training.slice_len``, unique names, ``stop_after`` and a
 calibration's outcome recipes. Each problem is one message naming the key, the value and what
-was expected; nothing here touches the disk (beyond reading an outcome recipe of a calibration
-run).
+was expected; nothing here touches the disk (beyond reading a calibration's outcome recipes).
 """
 
 from __future__ import annotations
@@ -27,15 +24,20 @@ from torchrl_recon.experiments.field_checks import finite, finite_error, nonfini
 
 if TYPE_CHECKING:
     from torchrl_recon.experiments.experiment_type import ExperimentType
-    from torchrl_recon.planners import Objective, PlanningModel
+    from torchrl_recon.planners import Objective
 
 
 class _Errors(list):
-    """The messages of one recipe."""
+    """The messages of one recipe ``cfg``."""
 
-    def need(self, key: str, value: Any, ok: bool, expected: str) -> None:
+    def __init__(self, cfg: DictConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+
+    def need(self, key: str, ok: bool, expected: str) -> None:
         """Add ``'key' must be <expected>, got <value>`` unless ``ok`` (or the value is a
         non-finite number: the schema walk reports it)."""
+        value = OmegaConf.select(self.cfg, key)
         if finite(value) and not ok:
             self.append(f"'{key}' must be {expected}, got {value!r}")
 
@@ -62,7 +64,7 @@ def recipe_errors(
         number, got nan", "'guided.planner.kwargs': RandomShootingPlanner does not accept
         ['num_elites']; it accepts ['block_rows', 'horizon', 'num_candidates', 'on_infeasible']."]
     """
-    errors = _Errors()
+    errors = _Errors(cfg)
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
     defaults = _env_errors(cfg, kwargs, errors)
     for key, value in nonfinite(kwargs, "env.kwargs"):
@@ -70,7 +72,7 @@ def recipe_errors(
         if math.isnan(value) or defaults.get(key.removeprefix("env.kwargs.")) != value:
             errors.append(finite_error(key, value))
     errors.extend(schema_errors(cfg))
-    _run_errors(cfg, errors)
+    _run_errors(errors)
     experiment.check(cfg, errors, recipes)
     if cfg.stop_after is not None and not experiment.is_stage(cfg, cfg.stop_after):
         errors.append(
@@ -81,9 +83,8 @@ def recipe_errors(
 
 
 def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: _Errors) -> dict[str, Any]:
-    """The env section: ``env.id`` / ``env.name`` known and agreeing, then the entry's own
-    checks (:func:`~torchrl_recon.envs.entry_errors`). Returns the env's keyword defaults ({}
-    when the env or a keyword is unknown)."""
+    """``env.id`` / ``env.name`` known and agreeing, then the entry's own checks. Returns the
+    env's keyword defaults ({} when the env or a keyword is unknown)."""
     from torchrl_recon.envs import ENVS, entry_errors
     from torchrl_recon.experiments.common import env_entry
 
@@ -106,11 +107,8 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: _Errors) -> dic
             f"env.name=<your env's name> too, or start from recipes/gym"
         )
         return {}
-    errors.extend(
-        entry_errors(
-            entry, kwargs, termination=env.get("termination"), state_names=list(env.state_names)
-        )
-    )
+    names = list(env.state_names)
+    errors.extend(entry_errors(entry, kwargs, termination=env.termination, state_names=names))
     try:
         entry.check_kwargs(kwargs)
     except TypeError:
@@ -118,108 +116,92 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: _Errors) -> dic
     return entry.keywords() or {}
 
 
-def _run_errors(cfg: DictConfig, errors: _Errors) -> None:
+def _run_errors(errors: _Errors) -> None:
     """Keys every experiment has: a training slice holds a window; the world model and the
     estimator build with tiny dims, so that a bad value fails before any work."""
     from torchrl_recon.experiments.common import build_world_model
 
+    cfg = errors.cfg
     t, m = cfg.training, cfg.models
-    multi = t.world_model_mode == "multi_step"
     if m.window >= 1:
+        multi = t.world_model_mode == "multi_step"
         errors.need(
             "training.slice_len",
-            t.slice_len,
             t.slice_len > m.window if multi else t.slice_len >= m.window,
-            f"{'above' if multi else 'at least'} models.window = {m.window} "
-            f"(the {'multi-step loss predicts after' if multi else 'estimator sees'} a full "
-            "window)",
+            f"{'above' if multi else 'at least'} models.window = {m.window} (the "
+            f"{'multi-step loss predicts after' if multi else 'estimator sees'} a full window)",
         )
     if min(m.window, m.world_model.hidden_size, m.world_model.dense_size) >= 1:
         try:
             build_world_model(cfg, 1, 1)
         except (ValueError, TypeError) as e:
             errors.append(f"'models.world_model': {e}")
-    _estimator_errors(m.uncertainty, "models.uncertainty", m.window, errors)
-
-
-# ----------------------------------------------------------------------------------------------
-# The parts a recipe names: shipped or a user's own class, with that class's keywords
+    _estimator_errors(errors, "models.uncertainty", m.uncertainty)
 
 
 def _part_errors(
+    errors: _Errors,
     key: str,
-    spec: DictConfig,
     get_class: Callable[[str], type],
     check_kwargs: Callable[[type, dict], None],
     build: Callable[[type, dict], Any] | None,
     note: str = "",
-) -> list[str]:
-    """The block ``key``'s class (``spec.kind``), its ``kwargs`` against the class's signature,
-    then ``build(cls, kwargs)`` (None: not built, a value is reported by the schema's checks),
-    so that a bad value fails before any work; ``note`` describes the build in a message."""
+) -> None:
+    """The block ``key``'s class (``kind``), its ``kwargs`` against the class's signature, then
+    ``build(cls, kwargs)`` (None: a value the schema's checks report), so that a bad value
+    fails before any work; ``note`` describes the build in a message."""
+    spec = OmegaConf.select(errors.cfg, key)
     try:
         cls = get_class(spec.kind)
     except ValueError as e:
-        return [f"'{key}.kind': {e}"]
+        return errors.append(f"'{key}.kind': {e}")
     kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
     try:
         check_kwargs(cls, kwargs)
     except TypeError as e:
-        return [f"'{key}.kwargs': {e}"]
+        return errors.append(f"'{key}.kwargs': {e}")
     if build is None or nonfinite(kwargs, ""):
-        return []
+        return None
     try:
         build(cls, kwargs)
     except Exception as e:  # a user's class: any error is theirs to fix
         first = str(e).split(" ", 1)[0]  # a message that starts with a keyword is about it
         where = f"{key}.kwargs.{first}" if first in kwargs else key
-        return [f"'{where}'{note if where == key else ''}: {e}"]
-    return []
+        errors.append(f"'{where}'{note if where == key else ''}: {e}")
 
 
-def _estimator_errors(spec: DictConfig, key: str, window: int, errors: _Errors) -> None:
-    """The estimator block ``key`` (``kind``, ``kwargs``), built with tiny dims."""
+def _estimator_errors(errors: _Errors, key: str, spec: DictConfig) -> None:
+    """The estimator block ``key``, built with tiny dims."""
+    from torchrl_recon.experiments.common import build_estimator
     from torchrl_recon.modules import get_estimator_class
     from torchrl_recon.plugins import check_keywords
 
-    given = f"models.window, {key}.hidden_size and {key}.activation"
-    errors.extend(
-        _part_errors(
-            key,
-            spec,
-            get_estimator_class,
-            lambda cls, kwargs: check_keywords(
-                cls,
-                kwargs,
-                positional=2,
-                keywords=("window", "hidden_size", "activation"),
-                given_by=given,
-            ),
-            None
-            if window < 1 or spec.hidden_size < 1
-            else lambda cls, kwargs: cls(
-                1,
-                1,
-                window=window,
-                hidden_size=spec.hidden_size,
-                activation=spec.activation,
-                **kwargs,
-            ),
-        )
-    )
+    window = errors.cfg.models.window
+    given = {
+        "keywords": ("window", "hidden_size", "activation"),
+        "given_by": f"models.window, {key}.hidden_size and {key}.activation",
+    }
+
+    def check(cls: type, kwargs: dict) -> None:
+        check_keywords(cls, kwargs, positional=2, **given)
+
+    def build(cls: type, kwargs: dict) -> None:
+        build_estimator(spec, 1, 1, window)
+
+    ok = window >= 1 and spec.hidden_size >= 1
+    _part_errors(errors, key, get_estimator_class, check, build if ok else None)
 
 
 def _planner_errors(
-    planner: DictConfig,
-    key: str,
-    window: int,
-    objective: Callable[[], Objective],
-    with_objective: str,
-    errors: _Errors,
+    errors: _Errors, key: str, objective: Callable[[], Objective], note: str
 ) -> None:
-    """The planner block ``key`` (``kind``, ``kwargs``), built on a tiny model with the recipe's
-    objective (``objective()``, described by ``with_objective`` in a message)."""
-    from torchrl_recon.planners import check_planner_kwargs, get_planner_class
+    """The planner block ``key``, built on a tiny model (one state and one action dim, with an
+    estimator, on the CPU) with the recipe's objective (``objective()``, described by
+    ``note``)."""
+    from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+    from torchrl_recon.planners import PlanningModel, check_planner_kwargs, get_planner_class
+
+    window = errors.cfg.models.window
 
     def build(cls: type, kwargs: dict) -> None:
         try:
@@ -227,79 +209,49 @@ def _planner_errors(
         except ValueError:
             return  # the objective's values are reported by the schema's checks
         with torch.random.fork_rng(devices=[]):  # the run's random numbers stay as they are
-            cls(_tiny_planning_model(window), goal, **kwargs)
+            world = LSTMWorldModel(1, 1, window=window, hidden_size=1, dense_size=1)
+            u = ReconstructionUncertainty(1, 1, window=window, hidden_size=1)
+            cls(PlanningModel(world, lambda o, a, n: o[..., 0], uncertainty=u), goal, **kwargs)
 
-    errors.extend(
-        _part_errors(
-            key,
-            planner,
-            get_planner_class,
-            check_planner_kwargs,
-            None if window < 1 else build,
-            f" ({with_objective})",
-        )
-    )
+    build_if = build if window >= 1 else None
+    _part_errors(errors, key, get_planner_class, check_planner_kwargs, build_if, f" ({note})")
 
 
-def _tiny_planning_model(window: int) -> PlanningModel:
-    """A planning model of one state and one action dim, with an estimator, on the CPU."""
-    from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-    from torchrl_recon.planners import PlanningModel
-
-    world = LSTMWorldModel(1, 1, window=window, hidden_size=1, dense_size=1)
-    u = ReconstructionUncertainty(1, 1, window=window, hidden_size=1)
-    return PlanningModel(world, lambda obs, action, next_obs: obs[..., 0], uncertainty=u)
-
-
-# ----------------------------------------------------------------------------------------------
-# Names and data sizes
-
-
-def _duplicate_errors(names: list[str], key: str, what: str, errors: _Errors) -> None:
+def _duplicate_errors(errors: _Errors, key: str, what: str) -> None:
+    names = [s.name for s in errors.cfg[key]]
     for name in sorted({n for n in names if names.count(n) > 1}):
         errors.append(f"'{key}': duplicate {what} name {name!r}")
 
 
-def _data_errors(
-    cfg: DictConfig, episode_key: str, frames_key: str | None, errors: _Errors
-) -> None:
-    """Random data in episodes of ``cfg[episode_key]`` steps must hold a training slice per
-    episode and, with ``cfg[frames_key]`` steps in all, at least two trajectories (one is held
-    out to validate a fit)."""
+def _data_errors(errors: _Errors, episode_key: str, frames_key: str | None = None) -> None:
+    """Random data in episodes of ``episode_key`` steps must hold a training slice per episode
+    and, with ``frames_key`` steps in all, two trajectories (one is held out to validate a fit)."""
+    cfg = errors.cfg
     slice_len, episode = cfg.training.slice_len, OmegaConf.select(cfg, episode_key)
+    why = "(a training slice never crosses an episode)"
     errors.need(
-        episode_key,
-        episode,
-        episode >= slice_len,
-        f"at least training.slice_len = {slice_len} (a training slice never crosses an episode)",
+        episode_key, episode >= slice_len, f"at least training.slice_len = {slice_len} {why}"
     )
     if frames_key is not None:
         errors.need(
             frames_key,
-            cfg[frames_key],
             cfg[frames_key] >= episode + slice_len,
             f"at least {episode_key} + training.slice_len = {episode + slice_len} (two "
             "trajectories: one is held out to validate the fit)",
         )
 
 
-# ----------------------------------------------------------------------------------------------
-# Per experiment
-
-
 def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The explore recipe's own checks."""
     from torchrl_recon.policies import exploration_objective
 
-    _data_errors(cfg, "env.episode_steps", "initial_random_steps", errors)
     g = cfg.guided
+    _data_errors(errors, "env.episode_steps", "initial_random_steps")
     _planner_errors(
-        g.planner,
+        errors,
         "guided.planner",
-        cfg.models.window,
         lambda: exploration_objective(ratio=g.ratio, cap=g.cap, beta=g.beta),
         f"with the exploration objective: alpha 0, guided.beta = {g.beta}",
-        errors,
     )
 
 
@@ -307,51 +259,46 @@ def control_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The control recipe's own checks."""
     from torchrl_recon.experiments.control_stages import setting_objective
 
-    # two episodes at least (random_episodes >= 2): one is held out to validate the fit
-    _data_errors(cfg, "random_episode_steps", None, errors)
+    _data_errors(errors, "random_episode_steps")
     warmup = max(cfg.warmup_random_steps, cfg.models.window)
     errors.need(
         "env.episode_steps",
-        cfg.env.episode_steps,
         cfg.env.episode_steps > warmup,
         f"above max(warmup_random_steps, models.window) = {warmup} (or no step is planned)",
     )
-    _duplicate_errors([s.name for s in cfg.settings], "settings", "setting", errors)
-    for i, setting in enumerate(cfg.settings):
+    _duplicate_errors(errors, "settings", "setting")
+    for i, s in enumerate(cfg.settings):
         _planner_errors(
-            setting.planner,
-            f"settings[{i}].planner",
-            cfg.models.window,
-            lambda setting=setting: setting_objective(setting, 1.0)[0],
-            f"with settings[{i}].alpha = {setting.alpha}, beta = {setting.beta}",
             errors,
+            f"settings[{i}].planner",
+            lambda s=s: setting_objective(s, 1.0)[0],
+            f"with settings[{i}].alpha = {s.alpha}, beta = {s.beta}",
         )
 
 
 def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | None) -> None:
     """The estimator comparison recipe's own checks; its outcome recipes are loaded (and so
-    checked) with ``recipes`` when given."""
-    _duplicate_errors([s.name for s in cfg.estimators], "estimators", "estimator", errors)
+    checked, with this recipe's window) with ``recipes`` when given."""
+    _duplicate_errors(errors, "estimators", "estimator")
     for i, spec in enumerate(cfg.estimators):
-        _estimator_errors(spec, f"estimators[{i}]", cfg.models.window, errors)
-    _data_errors(cfg, "random_episode_steps", "random_steps", errors)
+        _estimator_errors(errors, f"estimators[{i}]", spec)
+    _data_errors(errors, "random_episode_steps", "random_steps")
     for kind in ("explore", "control"):
         recipe, key = cfg.outcomes[f"{kind}_recipe"], f"outcomes.{kind}_recipe"
         if recipe is None or recipes is None:
             continue
-        # The outcome run uses this recipe's window (and estimator, checked above).
-        overrides = list(cfg.outcomes[f"{kind}_overrides"])
         try:
             path = recipes.resolve(recipe)
         except FileNotFoundError as e:
             errors.append(f"'{key}': {e}")
             continue
+        overrides, window = list(cfg.outcomes[f"{kind}_overrides"]), cfg.models.window
         try:
-            recipes.load(path, [*overrides, f"models.window={cfg.models.window}"])
+            recipes.load(path, [*overrides, f"models.window={window}"])
         except (RecipeError, FileNotFoundError) as e:
             errors.append(
                 f"'{key}' (with outcomes.{kind}_overrides {overrides} and this recipe's "
-                f"models.window = {cfg.models.window}): {e}"
+                f"models.window = {window}): {e}"
             )
 
 
@@ -360,12 +307,10 @@ def online_errors(cfg: DictConfig, errors: _Errors) -> None:
     long enough to plan in, and the planner built with the recipe's objective."""
     from torchrl_recon.planners import Objective
 
-    _data_errors(cfg, "env.episode_steps", "random_steps", errors)
+    _data_errors(errors, "env.episode_steps", "random_steps")
     _planner_errors(
-        cfg.planner,
+        errors,
         "planner",
-        cfg.models.window,
         lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
         f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
-        errors,
     )

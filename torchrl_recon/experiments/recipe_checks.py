@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -176,20 +177,12 @@ def _estimator_errors(errors: _Errors, key: str, spec: DictConfig) -> None:
     from torchrl_recon.modules import get_estimator_class
     from torchrl_recon.plugins import check_keywords
 
-    window = errors.cfg.models.window
-    given = {
-        "keywords": ("window", "hidden_size", "activation"),
-        "given_by": f"models.window, {key}.hidden_size and {key}.activation",
-    }
-
-    def check(cls: type, kwargs: dict) -> None:
-        check_keywords(cls, kwargs, positional=2, **given)
-
-    def build(cls: type, kwargs: dict) -> None:
-        build_estimator(spec, 1, 1, window)
-
+    window, taken = errors.cfg.models.window, ("window", "hidden_size", "activation")
+    given = f"models.window, {key}.hidden_size and {key}.activation"
+    check = partial(check_keywords, positional=2, keywords=taken, given_by=given)
     ok = window >= 1 and spec.hidden_size >= 1
-    _part_errors(errors, key, get_estimator_class, check, build if ok else None)
+    build = (lambda cls, kwargs: build_estimator(spec, 1, 1, window)) if ok else None
+    _part_errors(errors, key, get_estimator_class, check, build)
 
 
 def _planner_errors(

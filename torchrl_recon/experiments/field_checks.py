@@ -1,12 +1,7 @@
-"""Value checks declared next to the schema field they guard, and the walk that runs them all.
-
-A field of a recipe dataclass (:mod:`torchrl_recon.experiments.config`) declares its range with
-one of the helpers here (``count(1)``, ``positive(3e-3)``, ``checked(0.1, in_open_unit)``);
-choices are ``Enum`` fields, which the schema merge itself refuses. Every float, at any depth,
-must be finite unless its field says otherwise. A dataclass may add checks that span its own
-fields in a ``more_errors`` method. :func:`schema_errors` runs every check of a merged recipe
-(through ``OmegaConf.to_object``) and returns one message per problem, naming its full key.
-"""
+"""Value checks declared next to the schema field they guard (``count(1)``, ``positive(3e-3)``,
+``checked(0.1, in_open_unit)``; every float finite unless its field says otherwise; a
+dataclass's ``more_errors`` for checks across its fields), and :func:`schema_errors`, the walk
+that runs them all on a merged recipe. Choices are ``Enum`` fields, refused by the merge."""
 
 from __future__ import annotations
 

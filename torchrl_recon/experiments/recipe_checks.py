@@ -1,13 +1,8 @@
-"""The checks of a merged recipe that span several keys or need the env or a registry.
-
-:func:`recipe_errors` runs after the schema merge (keys, types, choices) and the per-field
-ranges (:func:`~.field_checks.schema_errors`): the env section
-(:func:`torchrl_recon.envs.entry_errors`), the planner and estimator classes a recipe names
-(``kind``: shipped or ``module:Class``; ``kwargs`` against the class's signature; built on a
-tiny model), data sizes against ``training.slice_len``, unique names, ``stop_after`` and a
-calibration's outcome recipes. Each problem is one message naming the key, the value and what
-was expected; nothing here touches the disk (beyond reading a calibration's outcome recipes).
-"""
+"""The checks of a merged recipe that span several keys or need the env or a registry, run by
+:func:`recipe_errors` after the schema's own (:func:`~.field_checks.schema_errors`): the env
+(:func:`torchrl_recon.envs.entry_errors`), the planner and estimator blocks (class, keywords, a
+build on a tiny model), data sizes against ``training.slice_len``, unique names, ``stop_after``
+and a calibration's outcome recipes. One message per problem, naming the key and the value."""
 
 from __future__ import annotations
 

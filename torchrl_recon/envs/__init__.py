@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchrl_recon.envs.entry_checks import entry_errors
 from torchrl_recon.envs.factory import make_env
 from torchrl_recon.envs.registry import (
     ENVS,
@@ -22,6 +23,7 @@ __all__ = [
     "get_entry",
     "gym_entry",
     "close_env",
+    "entry_errors",
     "import_cost",
     "keep_num_threads",
     "make_env",

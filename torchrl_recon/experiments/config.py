@@ -1,15 +1,13 @@
 """Typed schemas of the recipes. A YAML recipe is merged onto these, so an unknown key, a wrong
 type or a choice that is none of its ``Enum``'s is an error before any work starts. Each field
-declares its range next to it (``count``, ``positive``, ``checked``; every float finite), run by
-:func:`~torchrl_recon.experiments.field_checks.schema_errors`; what spans several sections or
-needs the env or a registry (env keywords, planner and estimator classes, data sizes against
-``training.slice_len``) is checked by :mod:`torchrl_recon.experiments.recipe_checks`.
-
-:func:`upgrade_legacy_config` reads a run directory's ``config.yaml`` written before planner
-blocks took their class's own keywords."""
+declares its range next to it (``count``, ``positive``, ``checked``; every float finite, see
+:mod:`.field_checks`); what spans several sections or needs the env or a registry is checked
+by :mod:`.recipe_checks`. :func:`upgrade_legacy_config` reads a run directory's
+``config.yaml`` written before planner blocks took their class's own keywords."""
 
 from __future__ import annotations
 
+import inspect
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -20,10 +18,10 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
 from torchrl_recon.devices import DEVICE_CHOICES, check_device
 from torchrl_recon.experiments.field_checks import (
-    Choice,
     above,
     at_least,
     checked,
+    choice,
     count,
     finite,
     positive,
@@ -51,63 +49,30 @@ def _device(value: str) -> str | None:
     return None
 
 
-class LoggerBackend(Choice):
-    wandb = "wandb"
-    csv = "csv"
-    none = "none"
-
-
-class LoggerMode(Choice):
-    offline = "offline"
-    online = "online"
-
-
-WindowSampling = Choice("WindowSampling", [(s, s) for s in WINDOW_SAMPLINGS], module=__name__)
-"""``trajectory`` or ``step`` (see :data:`torchrl_recon.data.step_sampler.WINDOW_SAMPLINGS`)."""
-
-
-class WorldModelMode(Choice):
-    multi_step = "multi_step"
-    one_step = "one_step"
-
-
-class BandKind(Choice):
-    absolute = "absolute"
-    quantile = "quantile"
-    mean_ratio = "mean_ratio"
-
-
-class DataPolicy(Choice):
-    random = "random"
-    offset_noise = "offset_noise"
-
-
-class ReplanMode(Choice):
-    every_step = "every_step"
-    every_n = "every_n"
-    uncertainty = "uncertainty"
-
-
-class ThresholdOn(Choice):
-    step = "step"
-    cumulative = "cumulative"
+LoggerBackend = choice("LoggerBackend", "wandb csv none", __name__)
+LoggerMode = choice("LoggerMode", "offline online", __name__)
+WindowSampling = choice("WindowSampling", list(WINDOW_SAMPLINGS), __name__)
+WorldModelMode = choice("WorldModelMode", "multi_step one_step", __name__)
+BandKind = choice("BandKind", "absolute quantile mean_ratio", __name__)
+DataPolicy = choice("DataPolicy", "random offset_noise", __name__)
+ReplanMode = choice("ReplanMode", "every_step every_n uncertainty", __name__)
+ThresholdOn = choice("ThresholdOn", "step cumulative", __name__)
+WarmupMode = choice("WarmupMode", "random zeros plan", __name__)
 
 
 @dataclass
 class EnvConfig:
     """Which environment, its cost, its constructor keywords and the episode length.
 
-    ``id``: a gymnasium id (``Pendulum-v1``, or ``my_module:MyEnv-v0``, which imports
-    ``my_module`` first, where ``gymnasium.register`` registers ``MyEnv-v0``); null: ``name``
-    is the env. ``name``: without ``id``, a registered env (``industrial_benchmark``, ``drone``,
-    ``minitaur``, one given to ``torchrl_recon.envs.register_env``) or a gymnasium id; with
-    ``id``, only the env's name in run directories, tables and loggers. ``cost``:
-    ``module:function``, a batched torch ``cost(obs, action, next_obs) -> [...]`` (imported:
-    the module's code runs); null: the registered env's own (a gymnasium env has none).
-    ``termination``: ``module:function``, a batched torch ``termination(obs, action, next_obs)
-    -> bool [...]`` that the planners use to stop a candidate's cost and u after its predicted
-    end; null: episodes never end in the model. ``state_names``: the observation's dims, for plots (empty: the registered env's, else
-    ``s0, s1, ...``). ``kwargs``: keywords of the env's constructor."""
+    ``id``: a gymnasium id (``Pendulum-v1``, or ``my_module:MyEnv-v0``, importing ``my_module``
+    first); null: ``name`` is the env. ``name``: without ``id``, a registered env
+    (``industrial_benchmark``, ``drone``, ``minitaur``, one given to
+    ``torchrl_recon.envs.register_env``) or a gymnasium id; with ``id``, only the env's name in
+    run directories, tables and loggers. ``cost`` and ``termination``: ``module:function``, a
+    batched torch ``fn(obs, action, next_obs) -> [...]`` (bool for a termination, which stops a
+    candidate's cost and u after its predicted end); null: the registered env's own cost (a
+    gymnasium env has none), and episodes never end in the model. ``state_names``: the
+    observation's dims, for plots. ``kwargs``: keywords of the env's constructor."""
 
     name: str | None = None
     id: str | None = None
@@ -127,13 +92,10 @@ class WorldModelConfig:
 
 @dataclass
 class UncertaintyConfig:
-    """Which estimator, its hidden width and activation, and the keywords only that kind takes
-    (e.g. ``num_members``).
-
-    ``kind``: a key of :data:`torchrl_recon.modules.ESTIMATORS`, or ``module:Class``, a user's
-    own :class:`~torchrl_recon.modules.UncertaintyEstimator` in a module on ``PYTHONPATH``. It
-    is built as ``Class(obs_dim, action_dim, window=models.window, hidden_size=...,
-    activation=..., **kwargs)``."""
+    """An estimator: ``kind``, a key of :data:`torchrl_recon.modules.ESTIMATORS` or
+    ``module:Class`` (a user's :class:`~torchrl_recon.modules.UncertaintyEstimator`), built as
+    ``Class(obs_dim, action_dim, window=models.window, hidden_size=..., activation=...,
+    **kwargs)``."""
 
     kind: str = "reconstruction"
     hidden_size: int = count(100)
@@ -158,11 +120,8 @@ class FitConfig:
 
 @dataclass
 class TrainingConfig:
-    """How the networks are fitted: sequence windows of ``slice_len`` steps, ``num_slices`` a batch.
-
-    ``window_sampling``: ``trajectory`` (TorchRL's ``SliceSampler``: a trajectory uniformly, then
-    a window in it) or ``step`` (every window start alike; see ``StepUniformSliceSampler``).
-    """
+    """Fitting on windows of ``slice_len`` steps, ``num_slices`` a batch. ``window_sampling``:
+    ``trajectory`` (TorchRL's ``SliceSampler``) or ``step`` (every window start alike)."""
 
     slice_len: int = count(40)
     num_slices: int = count(32)
@@ -175,14 +134,9 @@ class TrainingConfig:
 
 @dataclass
 class PlannerConfig:
-    """A planner: ``kind`` names its class, ``kwargs`` holds that class's own keywords.
-
-    ``kind``: a key of :data:`torchrl_recon.planners.PLANNERS` (``shooting``, ``cem``,
-    ``gradient``) or ``module:Class``, a user's own
-    :class:`~torchrl_recon.planners.PlannerBase` in a module on ``PYTHONPATH``. It is built as
-    ``Class(model, objective, **kwargs)``, e.g. ``{kind: cem, kwargs: {horizon: 30,
-    num_candidates: 500, num_elites: 50}}``; the recipe check binds ``kwargs`` to the class's
-    signature and builds it on a tiny model before any work."""
+    """A planner: ``kind``, a key of :data:`torchrl_recon.planners.PLANNERS` or ``module:Class``
+    (a user's :class:`~torchrl_recon.planners.PlannerBase`), built as ``Class(model, objective,
+    **kwargs)``, e.g. ``{kind: cem, kwargs: {horizon: 30, num_elites: 50}}``."""
 
     kind: str = "shooting"
     kwargs: dict[str, Any] = field(default_factory=dict)
@@ -218,11 +172,8 @@ class LoggerConfig:
 
 @dataclass
 class ValidationConfig:
-    """The held-out set of Table 1: ``trajectories`` × (``window`` + ``steps``) real steps.
-
-    ``policy``: ``random`` (uniform actions, like the random arm) or ``offset_noise``
-    (per-trajectory random offset + noise, covering more of the action space).
-    """
+    """The held-out set of Table 1: ``trajectories`` × (``window`` + ``steps``) real steps, of
+    uniform actions (``random``) or per-trajectory offset + noise (``offset_noise``)."""
 
     trajectories: int = count(100)
     steps: int = count(100)
@@ -231,10 +182,9 @@ class ValidationConfig:
 
 @dataclass
 class GuidedConfig:
-    """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean and,
-    when ``cap`` is set, Σu ≤ ``cap`` × mean; ``beta = -1`` maximises Σu among them (eq. 4),
-    ``beta = 0`` takes any of them (the paper's "sample until"). ``ratio`` > 1, ``cap`` null or
-    > ``ratio``, ``beta`` <= 0."""
+    """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean
+    (and ≤ ``cap`` × mean when set); ``beta = -1`` maximises Σu among them (eq. 4), ``beta =
+    0`` takes any of them (the paper's "sample until")."""
 
     steps: int = count(15000)
     ratio: float = checked(
@@ -253,15 +203,9 @@ class GuidedConfig:
 
 @dataclass
 class RunConfig:
-    """What every experiment run has: which env, seed, threads and device, where it writes, the
-    models, how they are trained, and the logger.
-
-    ``device``: ``auto`` (CUDA when available, else CPU), ``cpu``, ``cuda`` or ``cuda:N``; the
-    networks, planning and fitting run there, the envs stay on the CPU.
-
-    ``num_envs``: envs stepped side by side as one batch (a TorchRL ``SerialEnv``) when
-    collecting data and playing control episodes; the policy then plans for all of them in
-    one call. 1 keeps one env at a time."""
+    """What every experiment run has. ``device``: ``auto`` (CUDA when available), ``cpu``,
+    ``cuda`` or ``cuda:N``, for the networks (the envs stay on the CPU). ``num_envs``: envs
+    stepped side by side as one batch (a TorchRL ``SerialEnv``), planned for in one call."""
 
     experiment: str = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -293,12 +237,9 @@ class ExploreConfig(RunConfig):
 
 @dataclass
 class ControlSetting:
-    """One arm of the control experiment: a planner, its objective and how it re-plans.
-
-    With ``beta_relative``, ``beta`` is in units of the random data's cost-to-u ratio (mean
-    |cost| per step over mean u per window), so β·u is that fraction of a typical step's cost
-    whatever the scales of the env's cost and of the fitted estimator.
-    """
+    """One arm of the control experiment: a planner, its objective and how it re-plans. With
+    ``beta_relative``, ``beta`` is in units of the random data's mean |cost| per step over mean
+    u per window, whatever the scales of the cost and of the estimator."""
 
     name: str = checked(MISSING, _file_name)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
@@ -311,10 +252,9 @@ class ControlSetting:
 
 @dataclass
 class ReplanConfig:
-    """``mode``: ``every_step``, ``every_n`` or ``uncertainty``. The uncertainty threshold is the
-    ``threshold_quantile`` of per-window u on the training data (per step), times ``threshold_scale``.
-    ``error_threshold`` (not in the paper): also re-plan, in any mode, when the real state is
-    further than this from the plan's prediction (RMS in the world model's normalised units)."""
+    """``mode``: ``every_step``, ``every_n`` or ``uncertainty`` (above the ``threshold_quantile``
+    of per-window u on the training data, times ``threshold_scale``). ``error_threshold``: also
+    re-plan when the real state is further than this from the plan's (normalised RMS)."""
 
     mode: ReplanMode = ReplanMode.uncertainty
     every: int = count(10)
@@ -326,20 +266,12 @@ class ReplanConfig:
     )
 
 
-class WarmupMode(Choice):
-    random = "random"
-    zeros = "zeros"
-    plan = "plan"
-
-
 @dataclass
 class OnlineConfig(RunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
-    rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit of both
-    networks (``refit_steps`` from the current weights; the first fit takes
-    ``training.*.steps``). The planner plans for Σ(α·r − β·u) with ``alpha``, ``beta``;
-    ``warmup``: what the steps before each episode's first plan do (``random``, ``zeros`` or
-    ``plan``, see :class:`~torchrl_recon.policies.MPCPolicy`)."""
+    rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
+    (``refit_steps``) planning for Σ(α·r − β·u); ``warmup``: what the steps before each
+    episode's first plan do (see :class:`~torchrl_recon.policies.MPCPolicy`)."""
 
     experiment: str = "online"
     output_dir: str = checked("outputs/online", _directory)
@@ -354,24 +286,24 @@ class OnlineConfig(RunConfig):
     replan: ReplanConfig = field(default_factory=lambda: ReplanConfig(mode=ReplanMode.every_step))
 
 
+def _non_empty(what: str) -> Any:
+    """A list field that needs at least one ``what``."""
+    message = f"a non-empty list (a {what})"
+    return checked(factory=list, check=lambda v: None if v else message)
+
+
 @dataclass
 class ControlConfig(RunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3)."""
 
     experiment: str = "control"
     output_dir: str = checked("outputs/control", _directory)
-    # two random episodes at least: one is held out to validate the fit
-    random_episodes: int = count(10, 2)
+    random_episodes: int = count(10, 2)  # two at least: one is held out to validate the fit
     random_episode_steps: int = count(500)
     episodes: int = count(10)
     warmup_random_steps: int = count(10, 0)
     replan: ReplanConfig = field(default_factory=ReplanConfig)
-    settings: list[ControlSetting] = checked(
-        factory=list,
-        check=lambda v: (
-            None if v else "a non-empty list (a control recipe needs at least one setting)"
-        ),
-    )
+    settings: list[ControlSetting] = _non_empty("control recipe needs at least one setting")
 
 
 @dataclass
@@ -383,10 +315,9 @@ class EstimatorSpec(UncertaintyConfig):
 
 @dataclass
 class CalibrationEvalConfig:
-    """How u is judged. The world model imagines the last ``horizon`` steps of ``trajectories``
-    held-out real trajectories (actions drawn by ``policy``) after a real context; u is ranked
-    against the real error. Out of distribution: held-out windows with the states moved by
-    ``ood_state_shift`` standard deviations, and with the actions held at the upper bound."""
+    """How u is judged: imagined last ``horizon`` steps of ``trajectories`` held-out
+    trajectories, ranked against the real error; out of distribution, windows with the states
+    moved by ``ood_state_shift`` standard deviations and with the actions at the upper bound."""
 
     trajectories: int = count(200)
     horizon: int = count(30)
@@ -411,8 +342,8 @@ class TimingConfig:
 
 @dataclass
 class OutcomesConfig:
-    """Reduced-scale exploration and control runs with each estimator (a null recipe skips one).
-    Recipe paths are relative to the working directory; the overrides are applied on top."""
+    """Reduced-scale exploration and control runs with each estimator (a null recipe skips one;
+    paths relative to the working directory, the overrides applied on top)."""
 
     explore_recipe: str | None = None
     explore_overrides: list[str] = field(default_factory=list)
@@ -422,44 +353,30 @@ class OutcomesConfig:
 
 @dataclass
 class CalibrateConfig(RunConfig):
-    """Uncertainty estimators side by side: fitted on the same random data, judged on
-    the same imagined trajectories, timed in the same run. ``models.uncertainty`` is unused:
-    the estimators are listed in ``estimators``."""
+    """Uncertainty estimators side by side: fitted on the same random data, judged on the same
+    imagined trajectories, timed in the same run (``models.uncertainty`` is unused)."""
 
     experiment: str = "calibrate"
     output_dir: str = checked("outputs/calibrate", _directory)
     random_steps: int = count(10000)
     random_episode_steps: int = count(500)
-    estimators: list[EstimatorSpec] = checked(
-        factory=list,
-        check=lambda v: (
-            None if v else "a non-empty list (a calibrate recipe needs at least one estimator)"
-        ),
-    )
+    estimators: list[EstimatorSpec] = _non_empty("calibrate recipe needs at least one estimator")
     evaluation: CalibrationEvalConfig = field(default_factory=CalibrationEvalConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
     outcomes: OutcomesConfig = field(default_factory=OutcomesConfig)
 
 
-LEGACY_PLANNER_DEFAULTS: dict[str, Any] = {
-    "horizon": 50,
-    "num_candidates": 1000,
-    "iterations": 5,
-    "num_elites": 100,
-    "restarts": 16,
-    "gradient_steps": 50,
-    "lr": 0.05,
-}
+LEGACY_PLANNER_DEFAULTS: dict[str, Any] = dict(
+    horizon=50, num_candidates=1000, iterations=5, num_elites=100, restarts=16, lr=0.05
+) | {"gradient_steps": 50}
 """The flat planner block of configs written before planner blocks took ``kwargs``: every
-planner kind's keywords side by side, at these defaults (``gradient_steps`` was the gradient
+planner kind's keywords side by side at these defaults (``gradient_steps``: the gradient
 planner's ``steps``)."""
 
 
 def upgrade_legacy_config(saved: DictConfig) -> DictConfig:
-    """A run directory's stored config in the current form: each planner block written flat
-    (``{kind, horizon, num_candidates, iterations, num_elites, restarts, gradient_steps,
-    lr}``) becomes ``{kind, kwargs}`` with only that kind's own keywords (``gradient_steps`` →
-    ``steps``). A config in the current form is returned as it is.
+    """A run directory's stored config in the current form: each flat planner block becomes
+    ``{kind, kwargs}`` with only that kind's own keywords; a current config comes back as is.
 
     Examples:
         >>> old = OmegaConf.create({"experiment": "explore", "guided": {"planner": {
@@ -468,35 +385,23 @@ def upgrade_legacy_config(saved: DictConfig) -> DictConfig:
         >>> OmegaConf.to_container(upgrade_legacy_config(old).guided.planner)
         {'kind': 'gradient', 'kwargs': {'horizon': 30, 'restarts': 4, 'steps': 20, 'lr': 0.05}}
     """
-    data = OmegaConf.to_container(saved, resolve=False)
-    if not isinstance(data, dict):
-        return saved
-    blocks = [data.get("guided")] + list(data.get("settings") or [])
-    legacy = [
-        b
-        for b in blocks
-        if isinstance(b, dict)
-        and isinstance(b.get("planner"), dict)
-        and "kwargs" not in b["planner"]
-    ]
-    if not legacy:
-        return saved
-    for block in legacy:
-        block["planner"] = _upgrade_planner(block["planner"])
-    return OmegaConf.create(data)
-
-
-def _upgrade_planner(old: dict[str, Any]) -> dict[str, Any]:
-    """``{kind, kwargs}`` of a flat planner block (unchanged when its kind is not shipped)."""
-    import inspect
-
     from torchrl_recon.planners.registry import PLANNERS
 
-    kind = old.get("kind", "shooting")
-    if kind not in PLANNERS:
-        return old  # the schema merge reports it
-    flat = {**LEGACY_PLANNER_DEFAULTS, **{k: v for k, v in old.items() if k != "kind"}}
-    params = inspect.signature(PLANNERS[kind]).parameters
-    if "steps" in params:
+    data = OmegaConf.to_container(saved, resolve=False)
+    blocks = [data.get("guided"), *(data.get("settings") or [])] if isinstance(data, dict) else []
+    legacy = [
+        b["planner"]
+        for b in blocks
+        if isinstance(b, dict) and isinstance(b.get("planner"), dict)
+        if "kwargs" not in b["planner"]
+    ]
+    for old in legacy:
+        kind = old.get("kind", "shooting")
+        if kind not in PLANNERS:
+            continue  # the schema merge reports it
+        flat = {**LEGACY_PLANNER_DEFAULTS, **old}
         flat["steps"] = flat.pop("gradient_steps")
-    return {"kind": kind, "kwargs": {k: flat[k] for k in params if k in flat}}
+        params = inspect.signature(PLANNERS[kind]).parameters
+        old.clear()
+        old.update(kind=kind, kwargs={k: flat[k] for k in params if k in flat})
+    return OmegaConf.create(data) if legacy else saved

@@ -1,12 +1,7 @@
-"""Value checks declared next to the schema field they guard, and the walk that runs them all.
-
-A field of a recipe dataclass (:mod:`torchrl_recon.experiments.config`) declares its range with
-one of the helpers here (``count(1)``, ``positive(3e-3)``, ``checked(0.1, in_open_unit)``);
-choices are ``Enum`` fields, which the schema merge itself refuses. Every float, at any depth,
-must be finite unless its field says otherwise. A dataclass may add checks that span its own
-fields in a ``more_errors`` method. :func:`schema_errors` runs every check of a merged recipe
-(through ``OmegaConf.to_object``) and returns one message per problem, naming its full key.
-"""
+"""Value checks declared next to the schema field they guard (``count(1)``, ``positive(3e-3)``,
+``checked(0.1, in_open_unit)``; every float finite unless its field says otherwise; a
+dataclass's ``more_errors`` for checks across its fields), and :func:`schema_errors`, the walk
+that runs them all on a merged recipe. Choices are ``Enum`` fields, refused by the merge."""
 
 from __future__ import annotations
 
@@ -20,8 +15,6 @@ from omegaconf import DictConfig, OmegaConf
 
 Check = Callable[[Any], "str | None"]
 """A field's check: what the value should be when it is refused, None when it fits."""
-
-CHECK, FINITE = "check", "finite"
 
 
 class Choice(str, Enum):
@@ -38,11 +31,22 @@ class Choice(str, Enum):
         return format(self.value, spec)
 
 
+def choice(name: str, values: str | list[str], module: str) -> Any:
+    """A :class:`Choice` ``Enum`` called ``name`` of ``values`` (a space-separated string).
+
+    Examples:
+        >>> choice("Mode", "fast slow", __name__).fast
+        'fast'
+    """
+    values = values.split() if isinstance(values, str) else values
+    return Choice(name, [(v, v) for v in values], module=module)
+
+
 def checked(default: Any = dataclasses.MISSING, check: Check | None = None, **kw: Any) -> Any:
     """A dataclass field whose value (when not None) must pass ``check``; ``finite=False``
     lets its floats be infinite (another check handles them); ``factory`` gives a mutable
     default."""
-    metadata = {CHECK: check, FINITE: kw.pop("finite", True)}
+    metadata = {"check": check, "finite": kw.pop("finite", True)}
     if "factory" in kw:
         return dataclasses.field(default_factory=kw.pop("factory"), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -93,32 +97,40 @@ def _walk(obj: Any, key: str, errors: list[str]) -> None:
         return
     for f in dataclasses.fields(obj):
         value, sub = getattr(obj, f.name), f"{key}.{f.name}" if key else f.name
-        finite = not f.metadata.get(FINITE, True) or _finite(value, sub, errors)
-        check = f.metadata.get(CHECK)
-        if check is not None and value is not None and finite:
+        bad = nonfinite(value, sub) if f.metadata.get("finite", True) else []
+        errors.extend(finite_error(k, v) for k, v in bad)
+        check = f.metadata.get("check")
+        if check is not None and value is not None and not bad:
             expected = check(value)
             if expected:
                 errors.append(f"'{sub}' must be {expected}, got {value!r}")
         _walk(value, sub, errors)
-    more = getattr(obj, "more_errors", None)
-    if more is not None:
-        for sub, text in more():
-            errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
+    for sub, text in getattr(obj, "more_errors", list)():
+        errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
 
 
-def _finite(value: Any, key: str, errors: list[str]) -> bool:
-    """Report every NaN or ±inf in a plain value (dicts and lists at any depth; a dataclass is
-    walked by its own fields); True when there is none."""
+def nonfinite(value: Any, key: str) -> list[tuple[str, float]]:
+    """``(key, value)`` of every NaN or ±inf in a plain value: dicts and lists at any depth (a
+    dataclass, and a list of them, is walked by its own fields).
+
+    Examples:
+        >>> nonfinite({"a": [1.0, float("inf")], "b": float("nan")}, "x")
+        [('x.a[1]', inf), ('x.b', nan)]
+    """
     if isinstance(value, float):
-        if math.isfinite(value):
-            return True
-        errors.append(f"'{key}' must be a finite number, got {value}")
-        return False
+        return [] if math.isfinite(value) else [(key, value)]
     if isinstance(value, dict):
-        return all([_finite(v, f"{key}.{k}", errors) for k, v in value.items()])
-    if isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
-        return all([_finite(v, f"{key}[{i}]", errors) for i, v in enumerate(value)])
-    return True
+        items = [(f"{key}.{k}" if key else str(k), v) for k, v in value.items()]
+    elif isinstance(value, list) and not any(dataclasses.is_dataclass(v) for v in value):
+        items = [(f"{key}[{i}]", v) for i, v in enumerate(value)]
+    else:
+        return []
+    return [bad for k, v in items for bad in nonfinite(v, k)]
+
+
+def finite_error(key: str, value: float) -> str:
+    """The message of a NaN or infinite ``value`` at ``key``."""
+    return f"'{key}' must be a finite number, got {value}"
 
 
 def finite(*values: Any) -> bool:

@@ -3,19 +3,23 @@
 from __future__ import annotations
 
 from torchrl_recon.data.buffers import (
+    MASK_KEY,
     TRAJ_KEY,
     GatherTensorStorage,
     buffer_contents,
     cut_sequences,
     load_buffer,
     load_buffer_data,
+    long_trajectories,
     make_sequence_buffer,
+    needs_padding,
     save_buffer,
     split_by_trajectory,
 )
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
 
 __all__ = [
+    "MASK_KEY",
     "TRAJ_KEY",
     "GatherTensorStorage",
     "StepUniformSliceSampler",
@@ -24,7 +28,9 @@ __all__ = [
     "cut_sequences",
     "load_buffer",
     "load_buffer_data",
+    "long_trajectories",
     "make_sequence_buffer",
+    "needs_padding",
     "save_buffer",
     "split_by_trajectory",
 ]

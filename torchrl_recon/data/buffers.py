@@ -16,6 +16,8 @@ from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.files import read_json
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
+# Where TorchRL's SliceSampler(pad_output=True) marks the real (True) and padded steps of a sample.
+MASK_KEY: tuple[str, str] = ("collector", "mask")
 _PREFETCH_FILE = "prefetch.pkl"
 _TD_TYPE = "<class 'tensordict._td.TensorDict'>"
 _META_KEYS = ("shape", "device", "_type", "names")
@@ -83,6 +85,7 @@ def make_sequence_buffer(
     num_slices: int,
     traj_key: NestedKey = TRAJ_KEY,
     sampling: str = "trajectory",
+    pad_short: bool = False,
 ) -> TensorDictReplayBuffer:
     """A ``TensorDictReplayBuffer`` whose samples are ``num_slices`` windows of ``slice_len`` steps.
 
@@ -90,19 +93,43 @@ def make_sequence_buffer(
     ``slice_len``. Trajectories are told apart by ``traj_key`` (TorchRL collectors write it).
     ``sampling="trajectory"`` is TorchRL's ``SliceSampler`` (a trajectory uniformly, then a
     window in it); ``"step"`` is :class:`StepUniformSliceSampler` (every window start alike, so
-    long and short trajectories count by their steps).
+    long and short trajectories count by their steps). Both leave out the trajectories shorter
+    than ``slice_len``.
+
+    ``pad_short=True`` (``sampling="trajectory"`` only) keeps them, for envs whose episodes are
+    shorter than a slice: TorchRL's ``SliceSampler(strict_length=False, pad_output=True)`` draws
+    any trajectory and pads a slice of a shorter one (the whole episode) with copies of its last
+    step; while the buffer holds such a trajectory, every sample marks its real steps in
+    :data:`MASK_KEY` ``("collector", "mask")``, which the losses read (padding counts in no
+    loss; the normalisation statistics are fitted on the stored steps, never on samples).
 
     Examples:
         >>> rb = make_sequence_buffer(1000, slice_len=20, num_slices=8)
         >>> rb.sampler.slice_len
         20
+        >>> from tensordict import TensorDict
+        >>> rb = make_sequence_buffer(10, slice_len=4, num_slices=2, pad_short=True)
+        >>> _ = rb.extend(TensorDict({"x": torch.arange(3.0), TRAJ_KEY: torch.zeros(3, dtype=torch.long)}, [3]))
+        >>> sample = rb.sample()
+        >>> sample["x"].tolist(), sample[MASK_KEY].tolist()
+        ([0.0, 1.0, 2.0, 2.0, 0.0, 1.0, 2.0, 2.0], [True, True, True, False, True, True, True, False])
     """
     if slice_len < 1 or num_slices < 1 or max_size < 1:
         raise ValueError(
             f"max_size, slice_len and num_slices must be >= 1, got {max_size}, {slice_len}, {num_slices}."
         )
+    if pad_short and sampling != "trajectory":
+        raise ValueError(
+            f"pad_short=True pads slices of TorchRL's SliceSampler: it needs sampling='trajectory', "
+            f"got {sampling!r} (whose windows all have slice_len steps)."
+        )
     if sampling == "trajectory":
-        sampler = SliceSampler(slice_len=slice_len, traj_key=traj_key, strict_length=True)
+        sampler = SliceSampler(
+            slice_len=slice_len,
+            traj_key=traj_key,
+            strict_length=not pad_short,
+            pad_output=pad_short,
+        )
     elif sampling == "step":
         sampler = StepUniformSliceSampler(slice_len=slice_len, traj_key=traj_key)
     else:
@@ -132,6 +159,35 @@ def buffer_contents(buffer: TensorDictReplayBuffer) -> TensorDictBase:
     if len(buffer) == 0:
         raise ValueError("The replay buffer is empty; collect data before fitting.")
     return buffer[:]
+
+
+def long_trajectories(data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY) -> int:
+    """How many trajectories of flat transitions have ``length`` steps or more.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 0, 1, 2, 2, 2, 2])}, [8])
+        >>> long_trajectories(td, 3), long_trajectories(td, 4)
+        (2, 1)
+    """
+    ids = _trajectory_ids(data, traj_key, "long_trajectories")
+    _, counts = torch.unique(ids, return_counts=True)
+    return int((counts >= length).sum())
+
+
+def needs_padding(slice_len: int, *parts: TensorDictBase, traj_key: NestedKey = TRAJ_KEY) -> bool:
+    """Whether sequence buffers of ``parts`` (e.g. a training and a validation split) need
+    ``make_sequence_buffer(pad_short=True)``: True when one of them holds no trajectory of
+    ``slice_len`` steps, so that a buffer leaving shorter ones out could not draw one slice.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> train = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 0, 1])}, [4])
+        >>> val = TensorDict({TRAJ_KEY: torch.tensor([2, 2, 3])}, [3])
+        >>> needs_padding(3, train), needs_padding(3, train, val)
+        (False, True)
+    """
+    return any(long_trajectories(part, slice_len, traj_key=traj_key) == 0 for part in parts)
 
 
 def split_by_trajectory(

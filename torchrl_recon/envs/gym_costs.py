@@ -63,3 +63,34 @@ def mountain_car_termination(
         tensor([ True, False])
     """
     return (next_obs[..., 0] >= GOAL) & (next_obs[..., 1] >= 0)
+
+
+def inverted_pendulum_fallen(
+    obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """InvertedPendulum-v5's termination: the state a step reaches is not finite or its pole
+    angle (``obs[1]``) is past 0.2 rad, ``[..., 4]`` → bool ``[...]``.
+
+    Examples:
+        >>> inverted_pendulum_fallen(None, None, torch.tensor([[0.0, 0.1, 0, 0], [0.0, -0.3, 0, 0]]))
+        tensor([False,  True])
+    """
+    return ~torch.isfinite(next_obs).all(-1) | (next_obs[..., 1].abs() > 0.2)
+
+
+def inverted_pendulum(
+    obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """InvertedPendulum-v5's cost: −1 for a step that keeps the pole up, 0 for the step it falls
+    (the env's reward is 1 while not terminated). Give the planner
+    :func:`inverted_pendulum_fallen` as ``env.termination`` too, so that nothing accrues after
+    a predicted fall and plans that stay up win: ``env.id=InvertedPendulum-v5
+    env.cost=torchrl_recon.envs.gym_costs:inverted_pendulum
+    env.termination=torchrl_recon.envs.gym_costs:inverted_pendulum_fallen`` (needs
+    ``pip install "torchrl-recon[mujoco]"``).
+
+    Examples:
+        >>> inverted_pendulum(None, None, torch.tensor([[0.0, 0.1, 0, 0], [0.0, -0.3, 0, 0]]))
+        tensor([-1., -0.])
+    """
+    return -(~inverted_pendulum_fallen(obs, action, next_obs)).to(next_obs.dtype)

@@ -16,6 +16,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from torchrl_recon.modules.checks import check_finite, check_int, check_window_pair
 from torchrl_recon.modules.members import StackedMembers
+from torchrl_recon.modules.padding import masked_mean, windows_at_rest
 from torchrl_recon.modules.reconstruction import (
     ReconstructionUncertainty,
     window_errors,
@@ -107,9 +108,15 @@ class ReconstructionPopulation(StackedMembers, TensorDictModuleBase):
             u = window_errors(x, self.window, self.activation, *weights)
         return u.reshape(*obs.shape[:-2], length - self.window + 1)
 
-    def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Each member's training loss, the mean u over its windows (paper eq. 1), ``[R]``."""
-        return self.score(obs, action).reshape(self.num_members, -1).mean(1)
+    def loss(
+        self, obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Each member's training loss, the mean u over its windows (paper eq. 1), ``[R]``; with
+        ``mask`` ``[R, *B, L]`` over the windows of real steps (as ``UncertaintyEstimator.loss``)."""
+        if mask is None:
+            return self.score(obs, action).reshape(self.num_members, -1).mean(1)
+        obs, action, valid = windows_at_rest(obs, action, mask, self.window)
+        return masked_mean(self.score(obs, action), valid, valid.dim() - 1)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, action = tensordict.get(self.in_keys[0]), tensordict.get(self.in_keys[1])

@@ -10,6 +10,7 @@ from torch import nn
 
 from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.padding import masked_mean, windows_at_rest
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
 _ACTIVATION_MODULES = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
@@ -108,6 +109,12 @@ class RNDUncertainty(UncertaintyEstimator):
         u = torch.linalg.vector_norm(error, dim=-1) / math.sqrt(self.embedding_size)
         return u.view(rows, num_windows)
 
-    def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Distillation MSE: the mean of u² over every window of ``[*B, L, N]``, ``[*B, L, M]``."""
-        return self.score(obs, action).pow(2).mean()
+    def loss(
+        self, obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Distillation MSE: the mean of u² over every window of ``[*B, L, N]``, ``[*B, L, M]``
+        (with ``mask`` ``[*B, L]``, over the windows of real steps, as the base class's)."""
+        if mask is None:
+            return self.score(obs, action).pow(2).mean()
+        obs, action, valid = windows_at_rest(obs, action, mask, self.window)
+        return masked_mean(self.score(obs, action).pow(2), valid, valid.dim())

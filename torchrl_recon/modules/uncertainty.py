@@ -15,6 +15,7 @@ from torchrl_recon.modules.checks import (
     check_int,
     check_window_pair,
 )
+from torchrl_recon.modules.padding import masked_mean, windows_at_rest
 
 
 def window_view(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -98,9 +99,19 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
     def score_sequence(self, x: torch.Tensor) -> torch.Tensor:
         """Score every T-window of raw (s, a) sequences ``x`` ``[R, L, N + M]`` → ``[R, L - T + 1]``."""
 
-    def loss(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Training loss on real sequences ``[*B, L, N]``, ``[*B, L, M]`` (default: mean u, paper eq. 1)."""
-        return self.score(obs, action).mean()
+    def loss(
+        self, obs: torch.Tensor, action: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Training loss on real sequences ``[*B, L, N]``, ``[*B, L, M]`` (default: mean u, paper eq. 1).
+
+        With ``mask`` ``[*B, L]`` (True at real steps, then padding: slices of episodes shorter
+        than L) the mean runs over the windows that end at a real step, short episodes started
+        at rest (:func:`~torchrl_recon.modules.padding.windows_at_rest`); padding never counts.
+        """
+        if mask is None:
+            return self.score(obs, action).mean()
+        obs, action, valid = windows_at_rest(obs, action, mask, self.window)
+        return masked_mean(self.score(obs, action), valid, valid.dim())
 
     def _check_pair(self, obs: torch.Tensor, action: torch.Tensor) -> None:
         check_window_pair(

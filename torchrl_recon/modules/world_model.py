@@ -25,6 +25,7 @@ from torchrl_recon.modules.checks import (
 )
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.padding import masked_prediction_loss
 
 
 class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
@@ -503,9 +504,21 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
             return recorded_rollout(*inputs, self.activation, *weights)
 
     def prediction_loss(
-        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor, mode: str
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        mode: str,
+        mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Each member's ``WorldModelPredictionLoss`` on its sequences ``[*R, B, L, ...]`` → ``[*R]``."""
+        """Each member's ``WorldModelPredictionLoss`` on its sequences ``[*R, B, L, ...]`` → ``[*R]``.
+
+        ``mask`` ``[*R, B, L]`` (True at real steps, then padding: slices of episodes shorter
+        than L, see :func:`~torchrl_recon.modules.padding.masked_prediction_loss`) makes only
+        real steps count.
+        """
+        if mask is not None:
+            return masked_prediction_loss(self, obs, action, next_obs, mode, mask)
         if mode == "one_step":
             pred = self.predict_delta(obs, action)
             err = pred - self._norm("delta", next_obs - obs)

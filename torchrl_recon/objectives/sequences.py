@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import torch
 from tensordict import TensorDictBase
+
+from torchrl_recon.data.buffers import MASK_KEY
 
 
 def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDictBase:
@@ -12,7 +15,6 @@ def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDic
     reshaped with ``slice_len``.
 
     Examples:
-        >>> import torch
         >>> from tensordict import TensorDict
         >>> as_sequences(TensorDict({"x": torch.arange(12)}, [12]), 4).batch_size
         torch.Size([3, 4])
@@ -29,3 +31,17 @@ def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDic
             f"Batch of shape {tuple(tensordict.batch_size)} cannot be split into slices of {slice_len} steps."
         )
     return tensordict.reshape(-1, slice_len)
+
+
+def sequence_mask(sequences: TensorDictBase) -> torch.Tensor | None:
+    """The ``[B, L]`` mask of real steps of padded ``[B, L]`` sequences (``("collector", "mask")``,
+    written by ``make_sequence_buffer(pad_short=True)``'s sampler), or None when they have none.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({("collector", "mask"): torch.tensor([True, True, True, False])}, [4])
+        >>> sequence_mask(as_sequences(td, 2)).tolist()
+        [[True, True], [True, False]]
+    """
+    mask = sequences.get(MASK_KEY, None)
+    return None if mask is None else mask.reshape(sequences.batch_size)

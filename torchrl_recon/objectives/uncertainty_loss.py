@@ -2,19 +2,23 @@
 
 from __future__ import annotations
 
+import inspect
+
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
-from torchrl_recon.objectives.sequences import as_sequences
+from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
 
 
 class UncertaintyLoss(LossModule):
     """Fit an :class:`~torchrl_recon.modules.UncertaintyEstimator` on real (s, a) sequences.
 
     Delegates to ``estimator.loss``; for :class:`~torchrl_recon.modules.ReconstructionUncertainty`
-    that is the mean reconstruction error u over all windows (paper eq. 1).
+    that is the mean reconstruction error u over all windows (paper eq. 1). A padded batch (its
+    ``("collector", "mask")`` marks real steps, see ``make_sequence_buffer(pad_short=True)``)
+    passes the mask on: only windows of real steps count.
 
     Args:
         estimator: the estimator to train.
@@ -45,7 +49,17 @@ class UncertaintyLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = as_sequences(tensordict, self.slice_len)
-        loss = self.estimator.loss(td.get(self.obs_key), td.get(self.action_key))
+        obs, action, mask = td.get(self.obs_key), td.get(self.action_key), sequence_mask(td)
+        if mask is None:
+            loss = self.estimator.loss(obs, action)
+        elif "mask" in inspect.signature(self.estimator.loss).parameters:
+            loss = self.estimator.loss(obs, action, mask=mask)
+        else:
+            raise ValueError(
+                f"{type(self.estimator).__name__} cannot train on padded slices (episodes shorter "
+                "than slice_len): its loss takes no mask. Use the reconstruction or rnd estimator, "
+                "or slices no longer than the episodes."
+            )
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"uncertainty loss is {loss.item()}; check the data and the learning rate."

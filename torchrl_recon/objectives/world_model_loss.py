@@ -9,7 +9,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives.sequences import as_sequences
+from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
 
 
 class WorldModelPredictionLoss(LossModule):
@@ -21,6 +21,10 @@ class WorldModelPredictionLoss(LossModule):
     * ``"multi_step"``: warm up on the first ``window`` steps of each sequence, then roll out
       the rest with the real actions, feeding predictions back (as the planner does); the
       squared error of the predicted states, standardised by the state statistics.
+
+    A padded batch (its ``("collector", "mask")`` marks real steps, see
+    ``make_sequence_buffer(pad_short=True)``) counts real steps only, episodes shorter than
+    the warm-up started at rest (:func:`~torchrl_recon.modules.padding.masked_prediction_loss`).
 
     Args:
         world_model: the model to train.
@@ -63,7 +67,10 @@ class WorldModelPredictionLoss(LossModule):
             td.get(self.next_obs_key),
         )
         model = self.world_model
-        if self.mode == "one_step":
+        mask = sequence_mask(td)
+        if mask is not None:  # padded slices: only real steps count
+            loss = model.prediction_loss(obs, action, next_obs, self.mode, mask=mask)
+        elif self.mode == "one_step":
             pred = model.predict_delta(obs, action)
             target = model.delta_norm.normalize(next_obs - obs)
             loss = (pred - target).pow(2).mean()

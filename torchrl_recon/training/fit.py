@@ -18,7 +18,7 @@ from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from torchrl_recon.data.buffers import buffer_contents
+from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
@@ -343,11 +343,22 @@ def _sample_shared(
             rng.states[first] = torch.get_rng_state()
         parts.append(batch.reshape(len(members), size))
         order += members
+    _fill_masks(parts)
     rows = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
     if order != list(range(len(buffers))):  # members out of order, or stopped ones
         block = dict(zip(order, range(len(order)), strict=True))
         rows = rows[torch.tensor([block.get(r, 0) for r in range(len(buffers))])]
     return rows.to(device)
+
+
+def _fill_masks(batches: list[TensorDictBase]) -> None:
+    """Give the batches without a mask of real steps an all-True one when another has one (a
+    padded buffer's samples carry :data:`MASK_KEY`, a plain buffer's do not), so they stack."""
+    if len(batches) < 2 or all(b.get(MASK_KEY, None) is None for b in batches):
+        return
+    for b in batches:
+        if b.get(MASK_KEY, None) is None:
+            b.set(MASK_KEY, torch.ones(b.shape, dtype=torch.bool, device=b.device))
 
 
 def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
@@ -371,6 +382,21 @@ def _member_sequences(
     return [torch.stack([s.get(k) for s in seqs]) for k in keys]
 
 
+def _member_mask(
+    batches: list[TensorDictBase] | TensorDictBase, slice_len: int
+) -> torch.Tensor | None:
+    """The members' masks of real steps ``[R, B, L]`` (padded buffers' samples), None when no
+    batch carries one; a member's batch without one is all real steps."""
+    if isinstance(batches, TensorDictBase):
+        mask = batches.get(MASK_KEY, None)
+        return None if mask is None else mask.reshape(batches.shape[0], -1, slice_len)
+    if all(b.get(MASK_KEY, None) is None for b in batches):
+        return None
+    batches = [b.clone(False) for b in batches]
+    _fill_masks(batches)
+    return _member_sequences(batches, slice_len, (MASK_KEY,))[0]
+
+
 def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
     """``(module, losses(batches) -> [R])`` for R models: the models' own loss for one, else a population's."""
     first = models[0]
@@ -386,14 +412,16 @@ def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
 
         def losses(batches):
             obs, action, next_obs = _member_sequences(batches, slice_len, keys)
-            return pop.prediction_loss(obs, action, next_obs, mode)
+            mask = _member_mask(batches, slice_len)
+            return pop.prediction_loss(obs, action, next_obs, mode, mask=mask)
 
         return pop, losses
     if isinstance(first, ReconstructionUncertainty):
         pop = ReconstructionPopulation.from_members(models)
 
         def losses(batches):
-            return pop.loss(*_member_sequences(batches, slice_len, ("observation", "action")))
+            obs, action = _member_sequences(batches, slice_len, ("observation", "action"))
+            return pop.loss(obs, action, mask=_member_mask(batches, slice_len))
 
         return pop, losses
     raise TypeError(

@@ -24,7 +24,12 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect, collect_random, concat_trajectories
-from torchrl_recon.data import cut_sequences, make_sequence_buffer, split_by_trajectory
+from torchrl_recon.data import (
+    cut_sequences,
+    make_sequence_buffer,
+    needs_padding,
+    split_by_trajectory,
+)
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.objectives import WorldModelPredictionLoss
@@ -93,12 +98,17 @@ def fit_models(
 ) -> dict[str, float]:
     """Fit (``warm=False``: normalisation and ``schedule.steps``) or refit (``warm=True``: the
     current weights and normalisation, ``schedule.refit_steps``) both networks on ``data``,
-    split by trajectory with ``seed``; returns their best validation losses."""
+    split by trajectory with ``seed``; returns their best validation losses. When a split has no
+    trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
+    slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``)."""
     s = schedule
     train, val = split_by_trajectory(data, s.val_fraction, seed=seed)
+    pad = needs_padding(s.slice_len, train, val)
     buffers = []
     for part in (train, val):
-        rb = make_sequence_buffer(len(part), slice_len=s.slice_len, num_slices=s.num_slices)
+        rb = make_sequence_buffer(
+            len(part), slice_len=s.slice_len, num_slices=s.num_slices, pad_short=pad
+        )
         rb.extend(part)
         buffers.append(rb)
     common = dict(

@@ -124,13 +124,27 @@ gym.register(id="{env_id}", entry_point="{module}:Short", max_episode_steps=50)
 '''
 
 
-def test_episodes_shorter_than_a_training_window_are_one_clear_error(tmp_path, monkeypatch, capsys):
+def _short_env_args(tmp_path, monkeypatch) -> list[str]:
     module, env_id = f"short_env_{uuid.uuid4().hex[:8]}", f"Short{uuid.uuid4().hex[:6]}-v0"
     source = SHORT_ENV.replace("{env_id}", env_id).replace("{module}", module)
     (tmp_path / f"{module}.py").write_text(source)
     monkeypatch.syspath_prepend(str(tmp_path))
+    return ["online", "gym/online_smoke", f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
+
+
+def test_episodes_shorter_than_a_training_window_train_on_padded_slices(tmp_path, monkeypatch):
     out = tmp_path / "short"
-    args = ["online", "gym/online_smoke", f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
-    assert main([*args, f"output_dir={out}"]) == 2
+    assert main([*_short_env_args(tmp_path, monkeypatch), f"output_dir={out}"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    # 3-step episodes: the smoke recipe's 75 random steps hold 25, each with its return
+    assert len(results["random"]["returns"]) == 25
+    assert all(math.isfinite(loss) for loss in results["first_fit"].values())
+
+
+def test_padded_slices_with_an_estimator_that_takes_no_mask_are_one_clear_error(
+    tmp_path, monkeypatch, capsys
+):
+    args = [*_short_env_args(tmp_path, monkeypatch), "models.uncertainty.kind=ensemble"]
+    assert main([*args, f"output_dir={tmp_path / 'short'}"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
-    assert len(err) == 1 and "training.slice_len = 10 steps (the longest has 3)" in err[0], err
+    assert len(err) == 1 and "models.uncertainty.kind = ensemble cannot train" in err[0], err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Callable, Mapping, Sequence
 
 import torch
@@ -11,14 +12,19 @@ from tensordict import TensorDictBase
 from torchrl.envs import DeviceCastTransform, EnvBase
 
 from torchrl_recon.collectors import collect_random
-from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
-from torchrl_recon.data.buffers import TRAJ_KEY
+from torchrl_recon.data import make_sequence_buffer, needs_padding, split_by_trajectory
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RunContext
-from torchrl_recon.modules import LSTMWorldModel, Normalizer, UncertaintyEstimator, make_estimator
+from torchrl_recon.modules import (
+    LSTMWorldModel,
+    Normalizer,
+    UncertaintyEstimator,
+    get_estimator_class,
+    make_estimator,
+)
 from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
@@ -157,41 +163,49 @@ def dims(data: TensorDictBase) -> tuple[int, int]:
 
 
 def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
-    """Refuse data whose train or validation split could hold no training window: fewer than
-    two trajectories of ``training.slice_len`` steps (an env whose episodes end early, e.g.
-    InvertedPendulum's random episodes of 3-8 steps).
+    """Refuse what padding short episodes cannot train (called when a split of ``data`` has no
+    trajectory of ``training.slice_len`` steps, e.g. InvertedPendulum's random episodes of 3-8
+    steps, so its slices are padded and masked): ``training.window_sampling = step``, or an
+    estimator whose loss takes no mask (``models.uncertainty.kind``).
 
     Raises:
-        RecipeError: naming the longest episode and the keys to change.
+        RecipeError: naming the key to change.
 
     Examples:
-        >>> from tensordict import TensorDict
-        >>> cfg = OmegaConf.create({"training": {"slice_len": 8}, "models": {"window": 4}})
-        >>> short = TensorDict({("collector", "traj_ids"): torch.arange(30) // 5}, [30])
-        >>> check_episode_lengths(cfg, short)  # doctest: +ELLIPSIS
+        >>> cfg = OmegaConf.create({"training": {"slice_len": 8, "window_sampling": "step"},
+        ...     "models": {"window": 4, "uncertainty": {"kind": "reconstruction"}}})
+        >>> check_episode_lengths(cfg, None)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
-        torchrl_recon.errors.RecipeError: 0 of the 6 episodes in the data have training.slice_len = 8 steps (the longest has 5)...
+        torchrl_recon.errors.RecipeError: episodes shorter than training.slice_len = 8 steps are padded...
     """
-    ids = data.get(TRAJ_KEY)
-    _, lengths = torch.unique_consecutive(ids, return_counts=True)
-    slice_len = cfg.training.slice_len
-    long = int((lengths >= slice_len).sum())
-    if long < 2:
+    t = cfg.training
+    where = f"episodes shorter than training.slice_len = {t.slice_len} steps are padded"
+    lower = f"or lower training.slice_len (above models.window = {cfg.models.window})"
+    if t.window_sampling != "trajectory":
         raise RecipeError(
-            f"{long} of the {len(lengths)} episodes in the data have training.slice_len = "
-            f"{slice_len} steps (the longest has {int(lengths.max())}); the fits sample windows of "
-            "slice_len steps inside one episode, and two such episodes at least (one to "
-            f"validate): lower training.slice_len (above models.window = {cfg.models.window}) "
-            "and models.window, or collect longer episodes."
+            f"{where}, which needs training.window_sampling = trajectory (got "
+            f"{t.window_sampling}): set it, {lower}."
+        )
+    kind = cfg.models.uncertainty.kind
+    if "mask" not in inspect.signature(get_estimator_class(kind).loss).parameters:
+        raise RecipeError(
+            f"{where}, and models.uncertainty.kind = {kind} cannot train on padded slices: "
+            f"use reconstruction or rnd, {lower}."
         )
 
 
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
-    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``)."""
-    check_episode_lengths(cfg, data)
+    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``);
+    when a split has no trajectory of ``slice_len`` steps, both pad shorter ones
+    (``make_sequence_buffer(pad_short=True)``)."""
     t = cfg.training
-    sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
     parts = split_by_trajectory(data, t.val_fraction, seed=seed)
+    pad = needs_padding(t.slice_len, *parts)
+    if pad:
+        check_episode_lengths(cfg, data)
+    sizes = dict(
+        slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling, pad_short=pad
+    )
     buffers = tuple(make_sequence_buffer(len(part), **sizes) for part in parts)
     for buffer, part in zip(buffers, parts, strict=True):
         buffer.extend(part)

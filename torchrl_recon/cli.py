@@ -1,19 +1,8 @@
-"""Command line entry point: ``torchrl-recon <command> ...``.
+"""Command line entry point: ``torchrl-recon <command> ...`` (``--help``; docs/experiments.md).
 
-Experiments (paper §3) run from a YAML recipe through Hydra, so that any key can be overridden
-on the command line and seeds swept with Hydra's multirun (``-m``), e.g.::
-
-    torchrl-recon explore drone/explore_smoke seed=1
-    torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 \\
-        hydra/launcher=joblib hydra.launcher.n_jobs=2
-    torchrl-recon summarize outputs/explore/drone
-    torchrl-recon recipes
-
-Every failure ends in one ``error: ...`` line on stderr (tracebacks only with ``--debug`` or
-``HYDRA_FULL_ERROR=1``). Exit codes: 0 done (or stopped by ``stop_after``); 2 a bad recipe or
-override, a missing recipe, a damaged file or a locked / conflicting run directory; 130
-interrupted (Ctrl-C, SIGINT, SIGTERM: re-run the same command to resume); 1 anything else
-(a bug: re-run with ``--debug`` and report the traceback). See docs/experiments.md.
+An experiment runs a YAML recipe through Hydra: any key can be overridden on the command line,
+and seeds swept with Hydra's multirun (``-m``). Every failure ends in one ``error: ...`` line on
+stderr (tracebacks only with ``--debug`` or ``HYDRA_FULL_ERROR=1``).
 """
 
 from __future__ import annotations
@@ -32,48 +21,68 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from unittest import mock
 
+import hydra
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
+from omegaconf import DictConfig
 
-from torchrl_recon.experiments.compose import RECIPES_DIR
+from torchrl_recon.devices import resolve_device
+from torchrl_recon.errors import DamagedFileError, RecipeError
+from torchrl_recon.experiments import summary as summaries
+from torchrl_recon.experiments.compose import (
+    RECIPES_DIR,
+    SEARCH_PATH,
+    compose_recipe,
+    hydra_error_message,
+    sweep_jobs,
+    with_additions,
+)
+from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
+from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir, read_results
+from torchrl_recon.experiments.runner import interrupted_message, run
+from torchrl_recon.experiments.tables import render
 
 EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
 """Each experiment command and its help line (from the registry)."""
-_ARGV_ENV = "TORCHRL_RECON_ARGV"
-"""The command as typed, for the ``meta.json`` of each job (jobs may run in other processes)."""
-_STATUS_ENV = "TORCHRL_RECON_STATUS"
-"""A file each Hydra job appends its exit code to."""
+_ARGV_ENV, _STATUS_ENV = "TORCHRL_RECON_ARGV", "TORCHRL_RECON_STATUS"
+"""The command as typed (for each job's ``meta.json``); the file each job appends its exit code
+to (jobs may run in other processes)."""
 _DEBUG_ENV = "TORCHRL_RECON_DEBUG"
-"""Set by ``--debug`` (``HYDRA_FULL_ERROR=1`` does the same): tracebacks are shown."""
-
+"""``--debug``: "1" or "0" once a command has decided; unset, ``HYDRA_FULL_ERROR`` decides."""
 EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
+_USER_ERRORS = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
+_EXAMPLES = """examples:
+  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml
+  torchrl-recon control drone/control seed=3 logger.backend=csv
+  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 hydra/launcher=joblib hydra.launcher.n_jobs=2
+  torchrl-recon summarize outputs/explore/drone
+  torchrl-recon recipes
+
+exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run
+directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).
+
+Details: docs/experiments.md"""
 
 
-def debug_enabled() -> bool:
-    """Whether tracebacks are shown: ``--debug`` or ``HYDRA_FULL_ERROR=1``."""
-    flag = os.environ.get(_DEBUG_ENV)  # "0" / "1" once a run has decided (Hydra's is then set)
-    return flag == "1" if flag is not None else os.environ.get("HYDRA_FULL_ERROR") == "1"
-
-
-def exit_code(error: BaseException) -> int:
-    """2 for what the user can fix (recipe, missing file, damaged file, run directory), else 1.
-
-    Examples:
-        >>> from torchrl_recon.errors import DamagedFileError
-        >>> exit_code(DamagedFileError("x")), exit_code(ZeroDivisionError())
-        (2, 1)
-    """
-    from torchrl_recon.errors import DamagedFileError, RecipeError
-    from torchrl_recon.experiments.run_dir import RunDirConflict
-
-    user = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
-    return EXIT_USER if isinstance(error, user) else EXIT_BUG
+def _debug() -> bool:
+    return os.environ.get(_DEBUG_ENV, os.environ.get("HYDRA_FULL_ERROR")) == "1"
 
 
 def report(error: BaseException, code: int | None = None, message: str | None = None) -> int:
-    """Print ``error: <message>`` on stderr (after the traceback in debug mode); return the exit code."""
-    code = exit_code(error) if code is None else code
-    if debug_enabled():
+    """Print ``error: <message>`` on stderr (after the traceback with ``--debug``); return the
+    exit code: 2 for what the user can fix (recipe, missing or damaged file, run directory),
+    else 1 (a bug).
+
+    Examples:
+        >>> with contextlib.redirect_stderr(sys.stdout):
+        ...     report(ZeroDivisionError("division by zero"))
+        error: unexpected ZeroDivisionError: division by zero (re-run with --debug for the traceback)
+        1
+    """
+    code = (EXIT_USER if isinstance(error, _USER_ERRORS) else EXIT_BUG) if code is None else code
+    if _debug():
         traceback.print_exception(type(error), error, error.__traceback__)
     message = message or str(error) or type(error).__name__
     if code != EXIT_USER:
@@ -85,9 +94,7 @@ def report(error: BaseException, code: int | None = None, message: str | None = 
 
 
 def _interrupted(run_dir: Path | None) -> int:
-    from torchrl_recon.experiments.runner import interrupted_message
-
-    if debug_enabled():
+    if _debug():
         traceback.print_exc()
     print(interrupted_message(run_dir), file=sys.stderr, flush=True)
     return EXIT_INTERRUPTED
@@ -95,42 +102,28 @@ def _interrupted(run_dir: Path | None) -> int:
 
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
-    """Turn SIGTERM into ``KeyboardInterrupt`` (like Ctrl-C), unless it is ignored or handled."""
-    if (
-        threading.current_thread() is not threading.main_thread()
-        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
-    ):
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, interrupt)
+    """SIGTERM raises ``KeyboardInterrupt`` (as Ctrl-C does), unless it is ignored or handled."""
+    ours = threading.current_thread() is threading.main_thread()
+    ours = ours and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    if ours:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        if ours:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _env(name: str, value: str | None):
-    """Set ``name`` (or nothing, when ``value`` is None) for a block; the environment is
-    restored afterwards."""
+    """Set ``name`` (``None``: leave it) for a block; the environment is restored afterwards."""
     return mock.patch.dict(os.environ, {} if value is None else {name: value})
 
 
-# ----------------------------------------------------------------------------------------------
-# Hydra
-
-
 def hydra_settings(kind: str) -> dict[str, str]:
-    """Hydra overrides that keep every output inside the run's ``output_dir``.
-
-    The job does not change directory and Hydra writes no ``.hydra/`` subdir (the run dir holds
-    ``config.yaml`` and ``meta.json`` instead); a single run's Hydra dir is ``output_dir`` (where
-    its ``<kind>.log`` goes); a multirun's sweep dir (``multirun.yaml``) is the parent of the
-    base ``output_dir`` and each job's dir is its own ``output_dir``.
-    """
+    """Hydra overrides that keep every output inside the run's ``output_dir``: no chdir, no
+    ``.hydra/`` (the run dir holds ``config.yaml`` and ``meta.json``); a single run's Hydra dir
+    (its ``<kind>.log``) is ``output_dir``; a sweep's dir (``multirun.yaml``) is the parent of the
+    base ``output_dir`` and each job's dir its own ``output_dir``."""
     return {
         "hydra.job.chdir": "False",
         "hydra.output_subdir": "null",
@@ -141,28 +134,15 @@ def hydra_settings(kind: str) -> dict[str, str]:
     }
 
 
-def _task(cfg) -> int:
-    """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node).
-
-    A failure prints one ``error:`` line and records its exit code for :func:`run_recipe` (a
-    job may run in another process), so that a multirun goes on with its other jobs; an
-    interrupt names the last finished stage and ends the command (130).
-    """
-    from hydra.core.hydra_config import HydraConfig
-
-    from torchrl_recon.experiments.compose import register_resolvers
-    from torchrl_recon.experiments.runner import run
-
-    register_resolvers()  # again, in case a launcher's worker process starts without them
-    # TorchRL logs one INFO line per replay buffer it fills, which drowns the run's output.
-    if "TORCHRL_LOGGING_LEVEL" not in os.environ:
+def _task(cfg: DictConfig) -> int:
+    """The Hydra job. A failure prints one ``error:`` line and appends its exit code to the
+    status file, so that a multirun goes on with its other jobs; an interrupt names the last
+    finished stage and ends the command (130)."""
+    if "TORCHRL_LOGGING_LEVEL" not in os.environ:  # one INFO line per replay buffer filled
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
-    hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
-    extra = {}
-    if hydra_cfg is not None:
-        extra["job_overrides"] = list(hydra_cfg.overrides.task)
-        extra["hydra_mode"] = getattr(hydra_cfg.mode, "name", str(hydra_cfg.mode)).lower()
+    job = HydraConfig.get()
+    extra = {"job_overrides": list(job.overrides.task), "hydra_mode": job.mode.name.lower()}
     try:
         run(cfg, argv=argv, extra_meta=extra)
     except KeyboardInterrupt:
@@ -181,48 +161,31 @@ def _task(cfg) -> int:
     return EXIT_OK
 
 
-_HYDRA_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
-_HYDRA_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+_VALUE_FLAGS = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
+_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
 
 
 def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
     """Split Hydra command line items into flags (``--cfg job`` ...) and overrides."""
-    flags, rest, i = [], [], 0
-    while i < len(items):
-        item, value = items[i], items[i + 1] if i + 1 < len(items) else None
-        if not item.startswith("-"):
-            rest.append(item)
-        elif value is not None and (
-            item in _HYDRA_FLAGS_WITH_VALUE
-            or (item in ("--info", "-i") and value in _HYDRA_INFO_TOPICS)
-        ):
-            flags += [item, value]
-            i += 1
-        else:
-            flags.append(item)
-        i += 1
-    return flags, rest
+    flags, plain, items = [], [], list(items)
+    while items:
+        item = items.pop(0)
+        (flags if item.startswith("-") else plain).append(item)
+        info = item in ("--info", "-i") and items[:1] and items[0] in _INFO_TOPICS
+        if items and item.startswith("-") and (item in _VALUE_FLAGS or info):
+            flags.append(items.pop(0))
+    return flags, plain
 
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
-    """Validate every job of the command before Hydra starts anything; return the overrides
-    to hand to Hydra (a schema key the recipe lacks gets its ``++``).
-
-    Each job of a sweep (the product of the command line's sweeps and the recipe's own
-    ``hydra.sweeper.params``) is composed by Hydra and checked on its own, and so is its run
-    directory (an existing run there must have the same config). With ``here`` (the jobs run
-    on this machine), each job's ``device`` must exist on it. Every job validates its composed
-    config again before doing any work.
+    """Check every job of the command (the product of its sweeps and the recipe's
+    ``hydra.sweeper.params``, each composed by Hydra) and its run directory (a run there must
+    have the same config) before Hydra starts anything; with ``here``, each job's ``device``
+    must exist on this machine. Returns the overrides for Hydra (see ``with_additions``).
 
     Raises:
-        FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
-            the file, key or directory.
+        FileNotFoundError / RecipeError / RunDirConflict: naming the file, key or directory.
     """
-    from torchrl_recon.devices import resolve_device
-    from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
-    from torchrl_recon.experiments.recipe import RecipeError, validate
-    from torchrl_recon.experiments.run_dir import check_run_dir
-
     base = compose_recipe(recipe, with_hydra=True)
     found = base.get("experiment")
     if found != kind:
@@ -236,11 +199,11 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
         swept = [o for o in job if o not in completed]
         source = f"{recipe} with {' '.join(swept)}" if swept else str(recipe)
         checked = validate(compose_recipe(recipe, job), source=source)
-        if here:
-            try:
+        try:
+            if here:
                 resolve_device(checked.device)
-            except ValueError as e:
-                raise RecipeError(f"{source}: {e}") from e
+        except ValueError as e:
+            raise RecipeError(f"{source}: {e}") from e
         check_run_dir(checked)
     return completed
 
@@ -253,51 +216,34 @@ def run_recipe(
     *,
     debug: bool = False,
 ) -> int:
-    """Run a recipe (a path, or a shipped recipe's name) through ``hydra.main``; returns the
-    exit code.
+    """Run a recipe (a path, or a shipped recipe's name) through ``hydra.main``; return the exit
+    code (0, 2 a user error, 130 interrupted, 1 a bug; a multirun's worst job's).
 
-    Hydra reads its command line from ``sys.argv``: for the duration of the call it is
-    ``[prog, *Hydra flags, <hydra settings>, *overrides]`` (plus ``--multirun``), the recipe
-    being the app's config. Every failure prints one ``error:`` line; the code is 0, 2 (user
-    error: recipe, file, run directory), 130 (interrupted) or 1 (a bug). In a multirun, a job
-    that fails does not stop the others; the worst code is returned. ``debug`` shows
-    tracebacks (as ``HYDRA_FULL_ERROR=1``).
+    For the call, Hydra's ``sys.argv`` is ``[prog, *Hydra flags, <hydra settings>, *overrides]``
+    (plus ``--multirun``), the recipe being the app's config. A failed job of a multirun does
+    not stop the others. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
     """
-    import hydra
-    from hydra.errors import HydraException
-
-    from torchrl_recon.experiments.compose import hydra_error_message, search_path_override
-    from torchrl_recon.experiments.recipe import resolve_recipe_path
-    from torchrl_recon.experiments.run_dir import RunDirConflict
-
     command = ["torchrl-recon", kind, str(recipe), *overrides] + ["--multirun"] * multirun
-    flags, plain = _split_overrides(list(overrides))
-    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
+    flags, plain = _split_overrides(overrides)
+    with _env(_DEBUG_ENV, "1" if debug or _debug() else "0"):
         try:
             path = resolve_recipe_path(recipe)
             slurm = any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
-            here = not (multirun and slurm)  # the jobs' devices are checked where they run
-            plain = precheck(kind, path, plain, here=here)
+            # the jobs of a cluster check their device where they run
+            plain = precheck(kind, path, plain, here=not (multirun and slurm))
         except (FileNotFoundError, ValueError, RunDirConflict) as e:
             return report(e, EXIT_USER)
         given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
         settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
         fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
         os.close(fd)
-        argv = [
-            "torchrl-recon",
-            *flags,
-            *settings,
-            f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
-            search_path_override(),
-            *plain,
-        ] + ["--multirun"] * multirun
+        argv = ["torchrl-recon", *flags, *settings, f"++hydra.job.env_set.{_STATUS_ENV}='{status}'"]
+        argv += [SEARCH_PATH, *plain] + ["--multirun"] * multirun
         config_dir = str(path.resolve().parent)
         app = hydra.main(version_base="1.3", config_path=config_dir, config_name=path.stem)(_task)
         code = EXIT_OK
+        # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them
         try:
-            # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs
-            # catch theirs)
             with mock.patch.object(sys, "argv", argv), _env(_ARGV_ENV, json.dumps(command)):
                 with _env("HYDRA_FULL_ERROR", "1"):
                     app()
@@ -313,46 +259,6 @@ def run_recipe(
             jobs = [int(line) for line in Path(status).read_text().split()]
             Path(status).unlink(missing_ok=True)
         return code or max(jobs, default=EXIT_OK)
-
-
-# ----------------------------------------------------------------------------------------------
-# Commands
-
-
-def _experiment(args: argparse.Namespace) -> int:
-    overrides, multirun = list(args.overrides), args.multirun
-    for flag in ("-m", "--multirun", "--debug"):  # after the recipe: left in the overrides
-        while flag in overrides:
-            overrides.remove(flag)
-            if flag == "--debug":
-                os.environ[_DEBUG_ENV] = "1"
-            else:
-                multirun = True
-    return run_recipe(args.command, args.recipe, overrides, multirun=multirun)
-
-
-def _summarize(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments import summary as summaries
-    from torchrl_recon.experiments.run_dir import read_results
-
-    files = summaries.find_results(args.dirs)
-    if not files:
-        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
-    results = {f: read_results(f) for f in files}
-    by_kind: dict[str, list[Path]] = {}
-    for f, r in results.items():
-        by_kind.setdefault(str(r.get("experiment")), []).append(f)
-    if args.out is not None:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-    for kind, kind_files in sorted(by_kind.items()):
-        summary = summaries.summarize(kind_files)
-        print(f"{len(kind_files)} {kind} result file(s)\n{summaries.format_table(summary)}\n")
-        if args.out is not None:
-            path, *figures = summaries.save_summary(
-                summary, [results[f] for f in kind_files], args.out
-            )
-            print(f"summary: {path}" + "".join(f"\nfigure: {f}" for f in figures))
-    return EXIT_OK
 
 
 def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
@@ -373,32 +279,47 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
     return sorted(out, key=lambda r: list(EXPERIMENTS).index(r[0]))
 
 
-def _recipes(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments.tables import render
+def _experiment(args: argparse.Namespace) -> int:
+    given = args.overrides  # -m and --debug after the recipe are left in the overrides
+    overrides = [o for o in given if o not in ("-m", "--multirun", "--debug")]
+    multirun = args.multirun or bool({"-m", "--multirun"} & set(given))
+    return run_recipe(args.command, args.recipe, overrides, multirun, debug="--debug" in given)
 
-    rows = [list(r) for r in shipped_recipes(args.kind)]
-    print(render(["kind", "recipe", "about"], rows))
+
+def _summarize(args: argparse.Namespace) -> int:
+    files = summaries.find_results(args.dirs)
+    if not files:
+        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
+    results = {f: read_results(f) for f in files}
+    by_kind: dict[str, list[Path]] = {}
+    for f, r in results.items():
+        by_kind.setdefault(str(r.get("experiment")), []).append(f)
+    if args.out is not None:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    for kind, kind_files in sorted(by_kind.items()):
+        summary = summaries.summarize(kind_files)
+        print(f"{len(kind_files)} {kind} result file(s)\n{summaries.format_table(summary)}\n")
+        if args.out is not None:
+            saved = summaries.save_summary(summary, [results[f] for f in kind_files], args.out)
+            print(f"summary: {saved[0]}" + "".join(f"\nfigure: {f}" for f in saved[1:]))
+    return EXIT_OK
+
+
+def _recipes(args: argparse.Namespace) -> int:
+    print(render(["kind", "recipe", "about"], [list(r) for r in shipped_recipes(args.kind)]))
     return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser: one command per experiment kind, ``summarize``, ``recipes``."""
     experiments = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog="torchrl-recon",
         description="TorchRL reproduction of Di Palo & Valpola: the paper's "
         "experiments, and their summaries.",
-        epilog=f"experiments (paper §3):\n{experiments}\n\n"
-        "examples:\n"
-        "  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml\n"
-        "  torchrl-recon control drone/control seed=3 logger.backend=csv\n"
-        "  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 "
-        "hydra/launcher=joblib hydra.launcher.n_jobs=2\n"
-        "  torchrl-recon summarize outputs/explore/drone\n"
-        "  torchrl-recon recipes\n\n"
-        "exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run\n"
-        "directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).\n\n"
-        "Details: docs/experiments.md",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"experiments (paper §3):\n{experiments}\n\n{_EXAMPLES}",
+        formatter_class=raw,
     )
     debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
     parser.add_argument("--debug", action="store_true", help=debug_help)
@@ -416,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
             "comma-separated values with Hydra's multirun; Hydra flags such as "
             "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
             epilog=f"recipes (by name, from any folder; or a path to your own):\n{names}",
-            formatter_class=argparse.RawDescriptionHelpFormatter,
+            formatter_class=raw,
         )
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
         p.add_argument(
@@ -448,11 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit code (0, 2 user error, 130 interrupted, 1 bug).
-
-    Every failure ends in one ``error: ...`` line on stderr; ``--debug`` (or
-    ``HYDRA_FULL_ERROR=1``) also prints the traceback.
-    """
+    """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
     with _env(_DEBUG_ENV, "1" if getattr(args, "debug", False) else None), _sigterm_as_interrupt():
         try:

@@ -1,14 +1,9 @@
-"""Command line entry point: ``torchrl-recon <command> ...`` (``--help``; docs/experiments.md).
-
-An experiment runs a YAML recipe through Hydra: any key can be overridden on the command line,
-and seeds swept with Hydra's multirun (``-m``). Every failure ends in one ``error: ...`` line on
-stderr (tracebacks only with ``--debug`` or ``HYDRA_FULL_ERROR=1``).
-"""
+"""Command line entry point: ``torchrl-recon <command> ...`` (``--help``). An experiment runs a
+YAML recipe through Hydra (overrides, ``-m`` sweeps); every failure ends in one ``error:`` line."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import os
@@ -17,7 +12,7 @@ import sys
 import tempfile
 import threading
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from unittest import mock
 
@@ -25,32 +20,22 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.errors import DamagedFileError, RecipeError
-from torchrl_recon.experiments import summary as summaries
-from torchrl_recon.experiments.compose import (
-    RECIPES_DIR,
-    SEARCH_PATH,
-    compose_recipe,
-    hydra_error_message,
-    sweep_jobs,
-    with_additions,
-)
+from torchrl_recon.experiments import compose, summary
+from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir, read_results
 from torchrl_recon.experiments.runner import interrupted_message, run
 from torchrl_recon.experiments.tables import render
 
-EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
-"""Each experiment command and its help line (from the registry)."""
-_ARGV_ENV, _STATUS_ENV = "TORCHRL_RECON_ARGV", "TORCHRL_RECON_STATUS"
-"""The command as typed (for each job's ``meta.json``); the file each job appends its exit code
-to (jobs may run in other processes)."""
-_DEBUG_ENV = "TORCHRL_RECON_DEBUG"
-"""``--debug``: "1" or "0" once a command has decided; unset, ``HYDRA_FULL_ERROR`` decides."""
+EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}  # command: help line
+_ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
+_STATUS_ENV = "TORCHRL_RECON_STATUS"  # each job appends its exit code to this file
+_DEBUG_ENV = "TORCHRL_RECON_DEBUG"  # --debug: "1" or "0"; unset, HYDRA_FULL_ERROR decides
 EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
 _USER_ERRORS = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
 _EXAMPLES = """examples:
@@ -64,6 +49,13 @@ exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting
 directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).
 
 Details: docs/experiments.md"""
+_RUN_HELP = """Runs RECIPE through Hydra: overrides are key=value (e.g. seed=3 guided.ratio=1.5,
++key=value to add one); -m sweeps comma-separated values with Hydra's multirun; Hydra flags
+such as `--cfg job` pass through. Re-running the same command resumes a stopped run."""
+_RECIPES_HELP = "recipes (by name, from any folder; or a path to your own):"
+_ABOUT = "TorchRL reproduction of Di Palo & Valpola: the paper's experiments, and their summaries."
+_SUMMARIZE_HELP = """Find results.json below each DIR, aggregate them per experiment kind and
+environment, and print the tables."""
 
 
 def _debug() -> bool:
@@ -72,11 +64,11 @@ def _debug() -> bool:
 
 def report(error: BaseException, code: int | None = None, message: str | None = None) -> int:
     """Print ``error: <message>`` on stderr (after the traceback with ``--debug``); return the
-    exit code: 2 for what the user can fix (recipe, missing or damaged file, run directory),
-    else 1 (a bug).
+    exit code: 2 for what the user can fix (recipe, file, run directory), else 1 (a bug).
 
     Examples:
-        >>> with contextlib.redirect_stderr(sys.stdout):
+        >>> from contextlib import redirect_stderr
+        >>> with redirect_stderr(sys.stdout):
         ...     report(ZeroDivisionError("division by zero"))
         error: unexpected ZeroDivisionError: division by zero (re-run with --debug for the traceback)
         1
@@ -100,44 +92,18 @@ def _interrupted(run_dir: Path | None) -> int:
     return EXIT_INTERRUPTED
 
 
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises ``KeyboardInterrupt`` (as Ctrl-C does), unless it is ignored or handled."""
-    ours = threading.current_thread() is threading.main_thread()
-    ours = ours and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
-    if ours:
-        signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        if ours:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _env(name: str, value: str | None):
-    """Set ``name`` (``None``: leave it) for a block; the environment is restored afterwards."""
-    return mock.patch.dict(os.environ, {} if value is None else {name: value})
-
-
-def hydra_settings(kind: str) -> dict[str, str]:
-    """Hydra overrides that keep every output inside the run's ``output_dir``: no chdir, no
-    ``.hydra/`` (the run dir holds ``config.yaml`` and ``meta.json``); a single run's Hydra dir
-    (its ``<kind>.log``) is ``output_dir``; a sweep's dir (``multirun.yaml``) is the parent of the
-    base ``output_dir`` and each job's dir its own ``output_dir``."""
-    return {
-        "hydra.job.chdir": "False",
-        "hydra.output_subdir": "null",
-        "hydra.job.name": kind,
-        "hydra.run.dir": "${output_dir}",
-        "hydra.sweep.dir": "'${trr_parent:${output_dir}}'",
-        "hydra.sweep.subdir": "'${trr_abspath:${output_dir}}'",
-    }
+_HYDRA_SETTINGS = {  # every output inside output_dir: a sweep's is its parent, a job's its own
+    "hydra.job.chdir": "False",
+    "hydra.output_subdir": "null",  # no .hydra/: the run dir holds config.yaml and meta.json
+    "hydra.run.dir": "${output_dir}",
+    "hydra.sweep.dir": "'${trr_parent:${output_dir}}'",
+    "hydra.sweep.subdir": "'${trr_abspath:${output_dir}}'",
+}
 
 
 def _task(cfg: DictConfig) -> int:
     """The Hydra job. A failure prints one ``error:`` line and appends its exit code to the
-    status file, so that a multirun goes on with its other jobs; an interrupt names the last
-    finished stage and ends the command (130)."""
+    status file (a multirun goes on); an interrupt names the last finished stage (130)."""
     if "TORCHRL_LOGGING_LEVEL" not in os.environ:  # one INFO line per replay buffer filled
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
@@ -145,12 +111,9 @@ def _task(cfg: DictConfig) -> int:
     extra = {"job_overrides": list(job.overrides.task), "hydra_mode": job.mode.name.lower()}
     try:
         run(cfg, argv=argv, extra_meta=extra)
-    except KeyboardInterrupt:
-        try:
-            run_dir = Path(str(cfg.output_dir)).expanduser().resolve()
-        except Exception:  # an interpolation that does not resolve: no directory to name
-            run_dir = None
-        raise SystemExit(_interrupted(run_dir)) from None
+    except KeyboardInterrupt:  # name the run directory, if its path resolves
+        out = OmegaConf.select(cfg, "output_dir", throw_on_resolution_failure=False)
+        raise SystemExit(_interrupted(Path(out).expanduser().resolve() if out else None)) from None
     except Exception as e:
         code = report(e)
         if not os.environ.get(_STATUS_ENV):  # not started by run_recipe: end as a command would
@@ -178,15 +141,10 @@ def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
-    """Check every job of the command (the product of its sweeps and the recipe's
-    ``hydra.sweeper.params``, each composed by Hydra) and its run directory (a run there must
-    have the same config) before Hydra starts anything; with ``here``, each job's ``device``
-    must exist on this machine. Returns the overrides for Hydra (see ``with_additions``).
-
-    Raises:
-        FileNotFoundError / RecipeError / RunDirConflict: naming the file, key or directory.
-    """
-    base = compose_recipe(recipe, with_hydra=True)
+    """Check every job of the command (each sweep's, composed by Hydra), its run directory and
+    (``here``) its device before Hydra starts anything; return the overrides for Hydra. Raises
+    FileNotFoundError, RecipeError or RunDirConflict naming the file, key or directory."""
+    base = compose.compose_recipe(recipe, with_hydra=True)
     found = base.get("experiment")
     if found != kind:
         raise RecipeError(
@@ -194,11 +152,11 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
             if found in EXPERIMENTS
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
-    completed = with_additions(base, overrides)
-    for job in sweep_jobs(base, completed):
+    completed = compose.with_additions(base, overrides)
+    for job in compose.sweep_jobs(base, completed):
         swept = [o for o in job if o not in completed]
         source = f"{recipe} with {' '.join(swept)}" if swept else str(recipe)
-        checked = validate(compose_recipe(recipe, job), source=source)
+        checked = validate(compose.compose_recipe(recipe, job), source=source)
         try:
             if here:
                 resolve_device(checked.device)
@@ -216,16 +174,12 @@ def run_recipe(
     *,
     debug: bool = False,
 ) -> int:
-    """Run a recipe (a path, or a shipped recipe's name) through ``hydra.main``; return the exit
-    code (0, 2 a user error, 130 interrupted, 1 a bug; a multirun's worst job's).
-
-    For the call, Hydra's ``sys.argv`` is ``[prog, *Hydra flags, <hydra settings>, *overrides]``
-    (plus ``--multirun``), the recipe being the app's config. A failed job of a multirun does
-    not stop the others. ``debug`` shows tracebacks (as ``HYDRA_FULL_ERROR=1``).
-    """
+    """Run a recipe (a path or a shipped name) through ``hydra.main`` (``sys.argv`` set for the
+    call); return the exit code (0, 2 a user error, 130 interrupted, 1 a bug; a multirun's worst
+    job's: a failed job does not stop the others). ``debug`` shows tracebacks."""
     command = ["torchrl-recon", kind, str(recipe), *overrides] + ["--multirun"] * multirun
     flags, plain = _split_overrides(overrides)
-    with _env(_DEBUG_ENV, "1" if debug or _debug() else "0"):
+    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1" if debug or _debug() else "0"}):
         try:
             path = resolve_recipe_path(recipe)
             slurm = any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
@@ -234,25 +188,26 @@ def run_recipe(
         except (FileNotFoundError, ValueError, RunDirConflict) as e:
             return report(e, EXIT_USER)
         given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
-        settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
+        settings = {**_HYDRA_SETTINGS, "hydra.job.name": kind}.items()
+        settings = [f"{k}={v}" for k, v in settings if k not in given]
         fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
         os.close(fd)
         argv = ["torchrl-recon", *flags, *settings, f"++hydra.job.env_set.{_STATUS_ENV}='{status}'"]
-        argv += [SEARCH_PATH, *plain] + ["--multirun"] * multirun
+        argv += [compose.SEARCH_PATH, *plain] + ["--multirun"] * multirun
         config_dir = str(path.resolve().parent)
         app = hydra.main(version_base="1.3", config_path=config_dir, config_name=path.stem)(_task)
         code = EXIT_OK
         # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them
         try:
-            with mock.patch.object(sys, "argv", argv), _env(_ARGV_ENV, json.dumps(command)):
-                with _env("HYDRA_FULL_ERROR", "1"):
-                    app()
+            env = {_ARGV_ENV: json.dumps(command), "HYDRA_FULL_ERROR": "1"}
+            with mock.patch.object(sys, "argv", argv), mock.patch.dict(os.environ, env):
+                app()
         except SystemExit as e:
             code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
             code = _interrupted(None)
         except HydraException as e:  # a bad Hydra setting or config group choice
-            code = report(e, EXIT_USER, hydra_error_message(e))
+            code = report(e, EXIT_USER, compose.hydra_error_message(e))
         except Exception as e:
             code = report(e)
         finally:
@@ -262,8 +217,7 @@ def run_recipe(
 
 
 def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
-    """``(kind, name, first comment line)`` of each recipe shipped in the package (of ``kind``
-    only, if given); a name runs from any folder (``torchrl-recon explore drone/explore``).
+    """``(kind, name, first comment line)`` of each shipped recipe (of ``kind`` only, if given).
 
     Examples:
         >>> ("explore", "drone/explore_smoke") in [r[:2] for r in shipped_recipes("explore")]
@@ -287,7 +241,7 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    files = summaries.find_results(args.dirs)
+    files = summary.find_results(args.dirs)
     if not files:
         raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
     results = {f: read_results(f) for f in files}
@@ -297,10 +251,10 @@ def _summarize(args: argparse.Namespace) -> int:
     if args.out is not None:
         Path(args.out).mkdir(parents=True, exist_ok=True)
     for kind, kind_files in sorted(by_kind.items()):
-        summary = summaries.summarize(kind_files)
-        print(f"{len(kind_files)} {kind} result file(s)\n{summaries.format_table(summary)}\n")
+        found = summary.summarize(kind_files)
+        print(f"{len(kind_files)} {kind} result file(s)\n{summary.format_table(found)}\n")
         if args.out is not None:
-            saved = summaries.save_summary(summary, [results[f] for f in kind_files], args.out)
+            saved = summary.save_summary(found, [results[f] for f in kind_files], args.out)
             print(f"summary: {saved[0]}" + "".join(f"\nfigure: {f}" for f in saved[1:]))
     return EXIT_OK
 
@@ -312,66 +266,50 @@ def _recipes(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line's parser: one command per experiment kind, ``summarize``, ``recipes``."""
-    experiments = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
-    raw = argparse.RawDescriptionHelpFormatter
-    parser = argparse.ArgumentParser(
-        prog="torchrl-recon",
-        description="TorchRL reproduction of Di Palo & Valpola: the paper's "
-        "experiments, and their summaries.",
-        epilog=f"experiments (paper §3):\n{experiments}\n\n{_EXAMPLES}",
-        formatter_class=raw,
-    )
-    debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
-    parser.add_argument("--debug", action="store_true", help=debug_help)
+    raw = {"formatter_class": argparse.RawDescriptionHelpFormatter}
+    kinds = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    epilog = f"experiments (paper §3):\n{kinds}\n\n{_EXAMPLES}"
+    parser = argparse.ArgumentParser("torchrl-recon", description=_ABOUT, epilog=epilog, **raw)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
+    debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
+    for p, default in ((parser, False), (common, argparse.SUPPRESS)):
+        p.add_argument("--debug", action="store_true", default=default, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for kind, text in EXPERIMENTS.items():
-        names = "\n".join(f"  {name}" for _, name, _ in shipped_recipes(kind))
+        names = "".join(f"\n  {name}" for _, name, _ in shipped_recipes(kind))
+        description, epilog = f"{text}. {_RUN_HELP}", f"{_RECIPES_HELP}{names}"
         p = sub.add_parser(
-            kind,
-            parents=[common],
-            help=text,
-            description=f"{text}. Runs RECIPE through Hydra: overrides are key=value "
-            "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
-            "comma-separated values with Hydra's multirun; Hydra flags such as "
-            "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
-            epilog=f"recipes (by name, from any folder; or a path to your own):\n{names}",
-            formatter_class=raw,
+            kind, parents=[common], help=text, description=description, epilog=epilog, **raw
         )
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
+        overrides_help = "key=value overrides of the recipe (Hydra syntax)"
         p.add_argument(
-            "overrides",
-            nargs=argparse.REMAINDER,
-            metavar="OVERRIDE",
-            help="key=value overrides of the recipe (Hydra syntax)",
+            "overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=overrides_help
         )
         p.add_argument("-m", "--multirun", action="store_true", help="run a Hydra multirun sweep")
         p.set_defaults(func=_experiment)
-    summ = sub.add_parser(
-        "summarize",
-        parents=[common],
-        help="aggregate results.json files across seeds (Table 1 statistics, control means)",
-        description="Find results.json below each DIR, aggregate them per experiment kind and "
-        "environment, and print the tables.",
-    )
-    summ.add_argument("dirs", nargs="+", metavar="DIR")
-    summ.add_argument(
-        "--out", default=None, help="also write summary_<kind>.json and figures to this directory"
-    )
-    summ.set_defaults(func=_summarize)
-    rec = sub.add_parser(
-        "recipes", parents=[common], help="list the shipped recipes (kind, name, what it runs)"
-    )
-    rec.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
-    rec.set_defaults(func=_recipes)
+    about = "aggregate results.json files across seeds (Table 1 statistics, control means)"
+    p = sub.add_parser("summarize", parents=[common], help=about, description=_SUMMARIZE_HELP)
+    p.add_argument("dirs", nargs="+", metavar="DIR")
+    p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
+    p.set_defaults(func=_summarize)
+    about = "list the shipped recipes (kind, name, what it runs)"
+    p = sub.add_parser("recipes", parents=[common], help=about)
+    p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
+    p.set_defaults(func=_recipes)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
-    with _env(_DEBUG_ENV, "1" if getattr(args, "debug", False) else None), _sigterm_as_interrupt():
+    debug = {_DEBUG_ENV: "1"} if getattr(args, "debug", False) else {}
+    # SIGTERM interrupts as Ctrl-C does (unless it is ignored or handled)
+    sigterm = threading.current_thread() is threading.main_thread()
+    sigterm = sigterm and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    if sigterm:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    with mock.patch.dict(os.environ, debug):
         try:
             torch.set_num_threads(min(2, torch.get_num_threads()))
             return args.func(args)
@@ -379,6 +317,9 @@ def main(argv: list[str] | None = None) -> int:
             return _interrupted(None)
         except Exception as e:
             return report(e)
+        finally:
+            if sigterm:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,5 @@
-"""Compose a recipe with Hydra's own composition: defaults lists, config groups, packages, sweeps.
-
-The shipped recipes are on the search path of every recipe, so that a recipe anywhere can extend
-a shipped one (``defaults: [/drone/explore@_here_, _self_]``).
-"""
+"""Compose a recipe with Hydra's own composition: defaults lists, config groups, sweeps; with the
+shipped recipes on its search path (``defaults: [/drone/explore@_here_, _self_]`` anywhere)."""
 
 from __future__ import annotations
 
@@ -24,14 +21,11 @@ from omegaconf.errors import OmegaConfBaseException
 from torchrl_recon.errors import RecipeError
 
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
-"""The recipes shipped inside the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``
-links here)."""
-SEARCH_PATH = f"hydra.searchpath=[file://{RECIPES_DIR}]"
-"""The Hydra override that puts :data:`RECIPES_DIR` on the config search path."""
+"""The recipes shipped in the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``)."""
+SEARCH_PATH = f"hydra.searchpath=[file://{RECIPES_DIR}]"  # the override that adds RECIPES_DIR
 MAX_SWEEP_JOBS = 10_000
 
-# The resolvers of the recipes and of the CLI's Hydra settings; registered at import, which every
-# path that composes a recipe (and each launcher worker that unpickles a CLI job) goes through.
+# The recipes' and the CLI's resolvers, registered by every import (a launcher's workers too).
 for _name, _resolver in {
     # a gymnasium id as a run's name: without its ``module:`` prefix, "/" as "_"
     "trr_env_name": lambda i: None if i is None else str(i).rpartition(":")[2].replace("/", "_"),
@@ -57,12 +51,9 @@ def hydra_error_message(error: BaseException) -> str:
 def compose_recipe(
     path: str | Path, overrides: Sequence[str] = (), *, with_hydra: bool = False
 ) -> DictConfig:
-    """The config Hydra composes from the recipe file ``path`` and ``overrides`` (no sweeps);
-    ``with_hydra`` keeps its ``hydra`` node. Works inside a running Hydra app too.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        RecipeError: Hydra cannot compose it; the message names the file.
+    """The config Hydra composes from the recipe file ``path`` and ``overrides`` (no sweeps),
+    with its ``hydra`` node if ``with_hydra``; inside a running Hydra app too. Raises
+    FileNotFoundError, or a RecipeError naming the file.
 
     Examples:
         >>> cfg = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", ["seed=3"])
@@ -96,9 +87,8 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
 
 
 def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
-    """``overrides`` with ``++`` before each plain ``key=value`` Hydra would refuse as written:
-    a key the recipe lacks (the schema has more, and refuses what is not a field), or a mapping
-    merged into one of the recipe's. ``base``: the recipe composed with its ``hydra`` node.
+    """``overrides`` with ``++`` before each ``key=value`` Hydra would refuse: a key the recipe
+    lacks (the schema refuses what is not a field), or a mapping merged into one of the recipe's.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "control.yaml", with_hydra=True)
@@ -127,10 +117,9 @@ def _is_sweep(o: Any) -> bool:
 def sweep_jobs(
     base: DictConfig, overrides: Sequence[str], *, recipe_params: bool = True
 ) -> list[list[str]]:
-    """The overrides of each job of a multirun: the product of every sweep, as Hydra's basic
-    sweeper makes them, of the command line (``seed=0,1``) and, unless ``recipe_params`` is
-    False, of the recipe's ``hydra.sweeper.params`` (the command line's wins). Sweeps that need
-    the config to expand (``glob(...)``) are left to Hydra's jobs.
+    """Each job's overrides: the product of the sweeps, as Hydra's basic sweeper makes them, of
+    the command line and (``recipe_params``) of ``hydra.sweeper.params``, the command line's
+    first; ``glob(...)`` and other sweeps that need the config are left to Hydra's jobs.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", with_hydra=True)

@@ -13,10 +13,8 @@ from torchrl_recon.experiments.run_dir import flat_config
 
 def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | None:
     """TorchRL's logger of ``cfg.logger.backend`` (``none``: None) under ``run_dir``, named
-    ``<experiment>_<env>_seed<seed>``, with the flattened config as its hparams (``None`` as
-    ``"None"``, which wandb takes). wandb runs offline unless ``cfg.logger.mode == "online"``
-    (push later with ``wandb sync <run_dir>/wandb/offline-run-*``); CSV writes
-    ``<run_dir>/<name>/scalars/<scalar>.csv``."""
+    ``<experiment>_<env>_seed<seed>``, the flattened config its hparams (``None`` as "None", for
+    wandb); wandb runs offline unless ``cfg.logger.mode`` is "online"."""
     kind, env, backend = cfg.experiment, cfg.env.name, cfg.logger.backend
     if backend == "wandb":
         os.environ.setdefault("WANDB_SILENT", "true")
@@ -28,10 +26,8 @@ def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | No
         tags=[kind, env, f"seed{cfg.seed}"],
         log_env_packages=False,  # versions are in meta.json and in the logged config
     )
-    name = f"{kind}_{env}_seed{cfg.seed}"
-    logger = get_logger(
-        "" if backend == "none" else backend, str(run_dir), name, wandb_kwargs=wandb_kwargs
-    )
+    name, backend = f"{kind}_{env}_seed{cfg.seed}", "" if backend == "none" else backend
+    logger = get_logger(backend, str(run_dir), name, wandb_kwargs=wandb_kwargs)
     if logger is not None:
         logger.log_hparams({k: "None" if v is None else v for k, v in flat_config(cfg).items()})
     return logger

@@ -1,5 +1,4 @@
-"""Recipes: compose a YAML recipe with its overrides and check every key and value before any
-work starts, against its kind's typed schema (:mod:`.config`) and :mod:`.recipe_checks`."""
+"""Recipes: a YAML recipe composed with its overrides and checked before any work starts."""
 
 from __future__ import annotations
 
@@ -24,17 +23,12 @@ from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.recipe_checks import recipe_errors
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 
-_BAD_CHOICE = re.compile(r"Invalid value '(.*)', expected one of \[(.*)\]")
-"""OmegaConf's message for a value that is none of an ``Enum`` field's choices."""
+_BAD_CHOICE = re.compile(r"Invalid value '(.*)', expected one of \[(.*)\]")  # an Enum field's
 
 
 def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose the recipe file ``path`` with Hydra-syntax ``overrides`` as the CLI's jobs are (a
-    schema key the recipe lacks is added; no sweeps) and :func:`validate` it.
-
-    Raises:
-        FileNotFoundError: the recipe (or one its ``defaults`` names) does not exist.
-        RecipeError: a bad key or value (a ``ValueError``).
+    """Compose the recipe file ``path`` with Hydra-syntax ``overrides`` (no sweeps) as the
+    CLI's jobs are, and :func:`validate` it; FileNotFoundError or RecipeError if it fails.
 
     Examples:
         >>> cfg = load_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", ["seed=3"])
@@ -76,16 +70,9 @@ def _merge_checked(schema: type, data: Any, *, prefix: str, source: str) -> Dict
 
 
 def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> DictConfig:
-    """Check a recipe (loaded, composed by Hydra: its ``hydra`` node is dropped, or a mapping)
-    and return the typed, resolved config; nothing is written.
-
-    Checks: ``experiment`` a kind of the registry; no unknown key, wrong type or missing value
-    (the kind's schema); then every value
-    (:func:`~torchrl_recon.experiments.recipe_checks.recipe_errors`: ranges, env, cost, planner
-    and estimator classes, names). Without ``env.name``, ``env.id`` names the run.
-
-    Raises:
-        RecipeError: (a ``ValueError``) naming every offending key, on one line.
+    """Check a recipe (its ``hydra`` node dropped) against its kind's schema and
+    :func:`~.recipe_checks.recipe_errors`; return the typed, resolved config. Without
+    ``env.name``, ``env.id`` names the run. Raises a RecipeError naming every bad key, on one line.
 
     Examples:
         >>> cfg = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml")
@@ -99,7 +86,6 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(dict(cfg))
     data = OmegaConf.to_container(cfg, resolve=False)
-    assert isinstance(data, dict)
     data.pop("hydra", None)
     data.pop("defaults", None)
     experiment = data.get("experiment")
@@ -136,11 +122,8 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
 
 
 def resolve_recipe_path(path: str | os.PathLike[str]) -> Path:
-    """A recipe file as given (absolute or relative to the working directory), else a shipped
-    one by name (``drone/explore``; ``.yaml`` and a leading ``recipes/`` are optional).
-
-    Raises:
-        FileNotFoundError: naming both places looked in.
+    """A recipe file as given, else a shipped one by name (``drone/explore``; ``.yaml`` and a
+    leading ``recipes/`` optional); a FileNotFoundError names both places looked in.
 
     Examples:
         >>> resolve_recipe_path("drone/explore").relative_to(RECIPES_DIR).as_posix()

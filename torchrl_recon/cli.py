@@ -78,9 +78,8 @@ def report(error: BaseException, code: int | None = None, message: str | None = 
         traceback.print_exception(type(error), error, error.__traceback__)
     message = message or str(error) or type(error).__name__
     if code != EXIT_USER:
-        message = (
-            f"unexpected {type(error).__name__}: {message} (re-run with --debug for the traceback)"
-        )
+        hint = "re-run with --debug for the traceback"
+        message = f"unexpected {type(error).__name__}: {message} ({hint})"
     print(f"error: {message}", file=sys.stderr, flush=True)
     return code
 
@@ -135,7 +134,7 @@ def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
         item = items.pop(0)
         (flags if item.startswith("-") else plain).append(item)
         info = item in ("--info", "-i") and items[:1] and items[0] in _INFO_TOPICS
-        if items and item.startswith("-") and (item in _VALUE_FLAGS or info):
+        if items and (item in _VALUE_FLAGS or info):
             flags.append(items.pop(0))
     return flags, plain
 
@@ -248,8 +247,6 @@ def _summarize(args: argparse.Namespace) -> int:
     by_kind: dict[str, list[Path]] = {}
     for f, r in results.items():
         by_kind.setdefault(str(r.get("experiment")), []).append(f)
-    if args.out is not None:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
     for kind, kind_files in sorted(by_kind.items()):
         found = summary.summarize(kind_files)
         print(f"{len(kind_files)} {kind} result file(s)\n{summary.format_table(found)}\n")

@@ -1,25 +1,9 @@
-"""Command line entry point: ``torchrl-recon <command> ...``.
-
-Experiments (paper §3) run from a YAML recipe through Hydra, so that any key can be overridden
-on the command line and seeds swept with Hydra's multirun (``-m``), e.g.::
-
-    torchrl-recon explore drone/explore_smoke seed=1
-    torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 \\
-        hydra/launcher=joblib hydra.launcher.n_jobs=2
-    torchrl-recon summarize outputs/explore/drone
-    torchrl-recon recipes
-
-Every failure ends in one ``error: ...`` line on stderr (tracebacks only with ``--debug`` or
-``HYDRA_FULL_ERROR=1``). Exit codes: 0 done (or stopped by ``stop_after``); 2 a bad recipe or
-override, a missing recipe, a damaged file or a locked / conflicting run directory; 130
-interrupted (Ctrl-C, SIGINT, SIGTERM: re-run the same command to resume); 1 anything else
-(a bug: re-run with ``--debug`` and report the traceback). See docs/experiments.md.
-"""
+"""Command line entry point: ``torchrl-recon <command> ...`` (``--help``). An experiment runs a
+YAML recipe through Hydra (overrides, ``-m`` sweeps); every failure ends in one ``error:`` line."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import os
@@ -28,149 +12,107 @@ import sys
 import tempfile
 import threading
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from unittest import mock
 
+import hydra
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
 
+from torchrl_recon.devices import resolve_device
+from torchrl_recon.errors import DamagedFileError, RecipeError
+from torchrl_recon.experiments import compose, summary
 from torchrl_recon.experiments.compose import RECIPES_DIR
+from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
+from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir, read_results
+from torchrl_recon.experiments.runner import interrupted_message, run
+from torchrl_recon.experiments.tables import render
 
-EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}
-"""Each experiment command and its help line (from the registry)."""
-_ARGV_ENV = "TORCHRL_RECON_ARGV"
-"""The command as typed, for the ``meta.json`` of each job (jobs may run in other processes)."""
-_STATUS_ENV = "TORCHRL_RECON_STATUS"
-"""A file each Hydra job appends its exit code to."""
-_DEBUG_ENV = "TORCHRL_RECON_DEBUG"
-"""Set by ``--debug`` (``HYDRA_FULL_ERROR=1`` does the same): tracebacks are shown."""
-
+EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}  # command: help line
+_ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
+_STATUS_ENV = "TORCHRL_RECON_STATUS"  # each job appends its exit code to this file
+_DEBUG_ENV = "TORCHRL_RECON_DEBUG"  # --debug: "1" or "0"; unset, HYDRA_FULL_ERROR decides
 EXIT_OK, EXIT_BUG, EXIT_USER, EXIT_INTERRUPTED = 0, 1, 2, 130
+_USER_ERRORS = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
+_EXAMPLES = """examples:
+  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml
+  torchrl-recon control drone/control seed=3 logger.backend=csv
+  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 hydra/launcher=joblib hydra.launcher.n_jobs=2
+  torchrl-recon summarize outputs/explore/drone
+  torchrl-recon recipes
+
+exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run
+directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).
+
+Details: docs/experiments.md"""
+_RUN_HELP = """Runs RECIPE through Hydra: overrides are key=value (e.g. seed=3 guided.ratio=1.5,
++key=value to add one); -m sweeps comma-separated values with Hydra's multirun; Hydra flags
+such as `--cfg job` pass through. Re-running the same command resumes a stopped run."""
+_RECIPES_HELP = "recipes (by name, from any folder; or a path to your own):"
+_ABOUT = "TorchRL reproduction of Di Palo & Valpola: the paper's experiments, and their summaries."
+_SUMMARIZE_HELP = """Find results.json below each DIR, aggregate them per experiment kind and
+environment, and print the tables."""
 
 
-def debug_enabled() -> bool:
-    """Whether tracebacks are shown: ``--debug`` or ``HYDRA_FULL_ERROR=1``."""
-    flag = os.environ.get(_DEBUG_ENV)  # "0" / "1" once a run has decided (Hydra's is then set)
-    return flag == "1" if flag is not None else os.environ.get("HYDRA_FULL_ERROR") == "1"
-
-
-def exit_code(error: BaseException) -> int:
-    """2 for what the user can fix (recipe, missing file, damaged file, run directory), else 1.
-
-    Examples:
-        >>> from torchrl_recon.errors import DamagedFileError
-        >>> exit_code(DamagedFileError("x")), exit_code(ZeroDivisionError())
-        (2, 1)
-    """
-    from torchrl_recon.errors import DamagedFileError, RecipeError
-    from torchrl_recon.experiments.run_dir import RunDirConflict
-
-    user = (RecipeError, DamagedFileError, RunDirConflict, FileNotFoundError)
-    return EXIT_USER if isinstance(error, user) else EXIT_BUG
+def _debug() -> bool:
+    return os.environ.get(_DEBUG_ENV, os.environ.get("HYDRA_FULL_ERROR")) == "1"
 
 
 def report(error: BaseException, code: int | None = None, message: str | None = None) -> int:
-    """Print ``error: <message>`` on stderr (after the traceback in debug mode); return the exit code."""
-    code = exit_code(error) if code is None else code
-    if debug_enabled():
+    """Print ``error: <message>`` on stderr (after the traceback with ``--debug``); return the
+    exit code: 2 for what the user can fix (recipe, file, run directory), else 1 (a bug).
+
+    Examples:
+        >>> from contextlib import redirect_stderr
+        >>> with redirect_stderr(sys.stdout):
+        ...     report(ZeroDivisionError("division by zero"))
+        error: unexpected ZeroDivisionError: division by zero (re-run with --debug for the traceback)
+        1
+    """
+    code = (EXIT_USER if isinstance(error, _USER_ERRORS) else EXIT_BUG) if code is None else code
+    if _debug():
         traceback.print_exception(type(error), error, error.__traceback__)
     message = message or str(error) or type(error).__name__
     if code != EXIT_USER:
-        message = (
-            f"unexpected {type(error).__name__}: {message} (re-run with --debug for the traceback)"
-        )
+        hint = "re-run with --debug for the traceback"
+        message = f"unexpected {type(error).__name__}: {message} ({hint})"
     print(f"error: {message}", file=sys.stderr, flush=True)
     return code
 
 
 def _interrupted(run_dir: Path | None) -> int:
-    from torchrl_recon.experiments.runner import interrupted_message
-
-    if debug_enabled():
+    if _debug():
         traceback.print_exc()
     print(interrupted_message(run_dir), file=sys.stderr, flush=True)
     return EXIT_INTERRUPTED
 
 
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """Turn SIGTERM into ``KeyboardInterrupt`` (like Ctrl-C), unless it is ignored or handled."""
-    if (
-        threading.current_thread() is not threading.main_thread()
-        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
-    ):
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+_HYDRA_SETTINGS = {  # every output inside output_dir: a sweep's is its parent, a job's its own
+    "hydra.job.chdir": "False",
+    "hydra.output_subdir": "null",  # no .hydra/: the run dir holds config.yaml and meta.json
+    "hydra.run.dir": "${output_dir}",
+    "hydra.sweep.dir": "'${trr_parent:${output_dir}}'",
+    "hydra.sweep.subdir": "'${trr_abspath:${output_dir}}'",
+}
 
 
-def _env(name: str, value: str | None):
-    """Set ``name`` (or nothing, when ``value`` is None) for a block; the environment is
-    restored afterwards."""
-    return mock.patch.dict(os.environ, {} if value is None else {name: value})
-
-
-# ----------------------------------------------------------------------------------------------
-# Hydra
-
-
-def hydra_settings(kind: str) -> dict[str, str]:
-    """Hydra overrides that keep every output inside the run's ``output_dir``.
-
-    The job does not change directory and Hydra writes no ``.hydra/`` subdir (the run dir holds
-    ``config.yaml`` and ``meta.json`` instead); a single run's Hydra dir is ``output_dir`` (where
-    its ``<kind>.log`` goes); a multirun's sweep dir (``multirun.yaml``) is the parent of the
-    base ``output_dir`` and each job's dir is its own ``output_dir``.
-    """
-    return {
-        "hydra.job.chdir": "False",
-        "hydra.output_subdir": "null",
-        "hydra.job.name": kind,
-        "hydra.run.dir": "${output_dir}",
-        "hydra.sweep.dir": "'${trr_parent:${output_dir}}'",
-        "hydra.sweep.subdir": "'${trr_abspath:${output_dir}}'",
-    }
-
-
-def _task(cfg) -> int:
-    """The Hydra task: ``cfg`` is the composed recipe (Hydra drops its ``hydra`` node).
-
-    A failure prints one ``error:`` line and records its exit code for :func:`run_recipe` (a
-    job may run in another process), so that a multirun goes on with its other jobs; an
-    interrupt names the last finished stage and ends the command (130).
-    """
-    from hydra.core.hydra_config import HydraConfig
-
-    from torchrl_recon.experiments.compose import register_resolvers
-    from torchrl_recon.experiments.runner import run
-
-    register_resolvers()  # again, in case a launcher's worker process starts without them
-    # TorchRL logs one INFO line per replay buffer it fills, which drowns the run's output.
-    if "TORCHRL_LOGGING_LEVEL" not in os.environ:
+def _task(cfg: DictConfig) -> int:
+    """The Hydra job. A failure prints one ``error:`` line and appends its exit code to the
+    status file (a multirun goes on); an interrupt names the last finished stage (130)."""
+    if "TORCHRL_LOGGING_LEVEL" not in os.environ:  # one INFO line per replay buffer filled
         logging.getLogger("torchrl").setLevel(logging.WARNING)
     argv = json.loads(os.environ.get(_ARGV_ENV, "null")) or list(sys.argv)
-    hydra_cfg = HydraConfig.get() if HydraConfig.initialized() else None
-    extra = {}
-    if hydra_cfg is not None:
-        extra["job_overrides"] = list(hydra_cfg.overrides.task)
-        extra["hydra_mode"] = getattr(hydra_cfg.mode, "name", str(hydra_cfg.mode)).lower()
+    job = HydraConfig.get()
+    extra = {"job_overrides": list(job.overrides.task), "hydra_mode": job.mode.name.lower()}
     try:
         run(cfg, argv=argv, extra_meta=extra)
-    except KeyboardInterrupt:
-        try:
-            run_dir = Path(str(cfg.output_dir)).expanduser().resolve()
-        except Exception:  # an interpolation that does not resolve: no directory to name
-            run_dir = None
-        raise SystemExit(_interrupted(run_dir)) from None
+    except KeyboardInterrupt:  # name the run directory, if its path resolves
+        out = OmegaConf.select(cfg, "output_dir", throw_on_resolution_failure=False)
+        raise SystemExit(_interrupted(Path(out).expanduser().resolve() if out else None)) from None
     except Exception as e:
         code = report(e)
         if not os.environ.get(_STATUS_ENV):  # not started by run_recipe: end as a command would
@@ -181,49 +123,27 @@ def _task(cfg) -> int:
     return EXIT_OK
 
 
-_HYDRA_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
-_HYDRA_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+_VALUE_FLAGS = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn")
+_INFO_TOPICS = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
 
 
 def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
     """Split Hydra command line items into flags (``--cfg job`` ...) and overrides."""
-    flags, rest, i = [], [], 0
-    while i < len(items):
-        item, value = items[i], items[i + 1] if i + 1 < len(items) else None
-        if not item.startswith("-"):
-            rest.append(item)
-        elif value is not None and (
-            item in _HYDRA_FLAGS_WITH_VALUE
-            or (item in ("--info", "-i") and value in _HYDRA_INFO_TOPICS)
-        ):
-            flags += [item, value]
-            i += 1
-        else:
-            flags.append(item)
-        i += 1
-    return flags, rest
+    flags, plain, items = [], [], list(items)
+    while items:
+        item = items.pop(0)
+        (flags if item.startswith("-") else plain).append(item)
+        info = item in ("--info", "-i") and items[:1] and items[0] in _INFO_TOPICS
+        if items and (item in _VALUE_FLAGS or info):
+            flags.append(items.pop(0))
+    return flags, plain
 
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
-    """Validate every job of the command before Hydra starts anything; return the overrides
-    to hand to Hydra (a schema key the recipe lacks gets its ``++``).
-
-    Each job of a sweep (the product of the command line's sweeps and the recipe's own
-    ``hydra.sweeper.params``) is composed by Hydra and checked on its own, and so is its run
-    directory (an existing run there must have the same config). With ``here`` (the jobs run
-    on this machine), each job's ``device`` must exist on it. Every job validates its composed
-    config again before doing any work.
-
-    Raises:
-        FileNotFoundError / RecipeError (ValueError) / RunDirConflict: with a message naming
-            the file, key or directory.
-    """
-    from torchrl_recon.devices import resolve_device
-    from torchrl_recon.experiments.compose import compose_recipe, sweep_jobs, with_additions
-    from torchrl_recon.experiments.recipe import RecipeError, validate
-    from torchrl_recon.experiments.run_dir import check_run_dir
-
-    base = compose_recipe(recipe, with_hydra=True)
+    """Check every job of the command (each sweep's, composed by Hydra), its run directory and
+    (``here``) its device before Hydra starts anything; return the overrides for Hydra. Raises
+    FileNotFoundError, RecipeError or RunDirConflict naming the file, key or directory."""
+    base = compose.compose_recipe(recipe, with_hydra=True)
     found = base.get("experiment")
     if found != kind:
         raise RecipeError(
@@ -231,16 +151,16 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
             if found in EXPERIMENTS
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
-    completed = with_additions(base, overrides)
-    for job in sweep_jobs(base, completed):
+    completed = compose.with_additions(base, overrides)
+    for job in compose.sweep_jobs(base, completed):
         swept = [o for o in job if o not in completed]
         source = f"{recipe} with {' '.join(swept)}" if swept else str(recipe)
-        checked = validate(compose_recipe(recipe, job), source=source)
-        if here:
-            try:
+        checked = validate(compose.compose_recipe(recipe, job), source=source)
+        try:
+            if here:
                 resolve_device(checked.device)
-            except ValueError as e:
-                raise RecipeError(f"{source}: {e}") from e
+        except ValueError as e:
+            raise RecipeError(f"{source}: {e}") from e
         check_run_dir(checked)
     return completed
 
@@ -253,60 +173,40 @@ def run_recipe(
     *,
     debug: bool = False,
 ) -> int:
-    """Run a recipe (a path, or a shipped recipe's name) through ``hydra.main``; returns the
-    exit code.
-
-    Hydra reads its command line from ``sys.argv``: for the duration of the call it is
-    ``[prog, *Hydra flags, <hydra settings>, *overrides]`` (plus ``--multirun``), the recipe
-    being the app's config. Every failure prints one ``error:`` line; the code is 0, 2 (user
-    error: recipe, file, run directory), 130 (interrupted) or 1 (a bug). In a multirun, a job
-    that fails does not stop the others; the worst code is returned. ``debug`` shows
-    tracebacks (as ``HYDRA_FULL_ERROR=1``).
-    """
-    import hydra
-    from hydra.errors import HydraException
-
-    from torchrl_recon.experiments.compose import hydra_error_message, search_path_override
-    from torchrl_recon.experiments.recipe import resolve_recipe_path
-    from torchrl_recon.experiments.run_dir import RunDirConflict
-
+    """Run a recipe (a path or a shipped name) through ``hydra.main`` (``sys.argv`` set for the
+    call); return the exit code (0, 2 a user error, 130 interrupted, 1 a bug; a multirun's worst
+    job's: a failed job does not stop the others). ``debug`` shows tracebacks."""
     command = ["torchrl-recon", kind, str(recipe), *overrides] + ["--multirun"] * multirun
-    flags, plain = _split_overrides(list(overrides))
-    with _env(_DEBUG_ENV, "1" if debug or debug_enabled() else "0"):
+    flags, plain = _split_overrides(overrides)
+    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1" if debug or _debug() else "0"}):
         try:
             path = resolve_recipe_path(recipe)
             slurm = any(o.startswith("hydra/launcher=submitit_slurm") for o in plain)
-            here = not (multirun and slurm)  # the jobs' devices are checked where they run
-            plain = precheck(kind, path, plain, here=here)
+            # the jobs of a cluster check their device where they run
+            plain = precheck(kind, path, plain, here=not (multirun and slurm))
         except (FileNotFoundError, ValueError, RunDirConflict) as e:
             return report(e, EXIT_USER)
         given = {o.split("=", 1)[0].lstrip("+") for o in plain if "=" in o}
-        settings = [f"{k}={v}" for k, v in hydra_settings(kind).items() if k not in given]
+        settings = {**_HYDRA_SETTINGS, "hydra.job.name": kind}.items()
+        settings = [f"{k}={v}" for k, v in settings if k not in given]
         fd, status = tempfile.mkstemp(prefix="torchrl_recon_status_")
         os.close(fd)
-        argv = [
-            "torchrl-recon",
-            *flags,
-            *settings,
-            f"++hydra.job.env_set.{_STATUS_ENV}='{status}'",
-            search_path_override(),
-            *plain,
-        ] + ["--multirun"] * multirun
+        argv = ["torchrl-recon", *flags, *settings, f"++hydra.job.env_set.{_STATUS_ENV}='{status}'"]
+        argv += [compose.SEARCH_PATH, *plain] + ["--multirun"] * multirun
         config_dir = str(path.resolve().parent)
         app = hydra.main(version_base="1.3", config_path=config_dir, config_name=path.stem)(_task)
         code = EXIT_OK
+        # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them
         try:
-            # HYDRA_FULL_ERROR=1: Hydra raises its own errors instead of printing them (jobs
-            # catch theirs)
-            with mock.patch.object(sys, "argv", argv), _env(_ARGV_ENV, json.dumps(command)):
-                with _env("HYDRA_FULL_ERROR", "1"):
-                    app()
+            env = {_ARGV_ENV: json.dumps(command), "HYDRA_FULL_ERROR": "1"}
+            with mock.patch.object(sys, "argv", argv), mock.patch.dict(os.environ, env):
+                app()
         except SystemExit as e:
             code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         except KeyboardInterrupt:  # outside a job (Hydra starting up): nothing to resume
             code = _interrupted(None)
         except HydraException as e:  # a bad Hydra setting or config group choice
-            code = report(e, EXIT_USER, hydra_error_message(e))
+            code = report(e, EXIT_USER, compose.hydra_error_message(e))
         except Exception as e:
             code = report(e)
         finally:
@@ -315,49 +215,8 @@ def run_recipe(
         return code or max(jobs, default=EXIT_OK)
 
 
-# ----------------------------------------------------------------------------------------------
-# Commands
-
-
-def _experiment(args: argparse.Namespace) -> int:
-    overrides, multirun = list(args.overrides), args.multirun
-    for flag in ("-m", "--multirun", "--debug"):  # after the recipe: left in the overrides
-        while flag in overrides:
-            overrides.remove(flag)
-            if flag == "--debug":
-                os.environ[_DEBUG_ENV] = "1"
-            else:
-                multirun = True
-    return run_recipe(args.command, args.recipe, overrides, multirun=multirun)
-
-
-def _summarize(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments import summary as summaries
-    from torchrl_recon.experiments.run_dir import read_results
-
-    files = summaries.find_results(args.dirs)
-    if not files:
-        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
-    results = {f: read_results(f) for f in files}
-    by_kind: dict[str, list[Path]] = {}
-    for f, r in results.items():
-        by_kind.setdefault(str(r.get("experiment")), []).append(f)
-    if args.out is not None:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-    for kind, kind_files in sorted(by_kind.items()):
-        summary = summaries.summarize(kind_files)
-        print(f"{len(kind_files)} {kind} result file(s)\n{summaries.format_table(summary)}\n")
-        if args.out is not None:
-            path, *figures = summaries.save_summary(
-                summary, [results[f] for f in kind_files], args.out
-            )
-            print(f"summary: {path}" + "".join(f"\nfigure: {f}" for f in figures))
-    return EXIT_OK
-
-
 def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
-    """``(kind, name, first comment line)`` of each recipe shipped in the package (of ``kind``
-    only, if given); a name runs from any folder (``torchrl-recon explore drone/explore``).
+    """``(kind, name, first comment line)`` of each shipped recipe (of ``kind`` only, if given).
 
     Examples:
         >>> ("explore", "drone/explore_smoke") in [r[:2] for r in shipped_recipes("explore")]
@@ -373,88 +232,81 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
     return sorted(out, key=lambda r: list(EXPERIMENTS).index(r[0]))
 
 
-def _recipes(args: argparse.Namespace) -> int:
-    from torchrl_recon.experiments.tables import render
+def _experiment(args: argparse.Namespace) -> int:
+    given = args.overrides  # -m and --debug after the recipe are left in the overrides
+    overrides = [o for o in given if o not in ("-m", "--multirun", "--debug")]
+    multirun = args.multirun or bool({"-m", "--multirun"} & set(given))
+    return run_recipe(args.command, args.recipe, overrides, multirun, debug="--debug" in given)
 
-    rows = [list(r) for r in shipped_recipes(args.kind)]
-    print(render(["kind", "recipe", "about"], rows))
+
+def _summarize(args: argparse.Namespace) -> int:
+    files = summary.find_results(args.dirs)
+    if not files:
+        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
+    results = {f: read_results(f) for f in files}
+    by_kind: dict[str, list[Path]] = {}
+    for f, r in results.items():
+        by_kind.setdefault(str(r.get("experiment")), []).append(f)
+    for kind, kind_files in sorted(by_kind.items()):
+        found = summary.summarize(kind_files)
+        print(f"{len(kind_files)} {kind} result file(s)\n{summary.format_table(found)}\n")
+        if args.out is not None:
+            saved = summary.save_summary(found, [results[f] for f in kind_files], args.out)
+            print(f"summary: {saved[0]}" + "".join(f"\nfigure: {f}" for f in saved[1:]))
+    return EXIT_OK
+
+
+def _recipes(args: argparse.Namespace) -> int:
+    print(render(["kind", "recipe", "about"], [list(r) for r in shipped_recipes(args.kind)]))
     return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:
-    experiments = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
-    parser = argparse.ArgumentParser(
-        prog="torchrl-recon",
-        description="TorchRL reproduction of Di Palo & Valpola: the paper's "
-        "experiments, and their summaries.",
-        epilog=f"experiments (paper §3):\n{experiments}\n\n"
-        "examples:\n"
-        "  torchrl-recon explore recipes/industrial_benchmark/explore_smoke.yaml\n"
-        "  torchrl-recon control drone/control seed=3 logger.backend=csv\n"
-        "  torchrl-recon explore recipes/drone/explore.yaml -m seed=0,1,2,3,4 "
-        "hydra/launcher=joblib hydra.launcher.n_jobs=2\n"
-        "  torchrl-recon summarize outputs/explore/drone\n"
-        "  torchrl-recon recipes\n\n"
-        "exit codes: 0 done; 2 bad recipe, missing or damaged file, locked or conflicting run\n"
-        "directory; 130 interrupted (re-run the same command to resume); 1 a bug (see --debug).\n\n"
-        "Details: docs/experiments.md",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
-    parser.add_argument("--debug", action="store_true", help=debug_help)
+    """The command line's parser: one command per experiment kind, ``summarize``, ``recipes``."""
+    raw = {"formatter_class": argparse.RawDescriptionHelpFormatter}
+    kinds = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    epilog = f"experiments (paper §3):\n{kinds}\n\n{_EXAMPLES}"
+    parser = argparse.ArgumentParser("torchrl-recon", description=_ABOUT, epilog=epilog, **raw)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
+    debug_help = "show tracebacks (as HYDRA_FULL_ERROR=1 does); exit codes stay the same"
+    for p, default in ((parser, False), (common, argparse.SUPPRESS)):
+        p.add_argument("--debug", action="store_true", default=default, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for kind, text in EXPERIMENTS.items():
-        names = "\n".join(f"  {name}" for _, name, _ in shipped_recipes(kind))
+        names = "".join(f"\n  {name}" for _, name, _ in shipped_recipes(kind))
+        description, epilog = f"{text}. {_RUN_HELP}", f"{_RECIPES_HELP}{names}"
         p = sub.add_parser(
-            kind,
-            parents=[common],
-            help=text,
-            description=f"{text}. Runs RECIPE through Hydra: overrides are key=value "
-            "(e.g. seed=3 guided.ratio=1.5, +key=value to add one); -m sweeps "
-            "comma-separated values with Hydra's multirun; Hydra flags such as "
-            "`--cfg job` pass through. Re-running the same command resumes a stopped run.",
-            epilog=f"recipes (by name, from any folder; or a path to your own):\n{names}",
-            formatter_class=argparse.RawDescriptionHelpFormatter,
+            kind, parents=[common], help=text, description=description, epilog=epilog, **raw
         )
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
+        overrides_help = "key=value overrides of the recipe (Hydra syntax)"
         p.add_argument(
-            "overrides",
-            nargs=argparse.REMAINDER,
-            metavar="OVERRIDE",
-            help="key=value overrides of the recipe (Hydra syntax)",
+            "overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=overrides_help
         )
         p.add_argument("-m", "--multirun", action="store_true", help="run a Hydra multirun sweep")
         p.set_defaults(func=_experiment)
-    summ = sub.add_parser(
-        "summarize",
-        parents=[common],
-        help="aggregate results.json files across seeds (Table 1 statistics, control means)",
-        description="Find results.json below each DIR, aggregate them per experiment kind and "
-        "environment, and print the tables.",
-    )
-    summ.add_argument("dirs", nargs="+", metavar="DIR")
-    summ.add_argument(
-        "--out", default=None, help="also write summary_<kind>.json and figures to this directory"
-    )
-    summ.set_defaults(func=_summarize)
-    rec = sub.add_parser(
-        "recipes", parents=[common], help="list the shipped recipes (kind, name, what it runs)"
-    )
-    rec.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
-    rec.set_defaults(func=_recipes)
+    about = "aggregate results.json files across seeds (Table 1 statistics, control means)"
+    p = sub.add_parser("summarize", parents=[common], help=about, description=_SUMMARIZE_HELP)
+    p.add_argument("dirs", nargs="+", metavar="DIR")
+    p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
+    p.set_defaults(func=_summarize)
+    about = "list the shipped recipes (kind, name, what it runs)"
+    p = sub.add_parser("recipes", parents=[common], help=about)
+    p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
+    p.set_defaults(func=_recipes)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit code (0, 2 user error, 130 interrupted, 1 bug).
-
-    Every failure ends in one ``error: ...`` line on stderr; ``--debug`` (or
-    ``HYDRA_FULL_ERROR=1``) also prints the traceback.
-    """
+    """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
-    with _env(_DEBUG_ENV, "1" if getattr(args, "debug", False) else None), _sigterm_as_interrupt():
+    debug = {_DEBUG_ENV: "1"} if getattr(args, "debug", False) else {}
+    # SIGTERM interrupts as Ctrl-C does (unless it is ignored or handled)
+    sigterm = threading.current_thread() is threading.main_thread()
+    sigterm = sigterm and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    if sigterm:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    with mock.patch.dict(os.environ, debug):
         try:
             torch.set_num_threads(min(2, torch.get_num_threads()))
             return args.func(args)
@@ -462,6 +314,9 @@ def main(argv: list[str] | None = None) -> int:
             return _interrupted(None)
         except Exception as e:
             return report(e)
+        finally:
+            if sigterm:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 if __name__ == "__main__":

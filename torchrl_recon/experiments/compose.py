@@ -1,56 +1,38 @@
-"""Compose a recipe with Hydra's own composition: defaults lists, config groups, packages, sweeps.
-
-The CLI's jobs are composed by Hydra; checking a recipe before any work composes it the same way
-(:func:`compose_recipe`), with the shipped recipes on Hydra's search path so that a recipe
-anywhere can extend a shipped one (``defaults: [/drone/explore@_here_, _self_]``).
-"""
+"""Compose a recipe with Hydra's own composition: defaults lists, config groups, sweeps; with the
+shipped recipes on its search path (``defaults: [/drone/explore@_here_, _self_]`` anywhere)."""
 
 from __future__ import annotations
 
 import contextlib
 import itertools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import OverrideType
+from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_recon.errors import RecipeError
 
 RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
-"""The recipes shipped inside the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``
-links here), on Hydra's search path of every recipe."""
+"""The recipes shipped in the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``)."""
+SEARCH_PATH = f"hydra.searchpath=[file://{RECIPES_DIR}]"  # the override that adds RECIPES_DIR
 MAX_SWEEP_JOBS = 10_000
 
-
-def env_name_of(gym_id: str | None) -> str | None:
-    """The name a run gives a gymnasium env (in its directory, tables and loggers): the id
-    without its ``module:`` prefix, with ``/`` as ``_``; the ``${trr_env_name:...}`` resolver
-    of the recipes.
-
-    Examples:
-        >>> env_name_of("Pendulum-v1"), env_name_of("my_envs:Cart-v0"), env_name_of("ALE/Pong-v5")
-        ('Pendulum-v1', 'Cart-v0', 'ALE_Pong-v5')
-    """
-    return None if gym_id is None else str(gym_id).rpartition(":")[2].replace("/", "_")
-
-
-def register_resolvers() -> None:
-    """The resolvers of the recipes and of the CLI's Hydra settings: ``${trr_env_name:<id>}``
-    (:func:`env_name_of`), ``${trr_parent:<path>}`` and ``${trr_abspath:<path>}`` (where a
-    sweep's directories go). Called at import: every path that composes a recipe, and each
-    joblib worker that unpickles a CLI job, imports this module."""
-    resolvers = {
-        "trr_env_name": env_name_of,
-        "trr_parent": lambda p: str(Path(str(p)).parent),
-        "trr_abspath": lambda p: str(Path(str(p)).expanduser().resolve()),
-    }
-    for name, fn in resolvers.items():
-        OmegaConf.register_new_resolver(name, fn, replace=True)
-
-
-register_resolvers()
+# The recipes' and the CLI's resolvers, registered by every import (a launcher's workers too).
+for _name, _resolver in {
+    # a gymnasium id as a run's name: without its ``module:`` prefix, "/" as "_"
+    "trr_env_name": lambda i: None if i is None else str(i).rpartition(":")[2].replace("/", "_"),
+    "trr_parent": lambda p: str(Path(str(p)).parent),
+    "trr_abspath": lambda p: str(Path(str(p)).expanduser().resolve()),
+}.items():
+    OmegaConf.register_new_resolver(_name, _resolver, replace=True)
 
 
 def hydra_error_message(error: BaseException) -> str:
@@ -66,69 +48,37 @@ def hydra_error_message(error: BaseException) -> str:
     return " ".join([head, *rest])
 
 
-def search_path_override() -> str:
-    """The Hydra override that puts :data:`RECIPES_DIR` on the config search path."""
-    return f"hydra.searchpath=[file://{RECIPES_DIR}]"
-
-
-@contextlib.contextmanager
-def _own_hydra() -> Iterator[None]:
-    """Let ``hydra.compose`` run inside a running Hydra app (e.g. a calibrate job loading the
-    explore recipe it runs): the app's global state is set aside and restored afterwards."""
-    from hydra.core.global_hydra import GlobalHydra
-
-    global_hydra = GlobalHydra.instance()
-    running = global_hydra.hydra if global_hydra.is_initialized() else None
-    global_hydra.clear()
-    try:
-        yield
-    finally:
-        global_hydra.clear()
-        if running is not None:
-            global_hydra.initialize(running)
-
-
 def compose_recipe(
     path: str | Path, overrides: Sequence[str] = (), *, with_hydra: bool = False
 ) -> DictConfig:
-    """The config Hydra composes from the recipe file ``path`` and ``overrides`` (no sweeps).
-
-    Args:
-        path: the recipe YAML file.
-        overrides: Hydra overrides (``key=value``, ``+key=value``, ``~key``, ``group=option``).
-        with_hydra: keep the ``hydra`` node (its ``runtime.choices`` and ``sweeper.params``).
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        RecipeError: Hydra cannot compose it; the message names the file.
+    """The config Hydra composes from the recipe file ``path`` and ``overrides`` (no sweeps),
+    with its ``hydra`` node if ``with_hydra``; inside a running Hydra app too. Raises
+    FileNotFoundError, or a RecipeError naming the file.
 
     Examples:
         >>> cfg = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", ["seed=3"])
         >>> cfg.env.name, cfg.seed
         ('drone', 3)
     """
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"Recipe file not found: {path}")
-    overrides = [search_path_override(), *overrides]
+    running = GlobalHydra.instance().hydra  # a running app's (a job loading another recipe)
+    GlobalHydra.instance().clear()
     try:
-        with _own_hydra(), initialize_config_dir(str(path.resolve().parent), version_base="1.3"):
-            return compose(path.stem, overrides=overrides, return_hydra_config=with_hydra)
+        with initialize_config_dir(str(path.resolve().parent), version_base="1.3"):
+            return compose(path.stem, [SEARCH_PATH, *overrides], return_hydra_config=with_hydra)
     except (HydraException, OmegaConfBaseException) as e:
         raise RecipeError(f"{path}: {hydra_error_message(e)}") from e
+    finally:
+        GlobalHydra.instance().hydra = running
 
 
 def _parse(overrides: Sequence[str]) -> list[Any]:
     """Hydra's own parse of each override (its key, type, sweep)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     try:
         return OverridesParser.create().parse_overrides(list(overrides))
-    except Exception as e:  # hydra.errors.OverrideParseException
+    except HydraException as e:  # OverrideParseException
         raise RecipeError(
             f"cannot parse the overrides {list(overrides)}: {str(e).strip().splitlines()[0]} "
             "(Hydra's override syntax: key=value, +key=value, ~key; quote values holding "
@@ -137,13 +87,8 @@ def _parse(overrides: Sequence[str]) -> list[Any]:
 
 
 def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
-    """``overrides`` with ``++`` before each plain ``key=value`` Hydra would refuse as written:
-    a key the recipe lacks, or a mapping merged into one of the recipe's (``env.kwargs: {}``).
-
-    Hydra only overrides keys a recipe has, and cannot merge new keys into a mapping; the
-    schema has more keys (``threads``, ``env.kwargs``, ...); the schema check afterwards refuses
-    a key that is not a field. ``base`` is the composed recipe with its ``hydra`` node (for the
-    config group names).
+    """``overrides`` with ``++`` before each ``key=value`` Hydra would refuse: a key the recipe
+    lacks (the schema refuses what is not a field), or a mapping merged into one of the recipe's.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "control.yaml", with_hydra=True)
@@ -153,11 +98,11 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
     groups = set(base.hydra.runtime.choices) if "hydra" in base else set()
     out = []
     for text, o in zip(overrides, _parse(overrides), strict=True):
-        plain = o.type.name == "CHANGE" and o.package is None and not o.is_hydra_override()
+        plain = o.type == OverrideType.CHANGE and o.package is None and not o.is_hydra_override()
         if plain and o.key_or_group not in groups:
             absent = OmegaConf.select(base, o.key_or_group, default=_ABSENT) is _ABSENT
             if absent or (not o.is_sweep_override() and isinstance(o.value(), dict)):
-                text = f"++{text}"  # add the key, or merge a mapping into a closed one
+                text = f"++{text}"
         out.append(text)
     return out
 
@@ -165,16 +110,16 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
 _ABSENT = object()
 
 
+def _is_sweep(o: Any) -> bool:
+    return o.is_sweep_override() and not o.is_hydra_override()
+
+
 def sweep_jobs(
     base: DictConfig, overrides: Sequence[str], *, recipe_params: bool = True
 ) -> list[list[str]]:
-    """The overrides of each job of a multirun: the product of every sweep, Hydra's basic way.
-
-    Sweeps come from the command line (``seed=0,1``) and from the recipe's own
-    ``hydra.sweeper.params`` (unless ``recipe_params`` is False, as for a single run; a
-    command-line sweep of the same key wins). A job's list holds ``key=value`` for each swept
-    key plus the other overrides unchanged. Sweeps that need the config to expand
-    (``glob(...)``) are left to Hydra and checked by its jobs.
+    """Each job's overrides: the product of the sweeps, as Hydra's basic sweeper makes them, of
+    the command line and (``recipe_params``) of ``hydra.sweeper.params``, the command line's
+    first; ``glob(...)`` and other sweeps that need the config are left to Hydra's jobs.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", with_hydra=True)
@@ -184,34 +129,18 @@ def sweep_jobs(
     params = (
         dict(base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
     )
-    fixed, swept = [], {}
-    for text, o in zip(overrides, _parse(overrides), strict=True):
-        if o.is_sweep_override() and not o.is_hydra_override():
-            swept[text.split("=", 1)[0]] = o
-        else:
-            fixed.append(text)
+    given = list(zip(overrides, _parse(overrides), strict=True))
+    for _, o in given:
         params.pop(o.key_or_group, None)
-    from_recipe = {}
-    for key, value in params.items():
-        o = _parse([f"{key}={value}"])[0]
-        if o.is_sweep_override():
-            from_recipe[key] = o
-        else:
-            fixed.append(f"{key}={value}")
+    texts = [f"{key}={value}" for key, value in params.items()]
+    recipe = list(zip(texts, _parse(texts), strict=True))
+    fixed = [text for text, o in given + recipe if not _is_sweep(o)]
+    sweeps = {text.split("=", 1)[0]: o for text, o in recipe + given if _is_sweep(o)}
     values = []
-    for key, o in {**from_recipe, **swept}.items():
-        try:
-            values.append([f"{key}={_text(v)}" for v in o.sweep_iterator()])
-        except Exception:  # glob() and other sweeps that need the config: left to the jobs
-            continue
+    for key, o in sweeps.items():
+        with contextlib.suppress(HydraException):  # glob() and the like: left to the jobs
+            values.append([f"{key}={v}" for v in o.sweep_string_iterator()])
     count = math.prod(len(v) for v in values)
     if count > MAX_SWEEP_JOBS:
         raise RecipeError(f"the sweep has {count} jobs; at most {MAX_SWEEP_JOBS} are checked.")
     return [[*fixed, *combo] for combo in itertools.product(*values)]
-
-
-def _text(value: Any) -> str:
-    """A sweep value written back as override text (strings quoted when they need it)."""
-    if isinstance(value, str):
-        return value if value.replace("_", "").replace("-", "").isalnum() else repr(value)
-    return str(value).lower() if isinstance(value, bool) else str(value)

@@ -8,23 +8,14 @@ import os
 from omegaconf import DictConfig
 from torchrl.record.loggers import Logger, get_logger
 
-from torchrl_recon.experiments.recipe import experiment_name
 from torchrl_recon.experiments.run_dir import flat_config
 
 
 def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | None:
-    """TorchRL's logger of ``cfg.logger.backend``, with the flattened config logged to it
-    (``None`` values as the string ``"None"``, which wandb takes); ``none``: no logger.
-
-    * ``wandb``: :class:`~torchrl.record.loggers.WandbLogger` writing under ``<run_dir>/wandb``;
-      offline unless ``cfg.logger.mode == "online"`` (offline needs no account and no network;
-      push later with ``wandb sync <run_dir>/wandb/offline-run-*``). ``WANDB_SILENT`` is set.
-    * ``csv``: :class:`~torchrl.record.loggers.CSVLogger`, scalars in
-      ``<run_dir>/<exp_name>/scalars/<name>.csv`` and the config in ``.../texts/hparams_*.txt``.
-
-    The experiment name is ``<experiment>_<env>_seed<seed>``.
-    """
-    backend, kind, env = cfg.logger.backend, cfg.experiment, cfg.env.name
+    """TorchRL's logger of ``cfg.logger.backend`` (``none``: None) under ``run_dir``, named
+    ``<experiment>_<env>_seed<seed>``, the flattened config its hparams (``None`` as "None", for
+    wandb); wandb runs offline unless ``cfg.logger.mode`` is "online"."""
+    kind, env, backend = cfg.experiment, cfg.env.name, cfg.logger.backend
     if backend == "wandb":
         os.environ.setdefault("WANDB_SILENT", "true")
     wandb_kwargs = dict(
@@ -35,14 +26,14 @@ def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | No
         tags=[kind, env, f"seed{cfg.seed}"],
         log_env_packages=False,  # versions are in meta.json and in the logged config
     )
-    backend = "" if backend == "none" else backend
-    logger = get_logger(backend, str(run_dir), experiment_name(cfg), wandb_kwargs=wandb_kwargs)
+    name, backend = f"{kind}_{env}_seed{cfg.seed}", "" if backend == "none" else backend
+    logger = get_logger(backend, str(run_dir), name, wandb_kwargs=wandb_kwargs)
     if logger is not None:
         logger.log_hparams({k: "None" if v is None else v for k, v in flat_config(cfg).items()})
     return logger
 
 
 def shutdown_logger(logger: Logger | None) -> None:
-    """Flush and close ``logger`` (finishes the wandb run)."""
+    """Flush and close ``logger`` (finishes the wandb run); nothing for None."""
     if logger is not None:
         logger.shutdown()

@@ -1,10 +1,6 @@
-"""The registry of experiment kinds: the CLI, the runner, the recipe checks, ``summarize`` and
-the figures look a kind up here by its name.
-
-Adding a kind: a module defining its ``EXPERIMENT`` (an
-:class:`~torchrl_recon.experiments.experiment_type.ExperimentType`), listed below, and its
-recipes (``experiment: <name>``).
-"""
+"""The registry of experiment kinds, by name. A new kind: a module defining its ``EXPERIMENT``
+(an :class:`~torchrl_recon.experiments.experiment_type.ExperimentType`), listed below, and its
+recipes (``experiment: <name>``)."""
 
 from __future__ import annotations
 
@@ -20,10 +16,7 @@ EXPERIMENT_TYPES: dict[str, ExperimentType] = {
 
 
 def get_type(name: str) -> ExperimentType:
-    """The experiment kind ``name``.
-
-    Raises:
-        RecipeError: naming the kinds there are.
+    """The experiment kind ``name``; a :class:`RecipeError` names the kinds there are.
 
     Examples:
         >>> get_type("control").stage_list(None)

@@ -56,6 +56,22 @@ def test_industrial_benchmark_online_smoke(tmp_path, capsys):
     assert "online industrial_benchmark seed 0" in capsys.readouterr().out
 
 
+def test_an_exploration_round_plays_before_control(tmp_path, capsys):
+    out = tmp_path / "ib"
+    args = ["online", "industrial_benchmark/online_smoke", f"output_dir={out}"]
+    assert main([*args, "exploration.iterations=1", "exploration.cap=2.0"]) == 0
+    explored = _results(out)["iterations"]
+    assert [it["policy"] for it in explored] == ["explore", "mpc"]
+    # an exploring round runs each plan open loop (re-planning every horizon), control re-plans
+    # at every step
+    assert explored[0]["replans"] < explored[1]["replans"]
+    assert main([*args[:2], f"output_dir={tmp_path / 'control'}"]) == 0
+    controlled = _results(tmp_path / "control")["iterations"]
+    assert [it["policy"] for it in controlled] == ["mpc", "mpc"]
+    assert controlled[0]["returns"] != explored[0]["returns"]
+    capsys.readouterr()
+
+
 def test_pendulum_online_smoke_with_a_termination_resumes_to_the_same_numbers(
     costs, tmp_path, capsys
 ):
@@ -83,6 +99,8 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         ("planner.kind=mpc", "'planner.kind'"),
         ("random_steps=20", "'random_steps'"),
         ("warmup=sometimes", "'warmup'"),
+        ("exploration.iterations=3", "'exploration.iterations' must be at most iterations = 2"),
+        ("exploration.beta=1", "'exploration.beta'"),
     ):
         assert main([*base, f"output_dir={out}", override]) == 2
         err = capsys.readouterr().err

@@ -202,6 +202,25 @@ class GuidedConfig:
 
 
 @dataclass
+class OnlineExplorationConfig:
+    """The online loop's first ``iterations`` rounds played by an ``ExplorationPolicy`` with the
+    recipe's ``planner``: Σu in [``ratio``, ``cap``] × the mean over candidates, ``beta = -1``
+    maximising it (as ``guided``); 0 rounds: control from the first."""
+
+    iterations: int = count(0, 0)
+    ratio: float = checked(
+        1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
+    )
+    cap: float | None = None
+    beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
+
+    def more_errors(self) -> Iterator[tuple[str, str]]:
+        """``cap`` above ``ratio``."""
+        if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
+            yield "cap", f" must be null or above ratio = {self.ratio}, got {self.cap!r}"
+
+
+@dataclass
 class RunConfig:
     """What every experiment run has. ``device``: ``auto`` (CUDA when available), ``cpu``,
     ``cuda`` or ``cuda:N``, for the networks (the envs stay on the CPU). ``num_envs``: envs
@@ -271,7 +290,8 @@ class OnlineConfig(RunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
     (``refit_steps``) planning for Σ(α·r − β·u); ``warmup``: what the steps before each
-    episode's first plan do (see :class:`~torchrl_recon.policies.MPCPolicy`)."""
+    episode's first plan do (see :class:`~torchrl_recon.policies.MPCPolicy`); ``exploration``:
+    how many of the first rounds explore instead."""
 
     experiment: str = "online"
     output_dir: str = checked("outputs/online", _directory)
@@ -284,6 +304,7 @@ class OnlineConfig(RunConfig):
     beta: float = 0.0
     warmup: WarmupMode = WarmupMode.random
     replan: ReplanConfig = field(default_factory=lambda: ReplanConfig(mode=ReplanMode.every_step))
+    exploration: OnlineExplorationConfig = field(default_factory=OnlineExplorationConfig)
 
 
 def _non_empty(what: str) -> Any:

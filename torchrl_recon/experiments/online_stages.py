@@ -23,6 +23,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
+from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.training.online import (
     FitSchedule,
     append_steps,
@@ -39,19 +40,27 @@ STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 
 def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
     """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
-    ``buffers/play_<n>``, re-planning threshold from all ``data`` so far); the record holds
-    :func:`~torchrl_recon.training.online.new_steps_metrics` and the seconds spent planning and
-    in the env."""
+    ``buffers/play_<n>``, re-planning threshold from all ``data`` so far), or exploring steps in
+    the first ``exploration.iterations`` rounds; the record holds
+    :func:`~torchrl_recon.training.online.new_steps_metrics`, the seconds spent planning and in
+    the env, and which ``policy`` played."""
     cfg, name = ctx.cfg, f"play_{n}"
 
     def run() -> dict:
-        start, threshold = time.perf_counter(), None
-        if str(cfg.replan.mode) == "uncertainty":
-            length = cfg.training.slice_len
-            u = window_uncertainty(data, model.uncertainty, sequence_length=length)
-            threshold = replan_threshold(cfg, u)
-        planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
-        mpc = mpc_policy(cfg, planner, threshold, warmup=str(cfg.warmup))
+        start, threshold, e = time.perf_counter(), None, cfg.exploration
+        if n <= e.iterations:  # the exploration phase
+            objective = exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta)
+            mpc = ExplorationPolicy(
+                build_planner(cfg.planner, model, objective), warmup=str(cfg.warmup)
+            )
+        else:
+            if str(cfg.replan.mode) == "uncertainty":
+                length = cfg.training.slice_len
+                u = window_uncertainty(data, model.uncertainty, sequence_length=length)
+                threshold = replan_threshold(cfg, u)
+            objective = Objective(alpha=cfg.alpha, beta=cfg.beta)
+            planner = build_planner(cfg.planner, model, objective)
+            mpc = mpc_policy(cfg, planner, threshold, warmup=str(cfg.warmup))
         seed = ctx.stage_seed(name)
         env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
         new, plan_s = play(
@@ -61,6 +70,7 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
         seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
         record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}
+        record["policy"] = "explore" if n <= e.iterations else "mpc"
         if ctx.logger is not None:
             for key in ("model_error", "mean_u", "replans"):
                 ctx.logger.log_scalar(f"online/{key}", record[key], step=n)

@@ -292,7 +292,8 @@ def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | N
 
 def online_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The online recipe's own checks: random data that holds two training slices, episodes
-    long enough to plan in, and the planner built with the recipe's objective."""
+    long enough to plan in, the planner built with the recipe's objective (and the exploration
+    objective when the first rounds explore)."""
     from torchrl_recon.planners import Objective
 
     _data_errors(errors, "env.episode_steps", "random_steps")
@@ -302,3 +303,18 @@ def online_errors(cfg: DictConfig, errors: _Errors) -> None:
         lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
         f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
     )
+    e = cfg.exploration
+    errors.need(
+        "exploration.iterations",
+        e.iterations <= cfg.iterations,
+        f"at most iterations = {cfg.iterations} (the rounds that explore)",
+    )
+    if e.iterations > 0:
+        from torchrl_recon.policies import exploration_objective
+
+        _planner_errors(
+            errors,
+            "planner",
+            lambda: exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta),
+            f"with the exploration objective: alpha 0, exploration.beta = {e.beta}",
+        )

@@ -182,16 +182,10 @@ def figures(results: Mapping[str, Any]) -> Figures:
 
 def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
     """``control_errors_<env>.png`` for each env of the summary, with each seed's mean as a dot."""
-    out = []
-    for env, s in summary["envs"].items():
-        seeds = (s.get("across_seeds") or {}).get("settings", {})
-        settings = {
-            name: {**entry, "per_seed": seeds.get(name, {}).get("per_seed", {})}
-            for name, entry in s["settings"].items()
-        }
-        figure = plot_control_errors({"env": env, **s, "settings": settings})
-        out.append((f"control_errors_{env}.png", figure))
-    return out
+    envs = summary["envs"].items()
+    return [
+        (f"control_errors_{env}.png", plot_control_errors({"env": env, **s})) for env, s in envs
+    ]
 
 
 def check(cfg, errors, recipes) -> None:

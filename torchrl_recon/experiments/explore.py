@@ -23,11 +23,9 @@ def _ratio(active: float, random: float) -> float:
 
 
 def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Table 1 across seeds of one env: per seed, the arm means over retrainings; across seeds,
-    mean ± sample std of those means for each arm, the ratio active / random of the means, the
-    paired tests (:func:`~torchrl_recon.evaluation.significance.paired_tests`) and
-    :func:`~torchrl_recon.evaluation.significance.significance` (bootstrap interval of the mean
-    per-seed ratio, directions, Cohen's d_z, power against the paper's ratio)."""
+    """Table 1 across seeds of one env: each arm's mean ± sample std of the per-seed means, their
+    ratio, and the tests and :func:`~torchrl_recon.evaluation.significance.significance` of the
+    per-seed pairs."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
     seeds = [r.get("seed") for r in runs]
     if len(set(seeds)) != len(seeds):

@@ -89,11 +89,11 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
 
 def plot_control_errors(results: Mapping[str, Any]) -> Figure:
     """Fig. 3 style: per setting, mean ± std over episodes of the :data:`CONTROL_PANELS` metrics,
-    of a control results dict or an env of a summary (``settings: {name: {"mean", "std"}}``);
-    a setting's optional ``per_seed: {metric: [values]}`` is drawn as one dot per seed."""
+    of a control results dict or an env of a summary (``settings: {name: {"mean", "std"}}``),
+    with the per-seed means of a summary's ``across_seeds`` as dots."""
     if not (settings := results.get("settings") or {}):
         raise ValueError("plot_control_errors needs results with at least one setting.")
-    names = list(settings)
+    names, seeds = list(settings), (results.get("across_seeds") or {}).get("settings", {})
     fig = _figure(max(10.0, 1.0 * len(names) * 4 / 2.5), 3.6)
     colors = [f"C{i % 10}" for i in range(len(names))]
     for ax, (key, label) in zip(fig.subplots(1, len(CONTROL_PANELS)), CONTROL_PANELS, strict=True):
@@ -101,7 +101,7 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
         stds = _finite([settings[n]["std"].get(key, math.nan) for n in names])
         ax.bar(range(len(names)), means, yerr=stds, capsize=3, color=colors, alpha=0.85)
         for i, n in enumerate(names):  # a summary's per-seed means, as dots
-            if points := (settings[n].get("per_seed") or {}).get(key, []):
+            if points := seeds.get(n, {}).get("per_seed", {}).get(key, []):
                 ax.plot([i] * len(points), points, "o", color="black", ms=3, alpha=0.7)
         _name_axis(ax, names, label, rotation=45)
     env, seed = results.get("env", ""), results.get("seed")

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from torchrl_recon.archive import verify_results
+from torchrl_recon.devices import processor
 from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
 from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.results_check import check_results
@@ -76,26 +77,9 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
         "experiment": kinds[0],
         "files": [f.as_posix() for f in files],
         "envs": {env: kind.summarize_env(runs) for env, runs in by_env.items()},
-        "processors": sorted({processor(r) for r in results}),
+        "processors": sorted({processor(r.get("meta", {}).get("device")) for r in results}),
         "archives": archives,
     }
-
-
-def processor(results: Mapping[str, Any]) -> str:
-    """The device a run was made on, from its ``meta`` (results are bit-identical only on the
-    same commit and the same kind of processor).
-
-    Examples:
-        >>> meta = {"device": {"device": "cpu", "cpu_model": "AMD EPYC", "cpu_capability": "AVX512"}}
-        >>> processor({"meta": meta}), processor({"meta": {}})
-        ('cpu: AMD EPYC (AVX512)', 'not recorded')
-    """
-    info = results.get("meta", {}).get("device")
-    if not info:
-        return "not recorded"
-    if str(info.get("device", "")).startswith("cuda"):
-        return f"{info['device']}: {info.get('name')} (CPU {info.get('cpu_model')})"
-    return f"{info.get('device')}: {info.get('cpu_model')} ({info.get('cpu_capability')})"
 
 
 def relative_to(path: str | os.PathLike[str], root: str | os.PathLike[str]) -> str:

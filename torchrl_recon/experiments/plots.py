@@ -67,10 +67,9 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
                 points = [float(r["arms"][arm]["mean"]) for r in runs]
                 mean, std = np.mean(points), np.std(points, ddof=1)
             means[arm], std, x = float(mean), float(std), i + (j - 0.5) * width
-            style = dict(capsize=4, color=ARM_COLORS[arm], label=arm if i == 0 else None)
-            ax.bar(
-                x, means[arm], width, yerr=std if math.isfinite(std) else 0.0, alpha=0.85, **style
-            )
+            yerr, label = std if math.isfinite(std) else 0.0, arm if i == 0 else None
+            style = dict(yerr=yerr, capsize=4, color=ARM_COLORS[arm], label=label, alpha=0.85)
+            ax.bar(x, means[arm], width, **style)
             jitter = np.linspace(-0.08, 0.08, len(points)) if len(points) > 1 else [0.0]
             ax.scatter(x + np.asarray(jitter), points, s=10, color="black", zorder=3, linewidths=0)
         ratio = means["active"] / means["random"] if means["random"] else float("nan")

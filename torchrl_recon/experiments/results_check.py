@@ -1,9 +1,6 @@
-"""Results are data too: the checks ``summarize`` makes on each ``results.json`` before it
-averages it. Every number must be finite, except where a kind writes NaN on purpose; and the
-numbers that repeat others must agree with them (an explore arm's ``mean`` with its ``mse``
-values, ``ratio`` with the arm means, a control setting's ``mean`` with its episodes). A file
-that breaks a rule is one :class:`~torchrl_recon.errors.DamagedFileError` naming the file, the
-key and both numbers.
+"""Results are data too: ``summarize`` refuses a ``results.json`` with a number that is not
+finite where its kind does not write NaN on purpose, or that disagrees with the numbers it
+repeats; one :class:`~torchrl_recon.errors.DamagedFileError` names the file, key and numbers.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
-"""Aggregate ``results.json`` files across seeds, print results as plain-text tables and save
-their figures: one path for every experiment kind, each kind's own part (``summarize_env``,
-tables, figures) looked up in the registry (:mod:`~torchrl_recon.experiments.registry`).
-
-Results are data too: each ``results.json`` is checked before it is used
-(:func:`~torchrl_recon.experiments.results_check.check_results`), and published ones against
-the SHA-256 manifest of their folder's records archive (:mod:`~torchrl_recon.archive`).
+"""Aggregate ``results.json`` files across seeds, print them as plain-text tables and save their
+figures, each kind's part (``summarize_env``, tables, figures) looked up in the registry. Each
+file is checked first (:func:`~torchrl_recon.experiments.results_check.check_results`), a
+published one also against its folder's SHA-256 manifest (:mod:`~torchrl_recon.archive`).
 """
 
 from __future__ import annotations
@@ -43,18 +40,14 @@ def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
 
 
 def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
-    """Aggregate the ``results.json`` files of one experiment kind found at ``paths``.
-
-    Returns:
-        ``{"experiment", "files", "envs": {env: <the kind's summarize_env>}, "processors",
-        "archives"}`` (``archives``: the records archives the published files were verified
-        against).
+    """Aggregate the ``results.json`` files of one experiment kind found at ``paths`` into
+    ``{"experiment", "files", "envs": {env: <the kind's summarize_env>}, "processors",
+    "archives"}`` (the records archives the published files were verified against).
 
     Raises:
         FileNotFoundError: a path does not exist or no ``results.json`` was found.
-        DamagedFileError: a ``results.json`` is not an experiment's results, fails
-            :func:`~torchrl_recon.experiments.results_check.check_results`, or (published)
-            differs from its folder's manifest (:func:`~torchrl_recon.archive.verify_results`).
+        DamagedFileError: a file is not an experiment's results, fails its checks or differs
+            from its folder's manifest.
         ValueError: the files mix experiment kinds, or one env repeats a seed.
     """
     files = find_results(paths)

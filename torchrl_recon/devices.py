@@ -1,9 +1,11 @@
-"""Choosing the torch device of a run (``device: auto``) and describing it for ``meta.json``."""
+"""Choosing the torch device of a run (``device: auto``), describing it for ``meta.json`` and
+naming it back from there."""
 
 from __future__ import annotations
 
 import platform
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -92,3 +94,20 @@ def describe_device(device: torch.device | str) -> dict[str, Any]:
     else:
         info["name"] = info["cpu_model"]
     return info
+
+
+def processor(info: Mapping[str, Any] | None) -> str:
+    """One line naming the device :func:`describe_device` described (``meta.json``'s
+    ``device``): results are bit-identical only on the same commit and kind of processor.
+
+    Examples:
+        >>> processor({"device": "cpu", "cpu_model": "AMD EPYC", "cpu_capability": "AVX512"})
+        'cpu: AMD EPYC (AVX512)'
+        >>> processor(None)
+        'not recorded'
+    """
+    if not info:
+        return "not recorded"
+    if str(info.get("device", "")).startswith("cuda"):
+        return f"{info['device']}: {info.get('name')} (CPU {info.get('cpu_model')})"
+    return f"{info.get('device')}: {info.get('cpu_model')} ({info.get('cpu_capability')})"

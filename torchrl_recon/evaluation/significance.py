@@ -1,10 +1,10 @@
-"""How sure Table 1 is, across seeds: the mean per-seed ratio with a bootstrap interval, the
+"""Statistics across seeds: paired tests (t, Wilcoxon) and Page's trend test of per-seed
+numbers; and how sure Table 1 is: the mean per-seed ratio with a bootstrap interval, the
 direction of each seed, the effect size, and how many seeds the observed spread needs to
 detect the paper's effect.
 
 Each seed (one repeat of the whole experiment) gives one pair: the mean validation MSE of the
-random arm and of the active arm over its retrainings. The paired tests (t and Wilcoxon) are
-:func:`~torchrl_recon.experiments.stats.paired_tests`; this module adds what reads them.
+random arm and of the active arm over its retrainings.
 
 The power statement asks: if the true effect were the paper's (active = ``r`` × random, ``r``
 from its Table 1), how many seeds would a two-sided paired t-test at ``alpha`` need to find it
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,78 @@ ALPHA, POWER = 0.05, 0.80
 
 MAX_SEEDS = 1_000_000
 """Above this many seeds the power statement says "more than"."""
+
+MIN_SEEDS_TTEST, MIN_SEEDS_WILCOXON, MIN_SEEDS_TREND = 2, 5, 2
+"""The fewest pairs a paired t-test, a Wilcoxon signed-rank test and a trend test need."""
+
+
+def not_computed(n: int, minimum: int, what: str = "seeds") -> dict[str, Any]:
+    """A test entry for too little data: NaN statistic and p-value, and why.
+
+    Examples:
+        >>> not_computed(1, 2)["note"]
+        'not computed: needs at least 2 seeds, got 1'
+    """
+    nan = float("nan")
+    note = f"not computed: needs at least {minimum} {what}, got {n}"
+    return {"statistic": nan, "p_value": nan, "n": n, "note": note}
+
+
+def _test(result: Any, n: int, note: str, **extra: Any) -> dict[str, Any]:
+    return {"statistic": float(result.statistic), "p_value": float(result.pvalue), "n": n,
+            **extra, "note": note}  # fmt: skip
+
+
+def paired_tests(
+    a: Sequence[float], b: Sequence[float], *, t_note: str = "paired t-test across seeds"
+) -> dict[str, Any]:
+    """A paired t-test (``scipy.stats.ttest_rel``, from 2 pairs) and a two-sided Wilcoxon
+    signed-rank test (``scipy.stats.wilcoxon``, from 5) of ``a`` against ``b``, paired by position.
+
+    Examples:
+        >>> tests = paired_tests([1.0, 2.0, 3.0], [2.0, 3.5, 4.0])
+        >>> round(tests["paired_t"]["p_value"], 3), tests["wilcoxon"]["note"]
+        (0.02, 'not computed: needs at least 5 seeds, got 3')
+    """
+    from scipy import stats
+
+    n, out = len(a), {}
+    if n >= MIN_SEEDS_TTEST:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out["paired_t"] = _test(stats.ttest_rel(a, b), n, t_note)
+    else:
+        out["paired_t"] = not_computed(n, MIN_SEEDS_TTEST)
+    if n < MIN_SEEDS_WILCOXON:
+        out["wilcoxon"] = not_computed(n, MIN_SEEDS_WILCOXON)
+    elif np.all(np.subtract(a, b) == 0):
+        note = "all paired differences are zero"
+        out["wilcoxon"] = {"statistic": float("nan"), "p_value": 1.0, "n": n, "note": note}
+    else:
+        note = "Wilcoxon signed-rank test across seeds (two-sided)"
+        out["wilcoxon"] = _test(stats.wilcoxon(a, b), n, note)
+    return out
+
+
+def trend_test(per_seed: Mapping[str, Mapping[int, float]], order: Sequence[str]) -> dict[str, Any]:
+    """Page's L test that ``per_seed[name][seed]`` grows along ``order`` (from 3 names), over
+    the seeds that have every name of ``order``.
+
+    Examples:
+        >>> up = {"lo": {0: 1.0, 1: 2.0}, "mid": {0: 2.0, 1: 3.0}, "hi": {0: 3.0, 1: 4.0}}
+        >>> trend_test(up, ["lo", "mid", "hi"])["statistic"]
+        28.0
+    """
+    from scipy import stats
+
+    seeds = sorted(set.intersection(*(set(per_seed[n]) for n in order))) if order else []
+    if len(order) < 3:
+        return not_computed(len(order), 3, "banded settings")
+    if len(seeds) < MIN_SEEDS_TREND:
+        return not_computed(len(seeds), MIN_SEEDS_TREND)
+    data = np.array([[per_seed[n][s] for n in order] for s in seeds])
+    note = "Page's L test: the metric grows from the lowest band to the highest (paired by seed)"
+    return _test(stats.page_trend_test(data), len(seeds), note, order=list(order))
 
 
 def _pairs(active: Sequence[float], random: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:

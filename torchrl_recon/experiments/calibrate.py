@@ -1,5 +1,4 @@
-"""The calibrate experiment (uncertainty estimators side by side) as an
-:class:`~torchrl_recon.experiments.experiment_type.ExperimentType`: its stages
+"""The calibrate experiment (uncertainty estimators side by side): its stages
 (:mod:`.calibrate_stages`), summary across seeds, tables, figures and headline numbers."""
 
 from __future__ import annotations
@@ -37,19 +36,17 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
         stats = {k: mean_std([row[k] for row in rows]) for k in keys}
         mean, std = ({k: s[i] for k, s in stats.items()} for i in (0, 1))
         estimators[name] = {"mean": mean, "std": std, "n_seeds": len(rows)}
-    return {
-        "seeds": [r.get("seed") for r in runs],
-        "horizons": runs[0].get("horizons", []),
-        "estimators": estimators,
-    }
+    seeds = [r.get("seed") for r in runs]
+    return {"seeds": seeds, "horizons": runs[0].get("horizons", []), "estimators": estimators}
 
 
-def estimators_table(title: str, rows_by_name: Mapping[str, Any], horizon: int) -> str:
+def estimators_table(title: str, rows_by_name: Mapping[str, Any], horizons: list[int]) -> str:
     """One row per estimator; ``rows_by_name[name]`` maps column keys to numbers."""
-    keys = [k.format(h=horizon) for k, _ in CALIBRATION_COLUMNS]
-    header = ["estimator", *(label.format(h=horizon) for _, label in CALIBRATION_COLUMNS)]
+    h = (horizons or [0])[0]
+    header = ["estimator", *(label.format(h=h) for _, label in CALIBRATION_COLUMNS)]
+    keys = [k.format(h=h) for k, _ in CALIBRATION_COLUMNS]
     rows = [[name, *(fmt(row.get(k), 3) for k in keys)] for name, row in rows_by_name.items()]
-    return title + "\n" + render(header, rows)
+    return render(header, rows, title)
 
 
 def result_table(r: Mapping[str, Any]) -> str:
@@ -58,17 +55,23 @@ def result_table(r: Mapping[str, Any]) -> str:
         f"uncertainty estimators — {r.get('env')} seed {r.get('seed')} "
         f"(times as ratios to {r.get('reference_estimator')!r}, measured in the same run)"
     )
-    return estimators_table(title, r["estimators"], (r.get("horizons") or [0])[0])
+    return estimators_table(title, r["estimators"], r.get("horizons"))
+
+
+def _means(s: Mapping[str, Any]) -> dict[str, Any]:
+    return {name: e["mean"] for name, e in s["estimators"].items()}
 
 
 def summary_table(r: Mapping[str, Any]) -> str:
     """One table per env of a calibrate summary (means across seeds)."""
-    parts = []
-    for env, s in r["envs"].items():
-        title = f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds"
-        means = {name: e["mean"] for name, e in s["estimators"].items()}
-        parts.append(estimators_table(title, means, (s["horizons"] or [0])[0]))
-    return "\n\n".join(parts)
+    return "\n\n".join(
+        estimators_table(
+            f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds",
+            _means(s),
+            s["horizons"],
+        )
+        for env, s in r["envs"].items()
+    )
 
 
 def headline(results: Mapping[str, Any]) -> dict[str, float]:
@@ -88,13 +91,10 @@ def figures(results: Mapping[str, Any]) -> Figures:
 
 def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
     """``calibration_<env>.png`` for each env of the summary."""
-    out = []
-    for env, s in summary["envs"].items():
-        rows = {name: e["mean"] for name, e in s["estimators"].items()}
-        out.append(
-            (f"calibration_{env}.png", plot_calibration({"env": env, "estimators": rows, **s}))
-        )
-    return out
+    return [
+        (f"calibration_{env}.png", plot_calibration({**s, "env": env, "estimators": _means(s)}))
+        for env, s in summary["envs"].items()
+    ]
 
 
 check = calibrate_errors
@@ -102,10 +102,7 @@ check = calibrate_errors
 
 def stage_values(cfg) -> dict:
     """``{estimator}`` and ``{kind}`` of the stage names."""
-    return {
-        "estimator": [s.name for s in cfg.estimators],
-        "kind": calibrate_stages.OUTCOME_KINDS,
-    }
+    return {"estimator": [s.name for s in cfg.estimators], "kind": calibrate_stages.OUTCOME_KINDS}
 
 
 EXPERIMENT = ExperimentType.of_module(

@@ -1,5 +1,4 @@
-"""The online experiment (PETS's loop: act, add the data, refit warm, act again) as an
-:class:`~torchrl_recon.experiments.experiment_type.ExperimentType`: its stages
+"""The online experiment (PETS's loop: act, add the data, refit warm, act again): its stages
 (:mod:`.online_stages`), summary across seeds, tables, the learning curve and headline numbers."""
 
 from __future__ import annotations
@@ -40,15 +39,9 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
 def result_table(r: Mapping[str, Any]) -> str:
     """One run: per iteration, env steps, mean return, model error, mean u, re-plans, times."""
     rows = [
-        [
-            str(it["iteration"]),
-            str(it["env_steps"]),
-            fmt(_mean(it["returns"])),
-            fmt(it["model_error"]),
-            fmt(it["mean_u"]),
-            str(it["replans"]),
-            f"{it['fit_s']:.1f} / {it['plan_s']:.1f} / {it['env_s']:.1f}",
-        ]
+        [str(it["iteration"]), str(it["env_steps"]), fmt(_mean(it["returns"]))]
+        + [fmt(it["model_error"]), fmt(it["mean_u"]), str(it["replans"])]
+        + [f"{it['fit_s']:.1f} / {it['plan_s']:.1f} / {it['env_s']:.1f}"]
         for it in r["iterations"]
     ]
     header = ["iter", "env steps", "return", "model error", "mean u", "replans", "fit/plan/env s"]
@@ -56,7 +49,7 @@ def result_table(r: Mapping[str, Any]) -> str:
         f"online {r['env']} seed {r['seed']}: random policy {fmt(r['random']['mean_return'])}, "
         f"last half {fmt(r['mean_return_last_half'])}"
     )
-    return title + "\n" + render(header, rows)
+    return render(header, rows, title)
 
 
 def summary_table(r: Mapping[str, Any]) -> str:
@@ -64,14 +57,14 @@ def summary_table(r: Mapping[str, Any]) -> str:
     parts = []
     for env, s in r["envs"].items():
         rows = [
-            [str(i + 1), str(steps), pm(it["mean"], it["std"])]
-            for i, (it, steps) in enumerate(zip(s["iterations"], s["env_steps"], strict=True))
+            [str(i), str(steps), pm(it["mean"], it["std"])]
+            for i, (it, steps) in enumerate(zip(s["iterations"], s["env_steps"], strict=True), 1)
         ]
         title = (
             f"online {env}, seeds {s['seeds']}: random policy {pm(*s['random'])}, "
             f"last half {pm(*s['last_half'])}"
         )
-        parts.append(title + "\n" + render(["iter", "env steps", "return"], rows))
+        parts.append(render(["iter", "env steps", "return"], rows, title))
     return "\n\n".join(parts)
 
 
@@ -88,11 +81,9 @@ def plot_learning_curve(results: Mapping[str, Any]) -> Figure:
     figure = Figure(figsize=(6, 3.5), layout="constrained")
     ax = figure.add_subplot()
     for it in results["iterations"]:
-        returns = it["returns"]
-        steps = np.full(len(returns), it["env_steps"])
-        ax.plot(steps, returns, "o", color="C0", alpha=0.6)
-    means = [(it["env_steps"], _mean(it["returns"])) for it in results["iterations"]]
-    if means:
+        steps = np.full(len(it["returns"]), it["env_steps"])
+        ax.plot(steps, it["returns"], "o", color="C0", alpha=0.6)
+    if means := [(it["env_steps"], _mean(it["returns"])) for it in results["iterations"]]:
         ax.plot(*zip(*means, strict=True), "-", color="C0", label="MPC (mean per iteration)")
     ax.axhline(results["random"]["mean_return"], color="C3", ls="--", label="random policy")
     ax.set(xlabel="env steps", ylabel="episode return", title=f"online {results['env']}")

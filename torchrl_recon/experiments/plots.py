@@ -1,13 +1,6 @@
-"""Figures of the experiments (matplotlib, Agg canvas; no pyplot state, nothing shown).
-
-* :func:`plot_table1`: Table 1 as bars, random vs active exploration, per environment.
-* :func:`plot_control_errors`: Fig. 3 style, one bar per control setting for prediction MSE,
-  cumulative-cost prediction error, real cumulative cost and re-plans per episode.
-* :func:`plot_trajectory`: Fig. 2 style, predicted vs real states over an episode with the
-  predicted uncertainty u on a twin axis and the re-planning instants marked.
-* :func:`plot_calibration`: uncertainty estimators side by side (error ranking, OOD
-  detection, cost relative to the autoencoder).
-"""
+"""Figures of the experiments (matplotlib, Agg canvas; no pyplot state, nothing shown): Table 1
+as bars, Fig. 3's control errors, Fig. 2's predicted vs real trajectory, and the uncertainty
+estimators side by side."""
 
 from __future__ import annotations
 
@@ -52,13 +45,9 @@ def _name_axis(ax, names: Sequence[str], title: str, rotation: int) -> None:
 
 
 def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
-    """Bars of the validation MSE of random vs active exploration (Table 1), one group per env.
-
-    With several results of one env (seeds), bars show the mean ± std across seeds of the
-    per-seed arm means (sample std), and dots the per-seed means. With a single result, the
-    bar is its mean ± std across its retrainings, and dots the individual retrainings.
-    The title gives active / random mean.
-    """
+    """Bars of the validation MSE of random vs active exploration (Table 1), one group per env:
+    of several seeds, mean ± std across seeds of the per-seed arm means, with each seed as a dot;
+    of one, mean ± std over its retrainings, with each retraining as a dot."""
     if not results:
         raise ValueError("plot_table1 needs at least one explore results dict.")
     by_env: dict[str, list[Mapping[str, Any]]] = {}
@@ -66,14 +55,11 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
         if res.get("experiment") != "explore":
             raise ValueError(f"plot_table1 takes explore results, got {res.get('experiment')!r}.")
         by_env.setdefault(res["env"], []).append(res)
-    envs = list(by_env)
-    fig = _figure(max(5.5, 2.2 * len(envs) + 1.5), 4.2)
-    ax = fig.add_subplot()
-    width, ratios = 0.38, []
-    units = by_env[envs[0]][0].get("mse_units", "")
-    for i, env in enumerate(envs):
-        runs, means = by_env[env], {}
-        for j, arm in enumerate(("random", "active")):
+    fig = _figure(max(5.5, 2.2 * len(by_env) + 1.5), 4.2)
+    ax, width, ratios = fig.add_subplot(), 0.38, []
+    for i, (env, runs) in enumerate(by_env.items()):
+        means = {}
+        for j, arm in enumerate(ARM_COLORS):
             if len(runs) == 1:  # one seed: its retrainings
                 one = runs[0]["arms"][arm]
                 points, mean, std = [float(v) for v in one["mse"]], one["mean"], one["std"]
@@ -81,19 +67,18 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
                 points = [float(r["arms"][arm]["mean"]) for r in runs]
                 mean, std = np.mean(points), np.std(points, ddof=1)
             means[arm], std, x = float(mean), float(std), i + (j - 0.5) * width
-            style = dict(capsize=4, color=ARM_COLORS[arm], label=arm if i == 0 else None)
-            ax.bar(
-                x, means[arm], width, yerr=std if math.isfinite(std) else 0.0, alpha=0.85, **style
-            )
+            yerr, label = std if math.isfinite(std) else 0.0, arm if i == 0 else None
+            style = dict(yerr=yerr, capsize=4, color=ARM_COLORS[arm], label=label, alpha=0.85)
+            ax.bar(x, means[arm], width, **style)
             jitter = np.linspace(-0.08, 0.08, len(points)) if len(points) > 1 else [0.0]
             ax.scatter(x + np.asarray(jitter), points, s=10, color="black", zorder=3, linewidths=0)
         ratio = means["active"] / means["random"] if means["random"] else float("nan")
         ratios.append(f"{env} {ratio:.3g} ({len(runs)} seed{'s' if len(runs) > 1 else ''})")
-    ax.set_xticks(range(len(envs)), envs)
+    ax.set_xticks(range(len(by_env)), list(by_env))
     ax.set_ylabel("validation MSE")
     title = "Table 1: validation MSE, random vs active exploration\nactive / random: "
     ax.set_title(title + "; ".join(ratios), fontsize=9)
-    if units:
+    if units := results[0].get("mse_units", ""):
         fig.supxlabel(textwrap.fill(f"MSE: {units}", 110), fontsize=6)
     top = max(b.get_height() for b in ax.patches)
     ax.set_ylim(0, 1.3 * top if top > 0 else 1.0)
@@ -102,17 +87,12 @@ def plot_table1(results: Sequence[Mapping[str, Any]]) -> Figure:
 
 
 def plot_control_errors(results: Mapping[str, Any]) -> Figure:
-    """Fig. 3 style: per setting, mean ± std over episodes of the control metrics.
-
-    Panels: prediction MSE, |predicted − real| cumulative cost, real cumulative cost, re-plans
-    per episode. ``results`` is a control results dict, or an entry of a control summary
-    (anything with ``settings: {name: {"mean": {...}, "std": {...}}}``); a setting's optional
-    ``per_seed: {metric: [values]}`` is drawn as one dot per seed.
-    """
-    settings = results.get("settings") or {}
-    if not settings:
+    """Fig. 3 style: per setting, mean ± std over episodes of the :data:`CONTROL_PANELS` metrics,
+    of a control results dict or an env of a summary (``settings: {name: {"mean", "std"}}``),
+    with the per-seed means of a summary's ``across_seeds`` as dots."""
+    if not (settings := results.get("settings") or {}):
         raise ValueError("plot_control_errors needs results with at least one setting.")
-    names = list(settings)
+    names, seeds = list(settings), (results.get("across_seeds") or {}).get("settings", {})
     fig = _figure(max(10.0, 1.0 * len(names) * 4 / 2.5), 3.6)
     colors = [f"C{i % 10}" for i in range(len(names))]
     for ax, (key, label) in zip(fig.subplots(1, len(CONTROL_PANELS)), CONTROL_PANELS, strict=True):
@@ -120,8 +100,7 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
         stds = _finite([settings[n]["std"].get(key, math.nan) for n in names])
         ax.bar(range(len(names)), means, yerr=stds, capsize=3, color=colors, alpha=0.85)
         for i, n in enumerate(names):  # a summary's per-seed means, as dots
-            points = (settings[n].get("per_seed") or {}).get(key, [])
-            if points:
+            if points := seeds.get(n, {}).get("per_seed", {}).get(key, []):
                 ax.plot([i] * len(points), points, "o", color="black", ms=3, alpha=0.7)
         _name_axis(ax, names, label, rotation=45)
     env, seed = results.get("env", ""), results.get("seed")
@@ -132,12 +111,9 @@ def plot_control_errors(results: Mapping[str, Any]) -> Figure:
 
 
 def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
-    """Fig. 2 style: predicted vs real state over one episode, u on a twin axis, re-plans marked.
-
-    Shows the ``max_dims`` state dimensions that vary most in the real trajectory.
-    ``example``: ``{"setting", "real": [[float]*N]*L, "predicted": [[float]*N]*L,
-    "uncertainty": [float]*L, "replanned": [bool]*L, "state_names": [str]*N}``.
-    """
+    """Fig. 2 style: predicted vs real state over one episode (the ``max_dims`` dimensions that
+    vary most), u on a twin axis, re-plans marked. ``example``: ``{"setting", "real": [L, N],
+    "predicted": [L, N], "uncertainty": [L], "replanned": [L], "state_names": [N]}``."""
     real = np.asarray(example["real"], dtype=float)
     predicted = np.asarray(example["predicted"], dtype=float)
     if real.ndim != 2 or real.shape != predicted.shape:
@@ -148,10 +124,8 @@ def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
     u = np.asarray(example.get("uncertainty", []), dtype=float)
     replans = np.flatnonzero(np.asarray(example.get("replanned", []), dtype=bool)[:length])
     names = list(example.get("state_names") or [f"s{i}" for i in range(n)])
-    spread = real.std(axis=0) if length > 1 else np.abs(real[0])
-    dims = sorted(
-        int(i) for i in np.argsort(-np.nan_to_num(spread, nan=-1.0), kind="stable")[:max_dims]
-    )
+    spread = np.nan_to_num(real.std(axis=0) if length > 1 else np.abs(real[0]), nan=-1.0)
+    dims = sorted(int(i) for i in np.argsort(-spread, kind="stable")[:max_dims])
     fig = _figure(8.0, 1.9 * len(dims) + 0.6)
     axes = np.atleast_1d(fig.subplots(len(dims), 1, sharex=True))
     t = np.arange(length)
@@ -175,8 +149,9 @@ def plot_trajectory(example: Mapping[str, Any], max_dims: int = 4) -> Figure:
             ax.legend(handles, labels, fontsize=7, ncol=ncol, loc="upper left", frameon=False)
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("time step")
-    setting = example.get("setting", "?")
-    fig.suptitle(f"Predicted vs real trajectory — setting {setting}", fontsize=10)
+    fig.suptitle(
+        f"Predicted vs real trajectory — setting {example.get('setting', '?')}", fontsize=10
+    )
     return fig
 
 
@@ -184,8 +159,7 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
     """Estimators side by side: Spearman and AUROC of u against the real error, OOD AUROC
     (states moved, actions at the bound), and scoring / CEM time as ratios to the reference
     estimator at the first timed horizon (log scale)."""
-    rows = results.get("estimators") or {}
-    if not rows:
+    if not (rows := results.get("estimators") or {}):
         raise ValueError("plot_calibration needs calibrate results with at least one estimator.")
     names, horizon, width = list(rows), (results.get("horizons") or [0])[0], 0.38
     fig = _figure(max(9.0, 1.2 * len(names) * 3), 3.6)
@@ -202,6 +176,8 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
         if log:
             ax.set_yscale("log")
             ax.axhline(1.0, color="k", lw=0.6)
-    env, seed = results.get("env", ""), results.get("seed")
-    fig.suptitle(f"Uncertainty estimators — {env}, seed {seed}", fontsize=10)
+    fig.suptitle(
+        f"Uncertainty estimators — {results.get('env', '')}, seed {results.get('seed')}",
+        fontsize=10,
+    )
     return fig

@@ -1,12 +1,6 @@
-"""Results are data too: the checks ``summarize`` makes on each ``results.json`` before it
-averages it.
-
-Every number must be finite, except where an experiment kind writes NaN on purpose (a test
-that could not be computed, an episode without a planned step, ...); and the numbers that
-repeat others must agree with them: an explore arm's ``mean`` is the mean of its per-retraining
-``mse`` values, its ``ratio`` is ``active mean / random mean``, a control setting's ``mean`` is
-the mean over its episodes (NaN episodes left out). A file that breaks a rule is one
-:class:`~torchrl_recon.errors.DamagedFileError` naming the file, the key and both numbers.
+"""Results are data too: ``summarize`` refuses a ``results.json`` with a number that is not
+finite where its kind does not write NaN on purpose, or that disagrees with the numbers it
+repeats; one :class:`~torchrl_recon.errors.DamagedFileError` names the file, key and numbers.
 """
 
 from __future__ import annotations
@@ -14,79 +8,50 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterator, Mapping
+from fnmatch import fnmatchcase
 from typing import Any
 
 from torchrl_recon.errors import DamagedFileError
-
-Path_ = tuple[str, ...]
-"""A key path inside a results dict; list items are ``"[i]"``."""
 
 MEAN_REL_TOL = 1e-5
 """Relative tolerance of a recorded mean against the mean of its values: explore's arm means
 are taken in float32 (about 1e-7 relative), so 1e-5 allows that and nothing a hand would write."""
 
 RATIO_REL_TOL = 1e-9
-"""Relative tolerance of a recorded ratio against the quotient of the recorded means (computed
-from them in float64)."""
+"""Relative tolerance of a recorded ratio against the quotient of the recorded means."""
 
-NAN_ALLOWED: dict[str, tuple[Path_, ...]] = {
-    "explore": (
-        ("test", "statistic"),  # one retraining, or no spread: no test
-        ("test", "p_value"),
-        ("data", "active_feasible_fraction"),  # no plan made
-        ("arms", "*", "std"),  # one retraining: no spread (checked below)
-    ),
-    "control": (
-        ("settings", "*", "episodes", "**"),  # an episode without a planned step
-        ("settings", "*", "mean", "*"),  # checked against the episodes below
-        ("settings", "*", "std", "*"),
-        ("trajectory_example", "**"),
-    ),
-    "calibrate": (
-        ("estimators", "**"),  # a metric that could not be computed on the data drawn
-        ("timing", "**"),
-    ),
+NAN_ALLOWED: dict[str, str] = {
+    "explore": "test.statistic test.p_value data.active_feasible_fraction arms.*.std",
+    "control": "settings.*.episodes* settings.*.mean.* settings.*.std.* trajectory_example.*",
+    "calibrate": "estimators.* timing.*",
 }
-"""Per experiment kind, the key paths where NaN is a result (``*`` one key, ``**`` any below);
-infinity is never one."""
-
-_REMEDY = "re-run the experiment to write it again, or leave that run directory out"
-
-
-def _numbers(value: Any, path: Path_ = ()) -> Iterator[tuple[Path_, float]]:
-    """Every float below ``value`` with its key path (bools and ints are always finite)."""
-    if isinstance(value, Mapping):
-        for k, v in value.items():
-            yield from _numbers(v, (*path, str(k)))
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            yield from _numbers(v, (*path, f"[{i}]"))
-    elif isinstance(value, float):
-        yield path, value
+"""Per experiment kind, the keys (:func:`fnmatch.fnmatchcase` patterns) where NaN is a result;
+infinity is never one: explore's test and its std from one retraining, its feasible fraction
+with no plan made; control's metrics of an episode without a planned step (its means are
+checked against the episodes) and its trajectory example; calibrate's metrics that could not be
+computed on the data drawn, and its timings."""
 
 
-def _matches(path: Path_, pattern: Path_) -> bool:
-    """Whether a key path matches a pattern of keys, ``*`` (one key) and ``**`` (the rest)."""
-    for i, p in enumerate(pattern):
-        if p == "**":
-            return len(path) > i
-        if i >= len(path) or (p != "*" and p != path[i]):
-            return False
-    return len(path) == len(pattern)
-
-
-def key(path: Path_) -> str:
-    """A key path as one would write it: ``arms.active.mse[3]``.
+def numbers(value: Any, key: str = "") -> Iterator[tuple[str, float]]:
+    """Every float below ``value`` with its key as one would write it.
 
     Examples:
-        >>> key(("arms", "active", "mse", "[3]"))
-        'arms.active.mse[3]'
+        >>> list(numbers({"arms": {"active": {"mse": [1, 2.0]}}}))
+        [('arms.active.mse[1]', 2.0)]
     """
-    return "".join(p if p.startswith("[") else f".{p}" for p in path).lstrip(".")
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            yield from numbers(v, f"{key}.{k}" if key else str(k))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from numbers(v, f"{key}[{i}]")
+    elif isinstance(value, float):  # bools and ints are always finite
+        yield key, value
 
 
 def _fail(source: str, what: str) -> None:
-    raise DamagedFileError(f"{source}: {what}; {_REMEDY}.")
+    remedy = "re-run the experiment to write it again, or leave that run directory out"
+    raise DamagedFileError(f"{source}: {what}; {remedy}.")
 
 
 def check_finite(results: Mapping[str, Any], source: str) -> None:
@@ -98,27 +63,37 @@ def check_finite(results: Mapping[str, Any], source: str) -> None:
         ...
         torchrl_recon.errors.DamagedFileError: r.json: ratio is inf, not a finite number; ...
     """
-    allowed = NAN_ALLOWED.get(str(results.get("experiment")), ())
-    for path, value in _numbers(results):
-        if math.isinf(value) or (math.isnan(value) and not any(_matches(path, p) for p in allowed)):
-            _fail(source, f"{key(path)} is {value}, not a finite number")
+    allowed = NAN_ALLOWED.get(str(results.get("experiment")), "").split()
+    for key, value in numbers(results):
+        nan_allowed = math.isnan(value) and any(fnmatchcase(key, p) for p in allowed)
+        if not math.isfinite(value) and not nan_allowed:
+            _fail(source, f"{key} is {value}, not a finite number")
 
 
-def _close(recorded: float, expected: float, rel_tol: float) -> bool:
-    if math.isnan(expected):
-        return math.isnan(recorded)
-    return math.isclose(recorded, expected, rel_tol=rel_tol, abs_tol=1e-300)
+def _agrees(source: str, name: str, recorded: Any, expected: float, why: str, rel_tol: float):
+    """Fail unless ``recorded`` is a number close to ``expected`` (NaN where that is NaN)."""
+    ok = isinstance(recorded, (int, float)) and (
+        math.isnan(recorded)
+        if math.isnan(expected)
+        else math.isclose(recorded, expected, rel_tol=rel_tol, abs_tol=1e-300)
+    )
+    if not ok:
+        _fail(source, f"{name} is {recorded!r}, but {why} is {expected!r}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _mean(values: list[float]) -> float:
     return math.fsum(values) / len(values) if values else float("nan")
 
 
-def _number(results: Mapping[str, Any], path: Path_, source: str) -> Any:
+def _get(results: Mapping[str, Any], path: tuple[str, ...], source: str) -> Any:
     value: Any = results
     for k in path:
         if not isinstance(value, Mapping) or k not in value:
-            _fail(source, f"it has no {key(path)}")
+            _fail(source, f"it has no {'.'.join(path)}")
         value = value[k]
     return value
 
@@ -129,38 +104,26 @@ def check_explore(results: Mapping[str, Any], source: str) -> None:
     from 2 values."""
     means = {}
     for arm in ("random", "active"):
-        values = _number(results, ("arms", arm, "mse"), source)
-        if not isinstance(values, list) or not values:
+        values = _get(results, ("arms", arm, "mse"), source)
+        if not (isinstance(values, list) and values) or not all(map(_is_number, values)):
             _fail(source, f"arms.{arm}.mse is not a list of numbers")
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-            _fail(source, f"arms.{arm}.mse is not a list of numbers")
-        mean = _number(results, ("arms", arm, "mean"), source)
-        expected = _mean([float(v) for v in values])
-        if not isinstance(mean, (int, float)) or not _close(float(mean), expected, MEAN_REL_TOL):
-            _fail(
-                source,
-                f"arms.{arm}.mean is {mean!r}, but the mean of its {len(values)} "
-                f"per-retraining values (arms.{arm}.mse) is {expected!r}",
-            )
+        mean, n = _get(results, ("arms", arm, "mean"), source), len(values)
+        why = f"the mean of its {n} per-retraining values (arms.{arm}.mse)"
+        _agrees(source, f"arms.{arm}.mean", mean, _mean(values), why, MEAN_REL_TOL)
         std = results["arms"][arm].get("std")
-        if len(values) > 1 and isinstance(std, float) and math.isnan(std):
-            _fail(source, f"arms.{arm}.std is nan with {len(values)} per-retraining values")
+        if n > 1 and isinstance(std, float) and math.isnan(std):
+            _fail(source, f"arms.{arm}.std is nan with {n} per-retraining values")
         means[arm] = float(mean)
-    if "ratio" not in results:  # summarize computes the ratio from the means
-        return
-    ratio = results["ratio"]
-    expected = means["active"] / means["random"] if means["random"] else float("nan")
-    if not isinstance(ratio, (int, float)) or not _close(float(ratio), expected, RATIO_REL_TOL):
-        _fail(
-            source,
-            f"ratio is {ratio!r}, but arms.active.mean / arms.random.mean is {expected!r}",
-        )
+    if "ratio" in results:  # else summarize computes the ratio from the means
+        expected = means["active"] / means["random"] if means["random"] else float("nan")
+        why = "arms.active.mean / arms.random.mean"
+        _agrees(source, "ratio", results["ratio"], expected, why, RATIO_REL_TOL)
 
 
 def check_control(results: Mapping[str, Any], source: str) -> None:
     """Each setting's ``mean`` of each metric equals the mean over its episodes' finite values
     (NaN when there is none)."""
-    settings = _number(results, ("settings",), source)
+    settings = _get(results, ("settings",), source)
     if not isinstance(settings, Mapping):
         _fail(source, "settings is not a mapping of setting names")
     for name, s in settings.items():
@@ -174,14 +137,8 @@ def check_control(results: Mapping[str, Any], source: str) -> None:
                 if isinstance(e, Mapping) and isinstance(e.get(metric), (int, float))
             ]
             expected = _mean([v for v in values if not math.isnan(v)])
-            if not isinstance(mean, (int, float)) or not _close(
-                float(mean), expected, MEAN_REL_TOL
-            ):
-                _fail(
-                    source,
-                    f"settings.{name}.mean.{metric} is {mean!r}, but the mean over its "
-                    f"{len(values)} episodes is {expected!r}",
-                )
+            why = f"the mean over its {len(values)} episodes"
+            _agrees(source, f"settings.{name}.mean.{metric}", mean, expected, why, MEAN_REL_TOL)
 
 
 KIND_CHECKS: dict[str, Callable[[Mapping[str, Any], str], None]] = {
@@ -192,14 +149,8 @@ KIND_CHECKS: dict[str, Callable[[Mapping[str, Any], str], None]] = {
 
 
 def check_results(results: Mapping[str, Any], path: str | os.PathLike[str]) -> None:
-    """Refuse a ``results.json`` whose numbers are not finite where they must be, or disagree.
-
-    Args:
-        results: the file's content (:func:`~torchrl_recon.experiments.run_dir.read_results`).
-        path: the file, named in the error.
-
-    Raises:
-        DamagedFileError: one line naming the file, the key and the numbers that disagree.
+    """Refuse a ``results.json`` whose numbers are not finite where they must be, or disagree:
+    one :class:`~torchrl_recon.errors.DamagedFileError` naming the file, the key and the numbers.
 
     Examples:
         >>> arm = {"mse": [1.0, 3.0], "mean": 2.0, "std": 1.4}
@@ -212,6 +163,5 @@ def check_results(results: Mapping[str, Any], path: str | os.PathLike[str]) -> N
     """
     source = os.fspath(path)
     check_finite(results, source)
-    check = KIND_CHECKS.get(str(results.get("experiment")))
-    if check is not None:
+    if check := KIND_CHECKS.get(str(results.get("experiment"))):
         check(results, source)

@@ -53,3 +53,17 @@ def test_table_1_summarizes_to_the_published_numbers():
     ratios = {env: round(s["ratio"], 3) for env, s in envs.items()}
     assert ratios == {"drone": 0.724, "industrial_benchmark": 0.93, "minitaur": 1.038}
     assert {env: s["seeds"] for env, s in envs.items()} == {env: [0, 1, 2, 3, 4] for env in envs}
+
+
+def test_the_reproduction_pages_table_1_is_what_the_published_runs_give():
+    """docs/reproduction.md's headline table is regenerated, not typed: each row equals
+    ``docs/results/table1_20seeds/headline.py``'s for the runs published now."""
+    import importlib.util
+
+    path = RESULTS / "table1_20seeds" / "headline.py"
+    spec = importlib.util.spec_from_file_location("headline", path)
+    headline = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(headline)
+    page = (DOCS / "reproduction.md").read_text()
+    for label, folder, env in headline.ROWS:
+        assert headline.row(label, folder, env) in page, label

@@ -7,6 +7,9 @@
 #       docs/results/table1_20seeds/<variant>/<env>/seed<n> --root <worktree>
 # Usage: docs/results/table1_20seeds/run_seeds.sh [worktree] [python]
 set -u
+# With the kernel's autogroup scheduling on (sessions weighed against each other), `nice` alone
+# leaves this loop half the machine; lowering its session's group makes it yield to other work.
+echo 19 > "/proc/$$/autogroup" 2>/dev/null || true
 COMMIT=89871241a159182b8c8864d8a2474010b9be48cd
 HERE="$(cd "$(dirname "$0")" && pwd)"
 TREE="${1:-../frozen}"

@@ -77,3 +77,23 @@ def test_every_trajectory_starts_where_its_env_was_reset_and_no_start_repeats(nu
     starts = data["observation"][first]
     assert len(starts) >= 6 * num_envs
     assert torch.unique(starts, dim=0).shape[0] == starts.shape[0]
+
+
+def test_episodes_stop_at_that_many_whole_episodes_and_leave_full_ones_unchanged():
+    # Pendulum never terminates: 3 episodes of 20 steps fill a 60-step budget exactly
+    env = partial(make_env, "Pendulum-v1", seed=0, max_episode_steps=20)
+    whole = collect_random(env(), frames=60, seed=0)
+    counted = collect_random(env(), frames=60, seed=0, episodes=3)
+    assert torch.equal(whole["action"], counted["action"])
+    # a drone under random actions crashes early: 4 episodes, far below the 4 × 500 budget
+    drone = make_env("drone", seed=0, max_episode_steps=500)
+    data = collect_random(drone, frames=2000, seed=0, frames_per_batch=100, episodes=4)
+    done = data["next", "done"].reshape(len(data), -1).any(-1)
+    assert int(done.sum()) == 4 and bool(done[-1]) and len(data) < 2000
+    assert data["collector", "traj_ids"].unique().numel() == 4
+
+
+def test_episodes_refuse_a_batched_env():
+    env = make_env("drone", seed=0, num_envs=2, parallel=False)
+    with pytest.raises(ValueError, match="episodes=2 needs a count >= 1 and one env"):
+        collect_random(env, frames=100, seed=0, episodes=2)

@@ -33,8 +33,10 @@ def collect_random(
     seed: int,
     frames_per_batch: int | None = None,
     progress: bool = False,
+    episodes: int | None = None,
 ) -> TensorDictBase:
-    """Collect ``frames`` steps of uniform random actions (see :func:`collect`).
+    """Collect ``frames`` steps of uniform random actions (see :func:`collect`; ``episodes``
+    stops at that many whole episodes).
 
     Examples:
         >>> from torchrl_recon.envs import make_env
@@ -43,7 +45,13 @@ def collect_random(
         torch.Size([200, 12])
     """
     return collect(
-        env, None, frames=frames, seed=seed, frames_per_batch=frames_per_batch, progress=progress
+        env,
+        None,
+        frames=frames,
+        seed=seed,
+        frames_per_batch=frames_per_batch,
+        progress=progress,
+        episodes=episodes,
     )
 
 
@@ -56,8 +64,15 @@ def collect(
     frames_per_batch: int | None = None,
     progress: bool = False,
     desc: str = "collection",
+    episodes: int | None = None,
 ) -> TensorDictBase:
     """Collect ``frames`` steps from ``env`` with ``policy`` (uniform random actions when None).
+
+    With ``episodes``, ``frames`` is a budget: collection stops at the batch in which that
+    many episodes have ended, and the data are cut after the ``episodes``-th end (an env whose
+    episodes terminate early collects that many short episodes, not the budget's steps).
+    Episodes that never end early fill the budget exactly, so the data are the same as
+    without it. One env only.
 
     Episode length is the env's own (see ``make_env(..., max_episode_steps=...)``).
     Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
@@ -79,6 +94,11 @@ def collect(
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}.")
+    if episodes is not None and (episodes < 1 or env.batch_size.numel() > 1):
+        raise ValueError(
+            f"episodes={episodes} needs a count >= 1 and one env (got batch size "
+            f"{tuple(env.batch_size)}); a batched env collects the frames budget."
+        )
     torch.manual_seed(seed)
     # Seeded before the collector exists: its constructor resets the env, and a seed set after
     # that resets the env's state again while the collector keeps the first reset's
@@ -100,7 +120,7 @@ def collect(
             total_frames=total,
             split_trajs=False,
         )
-        batches = []
+        batches, ended = [], 0
         with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:
             for batch in collector:
                 if envs > 1:  # [envs, time]: kept apart until the end, then env-major
@@ -108,7 +128,16 @@ def collect(
                 else:
                     batches.append(batch.reshape(-1).clone())
                 bar.update(min(batch.numel(), frames - bar.n))
+                if episodes is not None:
+                    ended += int(batch["next", "done"].sum())
+                    if ended >= episodes:
+                        break
         collector.shutdown()
     if envs > 1:
         return torch.cat(batches, 1).reshape(-1)[:frames]
-    return torch.cat(batches, 0)[:frames]
+    data = torch.cat(batches, 0)[:frames]
+    if episodes is not None:
+        ends = data["next", "done"].reshape(len(data), -1).any(-1).nonzero().flatten()
+        if len(ends) >= episodes:
+            data = data[: int(ends[episodes - 1]) + 1]
+    return data

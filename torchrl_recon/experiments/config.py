@@ -315,7 +315,10 @@ def _non_empty(what: str) -> Any:
 
 @dataclass
 class ControlConfig(RunConfig):
-    """Uncertainty-aware control (paper §3.1, Fig. 3)."""
+    """Uncertainty-aware control (paper §3.1, Fig. 3). The random data are a step budget,
+    ``random_episodes × random_episode_steps`` steps (the paper's "10 episodes of 500 time
+    steps, 5000 samples"): an env whose episodes end early fills it with more, shorter ones.
+    (In Python, ``collect_random(..., episodes=N)`` stops at N whole episodes instead.)"""
 
     experiment: str = "control"
     output_dir: str = checked("outputs/control", _directory)

@@ -2,12 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
-
-if TYPE_CHECKING:
-    from torchrl_recon.modules.world_model import LSTMWorldModel
 
 
 def check_prefix_mask(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
@@ -123,57 +118,3 @@ def windows_at_rest(
     mask, (obs, action) = start_at_rest(mask, window, obs, action, rest={1: 0.0})
     return obs, action, mask[..., window - 1 :]
 
-
-def masked_prediction_loss(
-    model: LSTMWorldModel,
-    obs: torch.Tensor,
-    action: torch.Tensor,
-    next_obs: torch.Tensor,
-    mode: str,
-    mask: torch.Tensor,
-) -> torch.Tensor:
-    """``model.prediction_loss`` on padded sequences ``[*R, B, L, ...]``: only real steps count.
-
-    ``mask`` ``[*R, B, L]`` is True at each row's real steps, then False at its padding (the
-    layout of TorchRL's ``SliceSampler(strict_length=False, pad_output=True)``, whose short
-    slices are whole episodes). ``"one_step"``: the mean squared error over real steps (the
-    LSTM is causal, so padding after them changes nothing). ``"multi_step"``: a row with at most
-    ``window`` real steps is started at rest (:func:`start_at_rest`:
-    the slots before the episode hold its first observation and the zero action, as
-    ``MPCPolicy(warmup="plan")`` plans an episode's start), so its warm-up ends one step before
-    its last real step; the error counts at the real steps after the warm-up. No padded value
-    is read into a counted error.
-
-    Examples:
-        >>> from torchrl_recon.modules import LSTMWorldModel
-        >>> model = LSTMWorldModel(3, 1, window=4)
-        >>> obs, act, nxt = torch.randn(2, 6, 3), torch.randn(2, 6, 1), torch.randn(2, 6, 3)
-        >>> mask = torch.tensor([[True] * 6, [True] * 2 + [False] * 4])
-        >>> loss = masked_prediction_loss(model, obs, act, nxt, "multi_step", mask)
-        >>> nxt[1, 2:] = 1e3  # padding
-        >>> bool(masked_prediction_loss(model, obs, act, nxt, "multi_step", mask) == loss)
-        True
-    """
-    mask = check_prefix_mask(mask, obs.shape[:-1])
-    members = () if model.num_members is None else (model.num_members,)
-    if mode == "one_step":
-        err = model.predict_delta(obs, action) - model._norm("delta", next_obs - obs)
-        valid = mask
-    elif mode == "multi_step":
-        w = model.window
-        if obs.shape[-2] <= w:
-            raise ValueError(
-                f"multi_step loss needs sequences longer than window={w}, got length {obs.shape[-2]}."
-            )
-        mask, (obs, action, next_obs) = start_at_rest(
-            mask, w + 1, obs, action, next_obs, rest={1: 0.0}
-        )
-        pred = model.imagine(
-            obs[..., :w, :], action[..., :w, :], obs[..., w, :], action[..., None, w:, :]
-        )[..., 0, :, :]
-        err = (pred - next_obs[..., w:, :]) / model._stat("obs", "scale", pred.dim())
-        valid = mask[..., w:]
-    else:
-        raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
-    err = torch.where(valid[..., None], err, err.new_zeros(()))
-    return masked_mean(err.pow(2), valid[..., None], err.dim() - len(members))

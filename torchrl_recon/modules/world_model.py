@@ -25,7 +25,7 @@ from torchrl_recon.modules.checks import (
 )
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.padding import masked_prediction_loss
+from torchrl_recon.modules.padding import check_prefix_mask, masked_mean, start_at_rest
 
 
 class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
@@ -513,12 +513,27 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     ) -> torch.Tensor:
         """Each member's ``WorldModelPredictionLoss`` on its sequences ``[*R, B, L, ...]`` → ``[*R]``.
 
-        ``mask`` ``[*R, B, L]`` (True at real steps, then padding: slices of episodes shorter
-        than L, see :func:`~torchrl_recon.modules.padding.masked_prediction_loss`) makes only
-        real steps count.
+        ``mask`` ``[*R, B, L]`` is True at each row's real steps, then False at its padding (the
+        layout of TorchRL's ``SliceSampler(strict_length=False, pad_output=True)``, whose short
+        slices are whole episodes): only real steps count. ``"one_step"``: the LSTM is causal,
+        so padding after the real steps changes nothing. ``"multi_step"``: a row with at most
+        ``window`` real steps is started at rest
+        (:func:`~torchrl_recon.modules.padding.start_at_rest`: the slots before the episode hold
+        its first observation and the zero action, as ``MPCPolicy(warmup="plan")`` plans an
+        episode's start), and the error counts at the real steps after the warm-up. No padded
+        value is read into a counted error.
+
+        Examples:
+            >>> model = LSTMWorldModel(3, 1, window=4)
+            >>> obs, act, nxt = torch.randn(2, 6, 3), torch.randn(2, 6, 1), torch.randn(2, 6, 3)
+            >>> mask = torch.tensor([[True] * 6, [True] * 2 + [False] * 4])
+            >>> loss = model.prediction_loss(obs, act, nxt, "multi_step", mask)
+            >>> nxt[1, 2:] = 1e3  # padding
+            >>> bool(model.prediction_loss(obs, act, nxt, "multi_step", mask) == loss)
+            True
         """
         if mask is not None:
-            return masked_prediction_loss(self, obs, action, next_obs, mode, mask)
+            mask = check_prefix_mask(mask, obs.shape[:-1])
         if mode == "one_step":
             pred = self.predict_delta(obs, action)
             err = pred - self._norm("delta", next_obs - obs)
@@ -528,6 +543,11 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
                 raise ValueError(
                     f"multi_step loss needs sequences longer than window={w}, got length {obs.shape[-2]}."
                 )
+            if mask is not None:
+                mask, (obs, action, next_obs) = start_at_rest(
+                    mask, w + 1, obs, action, next_obs, rest={1: 0.0}
+                )
+                mask = mask[..., w:]
             pred = self.imagine(
                 obs[..., :w, :], action[..., :w, :], obs[..., w, :], action[..., None, w:, :]
             )[..., 0, :, :]
@@ -535,7 +555,10 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         else:
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
         members = () if self.num_members is None else (self.num_members,)
-        return err.pow(2).reshape(*members, -1).mean(-1)
+        if mask is None:
+            return err.pow(2).reshape(*members, -1).mean(-1)
+        err = torch.where(mask[..., None], err, err.new_zeros(()))
+        return masked_mean(err.pow(2), mask[..., None], err.dim() - len(members))
 
 
 def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,7 @@ class WorldModelPredictionLoss(LossModule):
 
     A padded batch (its ``("collector", "mask")`` marks real steps, see
     ``make_sequence_buffer(pad_short=True)``) counts real steps only, episodes shorter than
-    the warm-up started at rest (:func:`~torchrl_recon.modules.padding.masked_prediction_loss`).
+    the warm-up started at rest (:meth:`~torchrl_recon.modules.LSTMWorldModel.prediction_loss`).
 
     Args:
         world_model: the model to train.

@@ -14,6 +14,7 @@ from torchrl_recon.data.buffers import (
     make_sequence_buffer,
     needs_padding,
     save_buffer,
+    sequence_buffers,
     split_by_trajectory,
 )
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
@@ -32,5 +33,6 @@ __all__ = [
     "make_sequence_buffer",
     "needs_padding",
     "save_buffer",
+    "sequence_buffers",
     "split_by_trajectory",
 ]

@@ -190,6 +190,32 @@ def needs_padding(slice_len: int, *parts: TensorDictBase, traj_key: NestedKey = 
     return any(long_trajectories(part, slice_len, traj_key=traj_key) == 0 for part in parts)
 
 
+def sequence_buffers(
+    parts: tuple[TensorDictBase, ...],
+    *,
+    slice_len: int,
+    num_slices: int,
+    sampling: str = "trajectory",
+) -> tuple[TensorDictReplayBuffer, ...]:
+    """One :func:`make_sequence_buffer` holding each of ``parts`` (e.g. a training and a
+    validation split), all padded (``pad_short=True``) when :func:`needs_padding` says one of
+    them holds no trajectory of ``slice_len`` steps.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> train = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 0, 1])}, [4])
+        >>> val = TensorDict({TRAJ_KEY: torch.tensor([2, 2, 3])}, [3])
+        >>> [rb.sampler.pad_output for rb in sequence_buffers((train, val), slice_len=3, num_slices=1)]
+        [True, True]
+    """
+    pad = needs_padding(slice_len, *parts)
+    sizes = dict(slice_len=slice_len, num_slices=num_slices, sampling=sampling, pad_short=pad)
+    buffers = tuple(make_sequence_buffer(len(part), **sizes) for part in parts)
+    for buffer, part in zip(buffers, parts, strict=True):
+        buffer.extend(part)
+    return buffers
+
+
 def split_by_trajectory(
     data: TensorDictBase, val_fraction: float, *, seed: int, traj_key: NestedKey = TRAJ_KEY
 ) -> tuple[TensorDictBase, TensorDictBase]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from collections.abc import Callable, Mapping, Sequence
 
 import torch
@@ -12,7 +11,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import DeviceCastTransform, EnvBase
 
 from torchrl_recon.collectors import collect_random
-from torchrl_recon.data import make_sequence_buffer, needs_padding, split_by_trajectory
+from torchrl_recon.data import needs_padding, sequence_buffers, split_by_trajectory
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
@@ -25,6 +24,7 @@ from torchrl_recon.modules import (
     get_estimator_class,
     make_estimator,
 )
+from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
@@ -162,8 +162,8 @@ def dims(data: TensorDictBase) -> tuple[int, int]:
     return data["observation"].shape[-1], data["action"].shape[-1]
 
 
-def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
-    """Refuse what padding short episodes cannot train (called when a split of ``data`` has no
+def check_padding(cfg: DictConfig) -> None:
+    """Refuse what padding short episodes cannot train (called when a split of the data has no
     trajectory of ``training.slice_len`` steps, e.g. InvertedPendulum's random episodes of 3-8
     steps, so its slices are padded and masked): ``training.window_sampling = step``, or an
     estimator whose loss takes no mask (``models.uncertainty.kind``).
@@ -174,7 +174,7 @@ def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
     Examples:
         >>> cfg = OmegaConf.create({"training": {"slice_len": 8, "window_sampling": "step"},
         ...     "models": {"window": 4, "uncertainty": {"kind": "reconstruction"}}})
-        >>> check_episode_lengths(cfg, None)  # doctest: +ELLIPSIS
+        >>> check_padding(cfg)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         torchrl_recon.errors.RecipeError: episodes shorter than training.slice_len = 8 steps are padded...
     """
@@ -187,7 +187,7 @@ def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
             f"{t.window_sampling}): set it, {lower}."
         )
     kind = cfg.models.uncertainty.kind
-    if "mask" not in inspect.signature(get_estimator_class(kind).loss).parameters:
+    if not loss_takes_mask(get_estimator_class(kind)):
         raise RecipeError(
             f"{where}, and models.uncertainty.kind = {kind} cannot train on padded slices: "
             f"use reconstruction or rnd, {lower}."
@@ -197,19 +197,13 @@ def check_episode_lengths(cfg: DictConfig, data: TensorDictBase) -> None:
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
     """Training and validation sequence buffers of ``data``, split by trajectory (``seed``);
     when a split has no trajectory of ``slice_len`` steps, both pad shorter ones
-    (``make_sequence_buffer(pad_short=True)``)."""
+    (:func:`~torchrl_recon.data.sequence_buffers`), once :func:`check_padding` passes."""
     t = cfg.training
     parts = split_by_trajectory(data, t.val_fraction, seed=seed)
-    pad = needs_padding(t.slice_len, *parts)
-    if pad:
-        check_episode_lengths(cfg, data)
-    sizes = dict(
-        slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling, pad_short=pad
-    )
-    buffers = tuple(make_sequence_buffer(len(part), **sizes) for part in parts)
-    for buffer, part in zip(buffers, parts, strict=True):
-        buffer.extend(part)
-    return buffers
+    if needs_padding(t.slice_len, *parts):
+        check_padding(cfg)
+    sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
+    return sequence_buffers(parts, **sizes)
 
 
 def fit_kwargs(ctx: RunContext, fit: DictConfig, prefix: str) -> dict:

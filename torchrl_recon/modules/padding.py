@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
+from typing import Any
+
 import torch
 
 
@@ -118,3 +121,14 @@ def windows_at_rest(
     mask, (obs, action) = start_at_rest(mask, window, obs, action, rest={1: 0.0})
     return obs, action, mask[..., window - 1 :]
 
+
+def loss_takes_mask(estimator: Any) -> bool:
+    """Whether an estimator (an instance or its class) trains on padded slices: its ``loss``
+    takes a ``mask`` of real steps.
+
+    Examples:
+        >>> from torchrl_recon.modules import EnsembleUncertainty, ReconstructionUncertainty
+        >>> loss_takes_mask(ReconstructionUncertainty), loss_takes_mask(EnsembleUncertainty)
+        (True, False)
+    """
+    return "mask" in inspect.signature(estimator.loss).parameters

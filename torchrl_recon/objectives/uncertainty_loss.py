@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import inspect
-
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
+from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
 
@@ -52,7 +51,7 @@ class UncertaintyLoss(LossModule):
         obs, action, mask = td.get(self.obs_key), td.get(self.action_key), sequence_mask(td)
         if mask is None:
             loss = self.estimator.loss(obs, action)
-        elif "mask" in inspect.signature(self.estimator.loss).parameters:
+        elif loss_takes_mask(self.estimator):
             loss = self.estimator.loss(obs, action, mask=mask)
         else:
             raise ValueError(

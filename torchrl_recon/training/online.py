@@ -26,8 +26,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.collectors import collect, collect_random, concat_trajectories
 from torchrl_recon.data import (
     cut_sequences,
-    make_sequence_buffer,
-    needs_padding,
+    sequence_buffers,
     split_by_trajectory,
 )
 from torchrl_recon.data.buffers import TRAJ_KEY
@@ -102,15 +101,8 @@ def fit_models(
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
     slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``)."""
     s = schedule
-    train, val = split_by_trajectory(data, s.val_fraction, seed=seed)
-    pad = needs_padding(s.slice_len, train, val)
-    buffers = []
-    for part in (train, val):
-        rb = make_sequence_buffer(
-            len(part), slice_len=s.slice_len, num_slices=s.num_slices, pad_short=pad
-        )
-        rb.extend(part)
-        buffers.append(rb)
+    parts = split_by_trajectory(data, s.val_fraction, seed=seed)
+    buffers = sequence_buffers(parts, slice_len=s.slice_len, num_slices=s.num_slices)
     common = dict(
         val_buffer=buffers[1],
         steps=s.refit_steps if warm else s.steps,

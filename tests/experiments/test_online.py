@@ -101,6 +101,7 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         ("warmup=sometimes", "'warmup'"),
         ("exploration.iterations=3", "'exploration.iterations' must be at most iterations = 2"),
         ("exploration.beta=1", "'exploration.beta'"),
+        ("exploration.cap=1.1", "'exploration.cap' must be null or above exploration.ratio = 1.2"),
     ):
         assert main([*base, f"output_dir={out}", override]) == 2
         err = capsys.readouterr().err

@@ -180,6 +180,24 @@ class ValidationConfig:
     policy: DataPolicy = DataPolicy.random
 
 
+def _band_ratio() -> Any:
+    """An exploration band's ``ratio`` field: Σu ≥ ratio × the mean over candidates."""
+    return checked(
+        1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
+    )
+
+
+def _band_beta() -> Any:
+    """An exploration band's ``beta`` field: -1 maximises Σu in the band, 0 takes any of it."""
+    return checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
+
+
+def _cap_errors(cap: float | None, ratio: float, ratio_key: str) -> Iterator[tuple[str, str]]:
+    """An exploration band's ``cap``: null or above its ``ratio`` (named ``ratio_key``)."""
+    if cap is not None and finite(cap, ratio) and not cap > ratio:
+        yield "cap", f" must be null or above {ratio_key} = {ratio}, got {cap!r}"
+
+
 @dataclass
 class GuidedConfig:
     """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean
@@ -187,18 +205,15 @@ class GuidedConfig:
     0`` takes any of them (the paper's "sample until")."""
 
     steps: int = count(15000)
-    ratio: float = checked(
-        1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
-    )
+    ratio: float = _band_ratio()
     cap: float | None = None
-    beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
+    beta: float = _band_beta()
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     refit_every_episodes: int = count(50)
 
     def more_errors(self) -> Iterator[tuple[str, str]]:
         """``cap`` above ``ratio``."""
-        if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
-            yield "cap", f" must be null or above guided.ratio = {self.ratio}, got {self.cap!r}"
+        yield from _cap_errors(self.cap, self.ratio, "guided.ratio")
 
 
 @dataclass
@@ -208,16 +223,13 @@ class OnlineExplorationConfig:
     maximising it (as ``guided``); 0 rounds: control from the first."""
 
     iterations: int = count(0, 0)
-    ratio: float = checked(
-        1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
-    )
+    ratio: float = _band_ratio()
     cap: float | None = None
-    beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
+    beta: float = _band_beta()
 
     def more_errors(self) -> Iterator[tuple[str, str]]:
         """``cap`` above ``ratio``."""
-        if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
-            yield "cap", f" must be null or above ratio = {self.ratio}, got {self.cap!r}"
+        yield from _cap_errors(self.cap, self.ratio, "exploration.ratio")
 
 
 @dataclass

@@ -48,7 +48,8 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
 
     def run() -> dict:
         start, threshold, e = time.perf_counter(), None, cfg.exploration
-        if n <= e.iterations:  # the exploration phase
+        exploring = n <= e.iterations
+        if exploring:
             objective = exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta)
             mpc = ExplorationPolicy(
                 build_planner(cfg.planner, model, objective), warmup=str(cfg.warmup)
@@ -70,7 +71,7 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
         seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
         record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}
-        record["policy"] = "explore" if n <= e.iterations else "mpc"
+        record["policy"] = "explore" if exploring else "mpc"
         if ctx.logger is not None:
             for key in ("model_error", "mean_u", "replans"):
                 ctx.logger.log_scalar(f"online/{key}", record[key], step=n)

@@ -17,6 +17,7 @@ Run (from the checkout, with the peers' venv):
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import time
 from pathlib import Path
@@ -71,20 +72,28 @@ def pendulum_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
     return -cost[:, None]
 
 
+def _our_costs():
+    """``torchrl_recon/envs/gym_costs.py`` of this checkout, loaded by its path (it needs only
+    torch; the package itself does not install beside mbrl 0.2.0), so both agents optimise the
+    very same cost functions."""
+    path = Path(__file__).resolve().parents[2] / "torchrl_recon" / "envs" / "gym_costs.py"
+    spec = importlib.util.spec_from_file_location("gym_costs", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+COSTS = _our_costs()
+
+
 def mountain_car_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    """−cost of ``torchrl_recon.envs.gym_costs.mountain_car`` (it reads only the action and the
-    next observation, so both agents optimise the same thing), ``[N, 1]``."""
-
-    def energy(obs):
-        return 0.5 * obs[..., 1].pow(2) + 0.0025 / 3 * torch.sin(3 * obs[..., 0])
-
-    missing = (energy(next_obs.new_tensor([0.45, 0.0])) - energy(next_obs)).clamp(min=0)
-    return -(1000 * missing + 0.1 * act[:, 0].pow(2))[:, None]
+    """−``gym_costs.mountain_car`` (it reads only the action and the next observation), ``[N, 1]``."""
+    return -COSTS.mountain_car(None, act, next_obs)[:, None]
 
 
 def mountain_car_termination(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    """The env's own end: the car at the goal, x ≥ 0.45 with v ≥ 0, ``[N, 1]``."""
-    return ((next_obs[:, 0] >= 0.45) & (next_obs[:, 1] >= 0))[:, None]
+    """``gym_costs.mountain_car_termination``, the env's own end, ``[N, 1]``."""
+    return COSTS.mountain_car_termination(None, act, next_obs)[:, None]
 
 
 def inverted_pendulum_reward(act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import logging
 import os
+from pathlib import Path
 
 import pytest
 import torch
+from filelock import FileLock
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_recon.collectors import collect_random
@@ -43,16 +46,55 @@ class OffsetNoisePolicy(TensorDictModuleBase):
 
 
 @pytest.fixture(scope="session")
-def trained_models():
-    """``trained_models(name)`` → dict with data, world model and estimator, trained once per env."""
+def trained_models(tmp_path_factory):
+    """``trained_models(name)`` → dict with data, world model and estimator, trained once per env
+    and test run: under pytest-xdist the first worker to ask trains and saves it (tensors only,
+    read back with ``weights_only``), the others load it."""
     cache = {}
+    shared = None
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # this run's folder, common to its workers
+        shared = tmp_path_factory.getbasetemp().parent / "trained_models"
+        shared.mkdir(exist_ok=True)
 
     def get(name: str) -> dict:
         if name not in cache:
-            cache[name] = _train(name)
+            cache[name] = _train(name) if shared is None else _train_once(name, shared)
         return cache[name]
 
     return get
+
+
+def _train_once(name: str, folder: Path) -> dict:
+    """:func:`_train` run by one worker of the test run; the others load its tensors."""
+    path = folder / f"{name}.pt"
+    with FileLock(str(path) + ".lock"):
+        if not path.exists():
+            trained = _train(name)
+            tensors = {k: v for k, v in trained.items() if k not in ("name", "model", "estimator")}
+            tensors = {
+                k: v.to_dict() if k in ("train", "held_out") else v for k, v in tensors.items()
+            }
+            tensors["model"] = trained["model"].state_dict()
+            tensors["estimator"] = trained["estimator"].state_dict()
+            torch.save(tensors, path)
+            return trained
+    saved = torch.load(path, weights_only=True)
+    train, held_out = (
+        TensorDict(saved[k], saved[k]["action"].shape[:1]) for k in ("train", "held_out")
+    )
+    obs_dim, action_dim = train["observation"].shape[-1], train["action"].shape[-1]
+    model = LSTMWorldModel(obs_dim, action_dim, window=WINDOW)
+    estimator = ReconstructionUncertainty(obs_dim, action_dim, window=WINDOW)
+    model.load_state_dict(saved["model"])
+    estimator.load_state_dict(saved["estimator"])
+    return {
+        "name": name,
+        "train": train,
+        "held_out": held_out,
+        "model": model,
+        "estimator": estimator,
+        "scale": saved["scale"],
+    }
 
 
 def _train(name: str) -> dict:

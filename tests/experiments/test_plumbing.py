@@ -446,6 +446,20 @@ def test_meta_records_no_absolute_path(tmp_path, monkeypatch):
         assert str(tmp_path) not in json.dumps(meta)
 
 
+def test_a_run_first_started_outside_a_checkout_resumes(tmp_path, capsys):
+    """An earlier start that recorded ``"git": null`` (or no commit) is no commit change."""
+    cfg = _smoke(tmp_path, "seed=1")
+    run_dir = prepare_run_dir(cfg, argv=["torchrl-recon"])
+    release_run_dir(run_dir)
+    meta = json.loads((run_dir / "meta.json").read_text())
+    (run_dir / "meta.json").write_text(json.dumps({**meta, "git": None}))
+    run_dir = prepare_run_dir(cfg, argv=["torchrl-recon"])
+    release_run_dir(run_dir)
+    meta = json.loads((run_dir / "meta.json").read_text())
+    assert meta["resumed"] and meta["previous"][-1]["git"] is None
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_git_info_outside_a_checkout(tmp_path):
     assert git_info(tmp_path) == {"commit": "unknown", "dirty": None}
 

@@ -176,8 +176,7 @@ def plot_calibration(results: Mapping[str, Any]) -> Figure:
         if log:
             ax.set_yscale("log")
             ax.axhline(1.0, color="k", lw=0.6)
-    fig.suptitle(
-        f"Uncertainty estimators — {results.get('env', '')}, seed {results.get('seed')}",
-        fontsize=10,
-    )
+    seed = results.get("seed")  # a summary of several seeds has none
+    title = f"Uncertainty estimators — {results.get('env', '')}"
+    fig.suptitle(title + (f", seed {seed}" if seed is not None else ""), fontsize=10)
     return fig

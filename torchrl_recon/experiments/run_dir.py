@@ -225,7 +225,7 @@ def prepare_run_dir(
         **extra,
     }
     commit = meta["git"]["commit"]
-    before = previous[-1].get("git", {}).get("commit") if previous else commit
+    before = (previous[-1].get("git") or {}).get("commit", commit) if previous else commit
     if before != commit:
         print(
             f"warning: {run_dir} was started at commit {before} and is resumed at {commit}.",

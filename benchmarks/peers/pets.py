@@ -205,6 +205,7 @@ def main() -> None:
         "task": args.task,
         "gym_id": gym_id,
         "seed": args.seed,
+        "random_steps": episode_steps,  # PETS's random first episode (initial_exploration_steps)
         "wall_s": time.perf_counter() - start,
         "plan_ms_per_step": 1000 * plan.seconds / max(plan.calls, 1),
         "plan_calls": plan.calls,

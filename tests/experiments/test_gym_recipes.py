@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from torchrl_recon.cli import main
 from torchrl_recon.envs import registry
@@ -253,3 +254,31 @@ def test_env_termination_is_imported_and_checked_before_any_work(costs, tmp_path
     cfg = load_recipe(GYM / "control_smoke.yaml", [*base, f"env.termination={terms}:fallen"])
     model = planning_model(cfg, LSTMWorldModel(3, 1, window=cfg.models.window))
     assert model.termination_fn.__name__ == "fallen"
+
+
+PUBLISHED_ONLINE = ROOT / "docs" / "results" / "online"
+
+
+@pytest.mark.parametrize(
+    "recipe, env_id",
+    [
+        ("online_pendulum", "Pendulum-v1"),
+        ("online_mountain_car", "MountainCarContinuous-v0"),
+        ("online_inverted_pendulum", "InvertedPendulum-v5"),
+    ],
+)
+def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(recipe, env_id):
+    """The task recipes validate (MuJoCo's only where it is installed) and hold exactly the
+    config of the runs published from them (keys a resumed run may change aside)."""
+    if env_id.startswith("InvertedPendulum"):
+        pytest.importorskip("mujoco")
+    cfg = load_recipe(GYM / f"{recipe}.yaml", ["seed=0"])
+    assert cfg.env.id == env_id and cfg.env.cost.startswith("torchrl_recon.envs.gym_costs:")
+    assert cfg.random_steps >= cfg.env.episode_steps == cfg.steps_per_iteration
+    published = PUBLISHED_ONLINE / env_id / "seed0" / "config.yaml"
+    if not published.exists():
+        pytest.skip(f"no published run of {env_id}")
+    from torchrl_recon.experiments.run_dir import config_differences, read_config
+
+    ours = OmegaConf.to_container(cfg, resolve=True)
+    assert config_differences(OmegaConf.to_container(read_config(published.parent)), ours) == []

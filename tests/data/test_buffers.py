@@ -16,6 +16,7 @@ from torchrl_recon.data import (
     save_buffer,
     split_by_trajectory,
 )
+from torchrl_recon.data.buffers import TRAJ_KEY
 
 LENGTHS = (9, 14, 6, 21, 11, 7, 16, 8, 12, 10)  # episode lengths, all different
 
@@ -211,3 +212,29 @@ def test_gather_storage_samples_the_rows_lazy_tensor_storage_would():
     assert (storage.get(torch.tensor([-1]))["t"] == t[-1:]).all()
     with pytest.raises(IndexError):
         storage.get(torch.tensor([len(data)]))  # a row past the filled part is refused
+
+
+def test_the_cached_trajectory_bounds_draw_torchrls_own_slices_and_follow_an_extend():
+    """``cache_values=True`` reads the trajectory bounds once per extend: the same slices as
+    TorchRL's uncached sampler under the same seed, and trajectories added later are drawn."""
+    from torchrl.data import SliceSampler
+
+    ids = torch.arange(60) // 12
+    data = TensorDict({"x": torch.arange(60.0), TRAJ_KEY: ids}, [60])
+    ours = make_sequence_buffer(200, slice_len=5, num_slices=4)
+    plain = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(200),
+        sampler=SliceSampler(slice_len=5, traj_key=TRAJ_KEY),
+        batch_size=20,
+    )
+    assert ours.sampler.cache_values and not plain.sampler.cache_values
+    for rb in (ours, plain):
+        rb.extend(data)
+    for _ in range(3):
+        torch.manual_seed(1)
+        a = ours.sample()["x"]
+        torch.manual_seed(1)
+        assert torch.equal(a, plain.sample()["x"])
+    ours.extend(TensorDict({"x": torch.full((12,), -1.0), TRAJ_KEY: torch.full((12,), 9)}, [12]))
+    torch.manual_seed(0)
+    assert any((ours.sample()["x"] == -1).any() for _ in range(20))

@@ -129,6 +129,7 @@ def make_sequence_buffer(
             traj_key=traj_key,
             strict_length=not pad_short,
             pad_output=pad_short,
+            cache_values=True,  # trajectory bounds read once per extend, not once per sample
         )
     elif sampling == "step":
         sampler = StepUniformSliceSampler(slice_len=slice_len, traj_key=traj_key)

@@ -25,10 +25,13 @@ def _error_lines(capsys) -> list[str]:
     return [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
 
 
-def test_control_on_episodes_of_3_steps_plans_them_from_the_first_step(tmp_path, monkeypatch):
+def test_control_on_episodes_of_3_steps_plans_them_from_the_first_step(
+    tmp_path, monkeypatch, capsys
+):
     out = tmp_path / "control"
     args = ["control", "gym/control_smoke", *short_env(tmp_path, monkeypatch), *FAST_CONTROL]
     assert main([*args, "replan.mode=uncertainty", f"output_dir={out}"]) == 0
+    assert "warm-up plan)" in capsys.readouterr().out  # the table's title names it
     results = json.loads((out / "results.json").read_text())
     # the threshold and β's unit come from the padded episodes' windows
     assert math.isfinite(results["replan_threshold"]) and results["replan_threshold"] > 0

@@ -88,7 +88,7 @@ def expected_stages(kind: str) -> list[str]:
         guided += [f"guided_data_{r}"] + ([f"guided_refit_{r}"] if r < rounds - 1 else [])
     groups = batches(cfg.retrainings, cfg.retrainings_per_fit)
     retrain = [f"retrain_{g}" for g in range(len(groups))]
-    return ["initial_random", "initial_models", "validation", *guided, "random_arm", *retrain]
+    return ["validation", "initial_random", "initial_models", *guided, "random_arm", *retrain]
 
 
 STAGES = {kind: expected_stages(kind) for kind in RECIPES}

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.experiments.tiny import short_env
 from torchrl_recon.cli import main
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
@@ -109,46 +110,8 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         assert not out.exists()
 
 
-SHORT_ENV = '''
-import gymnasium as gym
-import numpy as np
-import torch
-
-
-class Short(gym.Env):
-    """Ends after 3 steps, like InvertedPendulum's random episodes."""
-
-    observation_space = gym.spaces.Box(-10, 10, (2,), np.float32)
-    action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
-
-    def __init__(self, **kwargs):  # TorchRL's GymEnv may pass frameskip
-        super().__init__()
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.t, self.s = 0, np.zeros(2, np.float32)
-        return self.s.copy(), {}
-
-    def step(self, action):
-        self.t += 1
-        self.s = (self.s + np.asarray(action, np.float32)[0]).clip(-10, 10)
-        return self.s.copy(), -float(self.s[0] ** 2), self.t >= 3, False, {}
-
-
-def cost(obs, action, next_obs):
-    return next_obs[..., 0].pow(2)
-
-
-gym.register(id="{env_id}", entry_point="{module}:Short", max_episode_steps=50)
-'''
-
-
 def _short_env_args(tmp_path, monkeypatch) -> list[str]:
-    module, env_id = f"short_env_{uuid.uuid4().hex[:8]}", f"Short{uuid.uuid4().hex[:6]}-v0"
-    source = SHORT_ENV.replace("{env_id}", env_id).replace("{module}", module)
-    (tmp_path / f"{module}.py").write_text(source)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    return ["online", "gym/online_smoke", f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
+    return ["online", "gym/online_smoke", *short_env(tmp_path, monkeypatch)]
 
 
 def test_episodes_shorter_than_a_training_window_train_on_padded_slices(tmp_path, monkeypatch):

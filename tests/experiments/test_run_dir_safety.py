@@ -1,9 +1,10 @@
 """A run directory is data, never code: every loader refuses planted pickles and damaged files.
 
-One smoke run (``stop_after=validation``) is made once; each test works on a copy. A payload
-whose unpickling would create a marker file is planted in each kind of file a run directory holds
-and reads back, and every public loader is called on it: the marker never appears, the refusal is
-one ``DamagedFileError`` line naming the file, and the run directory is left byte-identical.
+One smoke run (``stop_after=initial_models``: validation, data, models) is made once; each test
+works on a copy. A payload whose unpickling would create a marker file is planted in each kind of
+file a run directory holds and reads back, and every public loader is called on it: the marker
+never appears, the refusal is one ``DamagedFileError`` line naming the file, and the run
+directory is left byte-identical.
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ def _explore_results(seed: int) -> dict:
 def base_run(tmp_path_factory) -> Path:
     """A real run directory: data, models, validation; plus control-style parts and results."""
     run_dir = tmp_path_factory.mktemp("safety") / "run"
-    proc = _cli(run_dir, "stop_after=validation")
+    proc = _cli(run_dir, "stop_after=initial_models")
     assert proc.returncode == 0, proc.stderr[-2000:]
     Stages(run_dir, seed=0).run_parts("episodes", 2, lambda i: {"i": i})
     write_results(run_dir, _explore_results(0))
@@ -485,7 +486,7 @@ def test_cli_resume_refuses_a_planted_pickle(run, tmp_path):
         for k, v in _snapshot(run).items()
         if "/buffers/" in k or "/checkpoints/" in k or "/stages/" in k
     }
-    proc = _cli(run, "stop_after=validation")
+    proc = _cli(run, "stop_after=initial_models")
     output = proc.stdout + proc.stderr
     assert proc.returncode != 0, output[-2000:]
     assert "DamagedFileError" in output or "error:" in output

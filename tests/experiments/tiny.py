@@ -1,4 +1,7 @@
-"""Overrides that shrink any experiment recipe to a few seconds: tiny networks, two fit steps."""
+"""Overrides that shrink any experiment recipe to a few seconds: tiny networks, two fit steps;
+and a gymnasium env whose episodes end after 3 steps, shorter than any training window."""
+
+import uuid
 
 TINY = [
     "models.window=3",
@@ -13,3 +16,46 @@ TINY = [
     "training.uncertainty.eval_every=1",
     "logger.backend=none",
 ]
+
+SHORT_ENV = '''
+import gymnasium as gym
+import numpy as np
+import torch
+
+
+class Short(gym.Env):
+    """Ends after 3 steps, like InvertedPendulum's random episodes."""
+
+    observation_space = gym.spaces.Box(-10, 10, (2,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+
+    def __init__(self, **kwargs):  # TorchRL's GymEnv may pass frameskip
+        super().__init__()
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.s = 0, np.zeros(2, np.float32)
+        return self.s.copy(), {}
+
+    def step(self, action):
+        self.t += 1
+        self.s = (self.s + np.asarray(action, np.float32)[0]).clip(-10, 10)
+        return self.s.copy(), -float(self.s[0] ** 2), self.t >= 3, False, {}
+
+
+def cost(obs, action, next_obs):
+    return next_obs[..., 0].pow(2)
+
+
+gym.register(id="{env_id}", entry_point="{module}:Short", max_episode_steps=50)
+'''
+
+
+def short_env(tmp_path, monkeypatch) -> list[str]:
+    """The ``env.id`` and ``env.cost`` overrides of :data:`SHORT_ENV`, written as a fresh module
+    under ``tmp_path`` (put on ``sys.path`` by pytest's ``monkeypatch``)."""
+    module, env_id = f"short_env_{uuid.uuid4().hex[:8]}", f"Short{uuid.uuid4().hex[:6]}-v0"
+    source = SHORT_ENV.replace("{env_id}", env_id).replace("{module}", module)
+    (tmp_path / f"{module}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return [f"env.id={module}:{env_id}", f"env.cost={module}:cost"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from torchrl_recon.collectors.datasets import (
+    EpisodesTooShort,
     concat_trajectories,
     first_episodes,
     validation_trajectories,
@@ -11,6 +12,7 @@ from torchrl_recon.collectors.policies import OffsetNoisePolicy
 from torchrl_recon.collectors.random_data import collect, collect_random
 
 __all__ = [
+    "EpisodesTooShort",
     "OffsetNoisePolicy",
     "collect",
     "collect_random",

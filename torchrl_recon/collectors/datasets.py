@@ -36,6 +36,42 @@ def concat_trajectories(*datasets: TensorDictBase) -> TensorDictBase:
     return torch.cat(parts, 0)
 
 
+class EpisodesTooShort(RuntimeError):
+    """:func:`validation_trajectories` drew too few trajectories of ``length`` steps: the env
+    ended the others sooner. ``median`` and ``longest``: the steps the attempts reached.
+
+    Examples:
+        >>> err = EpisodesTooShort(done=0, count=4, length=25, attempts=40, median=5, longest=8)
+        >>> err.longest, str(err).split(";")[0]
+        (8, 'Only 0 of 4 trajectories reached 25 steps in 40 attempts (median 5 steps, longest 8)')
+    """
+
+    def __init__(
+        self, *, done: int, count: int, length: int, attempts: int, median: int, longest: int
+    ):
+        self.done, self.count, self.length = done, count, length
+        self.attempts, self.median, self.longest = attempts, median, longest
+        super().__init__(
+            f"Only {done} of {count} trajectories reached {length} steps in {attempts} attempts "
+            f"(median {median} steps, longest {longest}); use shorter validation trajectories "
+            "for this environment."
+        )
+
+
+def episode_lengths(rollout: TensorDictBase) -> torch.Tensor:
+    """The steps of each env's first episode in a rollout ``[B, T]``, up to and including its
+    first done (``T`` when it never ends).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> done = torch.tensor([[False, True, True], [False, False, False]])[..., None]
+        >>> episode_lengths(TensorDict({("next", "done"): done}, [2, 3])).tolist()
+        [2, 3]
+    """
+    done = rollout["next", "done"].flatten(2).any(-1)  # [B, T]
+    return torch.where(done.any(1), done.int().argmax(1) + 1, done.shape[1])
+
+
 def first_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
     """Each env's first episode in a batched rollout ``[B, T]``: its steps up to and including
     its first done (all ``T`` when it never ends), e.g. of ``env.rollout(...,
@@ -47,9 +83,7 @@ def first_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
         >>> [len(e) for e in first_episodes(TensorDict({("next", "done"): done}, [2, 3]))]
         [2, 3]
     """
-    done = rollout["next", "done"].flatten(2).any(-1)  # [B, T]
-    lengths = torch.where(done.any(1), done.int().argmax(1) + 1, done.shape[1]).tolist()
-    return [rollout[i, :n] for i, n in enumerate(lengths)]
+    return [rollout[i, :n] for i, n in enumerate(episode_lengths(rollout).tolist())]
 
 
 def validation_trajectories(
@@ -73,6 +107,10 @@ def validation_trajectories(
     trajectory slot in order (each attempt counts towards ``max_attempts``); with ``B = 1``
     (or an unbatched env) the trajectories are drawn one after the other.
 
+    Raises:
+        EpisodesTooShort: fewer than ``count`` attempts of ``max_attempts`` (default
+            ``10 * count``) reached ``length`` steps.
+
     Examples:
         >>> from torchrl_recon.envs import make_env
         >>> validation_trajectories(make_env("drone", seed=0), count=2, length=5, seed=0).batch_size
@@ -90,14 +128,18 @@ def validation_trajectories(
     batched = len(env.batch_size) > 0
     rows = env.batch_size.numel()
     slots: list[TensorDictBase | None] = [None] * count
-    attempts = 0
+    attempts, lengths = 0, []  # the steps each attempt reached
     max_attempts = max_attempts or 10 * count
     while (missing := [k for k, td in enumerate(slots) if td is None]) != []:
         if attempts >= max_attempts:
-            done = count - len(missing)
-            raise RuntimeError(
-                f"Only {done} of {count} trajectories reached {length} steps in {max_attempts} attempts; "
-                "use shorter validation trajectories for this environment."
+            done, reached = count - len(missing), torch.cat(lengths)
+            raise EpisodesTooShort(
+                done=done,
+                count=count,
+                length=length,
+                attempts=max_attempts,
+                median=int(reached.median()),
+                longest=int(reached.max()),
             )
         targets = [missing[j % len(missing)] for j in range(rows)]  # the slot each row fills
         attempts += rows
@@ -113,6 +155,7 @@ def validation_trajectories(
             td = env.rollout(length, policy=rollout_policy, break_when_all_done=True)
         else:
             td = env.rollout(length, policy=rollout_policy, break_when_any_done=True)[None]
+        lengths.append(episode_lengths(td))
         if td.shape[1] < length:
             continue
         complete = ~td["next", "done"][:, :-1].flatten(1).any(-1)

@@ -442,18 +442,28 @@ def _read_saved_buffer(path: Path) -> tuple[TensorDictBase, dict[str, int]]:
 
 
 def cut_sequences(
-    data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY
+    data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY, pad_short: bool = False
 ) -> TensorDictBase:
     """Cut flat transitions into non-overlapping ``[V, length]`` sequences that stay inside one trajectory.
+
+    ``pad_short=True`` is for envs whose episodes end early: when no trajectory has ``length``
+    steps, each trajectory is one sequence instead (:func:`padded_trajectories`: padded with
+    copies of its last step, its real steps marked in :data:`MASK_KEY`, as
+    ``make_sequence_buffer(pad_short=True)`` samples them); data that hold a trajectory of
+    ``length`` steps are cut as without it.
 
     Examples:
         >>> from tensordict import TensorDict
         >>> td = TensorDict({"x": torch.arange(25.), ("collector", "traj_ids"): torch.arange(25) // 10}, [25])
         >>> cut_sequences(td, 4)["x"][:, 0].tolist()
         [0.0, 4.0, 10.0, 14.0, 20.0]
+        >>> cut_sequences(td, 12, pad_short=True)[MASK_KEY].sum(-1).tolist()
+        [10, 10, 5]
     """
     if length < 1:
         raise ValueError(f"length must be >= 1, got {length}.")
+    if pad_short and long_trajectories(data, length, traj_key=traj_key) == 0:
+        return padded_trajectories(data, length, traj_key=traj_key)
     ids = _trajectory_ids(data, traj_key, "cut_sequences")
     starts = []
     for traj in torch.unique_consecutive(ids):
@@ -468,3 +478,31 @@ def cut_sequences(
         raise ValueError(f"No trajectory has {length} steps; collect longer episodes.")
     index = torch.tensor(starts)[:, None] + torch.arange(length)
     return data[index]
+
+
+def padded_trajectories(
+    data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY
+) -> TensorDictBase:
+    """Each trajectory of flat transitions as one ``[V, length]`` sequence: its first ``length``
+    steps, a shorter one padded with copies of its last step; :data:`MASK_KEY` marks the real
+    steps (the layout of ``SliceSampler(pad_output=True)``, which the losses honour).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"x": torch.arange(5.), TRAJ_KEY: torch.tensor([0, 0, 0, 1, 1])}, [5])
+        >>> seqs = padded_trajectories(td, 4)
+        >>> seqs["x"].tolist(), seqs[MASK_KEY].int().tolist()
+        ([[0.0, 1.0, 2.0, 2.0], [3.0, 4.0, 4.0, 4.0]], [[1, 1, 1, 0], [1, 1, 0, 0]])
+    """
+    if length < 1:
+        raise ValueError(f"length must be >= 1, got {length}.")
+    ids = _trajectory_ids(data, traj_key, "padded_trajectories")
+    runs, counts = torch.unique_consecutive(ids, return_counts=True)
+    if len(runs) != len(torch.unique(ids)):
+        raise ValueError("A trajectory is not contiguous in the data; sort it by time first.")
+    starts = counts.cumsum(0) - counts
+    t = torch.arange(length)
+    index = starts[:, None] + torch.minimum(t, counts[:, None] - 1)
+    seqs = data[index]
+    seqs.set(MASK_KEY, t < counts[:, None])
+    return seqs

@@ -58,6 +58,7 @@ DataPolicy = choice("DataPolicy", "random offset_noise", __name__)
 ReplanMode = choice("ReplanMode", "every_step every_n uncertainty", __name__)
 ThresholdOn = choice("ThresholdOn", "step cumulative", __name__)
 WarmupMode = choice("WarmupMode", "random zeros plan", __name__)
+ControlWarmup = choice("ControlWarmup", "auto random zeros plan", __name__)
 
 
 @dataclass
@@ -330,7 +331,11 @@ class ControlConfig(RunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3). The random data are a step budget,
     ``random_episodes × random_episode_steps`` steps (the paper's "10 episodes of 500 time
     steps, 5000 samples"): an env whose episodes end early fills it with more, shorter ones.
-    (In Python, ``collect_random(..., episodes=N)`` stops at N whole episodes instead.)"""
+    (In Python, ``collect_random(..., episodes=N)`` stops at N whole episodes instead.)
+    ``warmup``: what the steps before each episode's first plan do (``random``, ``zeros``,
+    ``plan``, see :class:`~torchrl_recon.policies.MPCPolicy`); ``auto``: ``plan`` when no random
+    episode has ``training.slice_len`` steps (episodes that end early, whose fits started them
+    at rest as ``plan`` plans them), else ``random`` (the paper's)."""
 
     experiment: str = "control"
     output_dir: str = checked("outputs/control", _directory)
@@ -338,6 +343,7 @@ class ControlConfig(RunConfig):
     random_episode_steps: int = count(500)
     episodes: int = count(10)
     warmup_random_steps: int = count(10, 0)
+    warmup: ControlWarmup = ControlWarmup.auto
     replan: ReplanConfig = field(default_factory=ReplanConfig)
     settings: list[ControlSetting] = _non_empty("control recipe needs at least one setting")
 

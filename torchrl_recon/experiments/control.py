@@ -118,7 +118,8 @@ def result_table(r: Mapping[str, Any]) -> str:
     """The table of one control results dict."""
     title = (
         f"control — {r.get('env')} seed {r.get('seed')}: mean ± std over episodes"
-        f" (re-plan threshold {fmt(r.get('replan_threshold'))})"
+        f" (re-plan threshold {fmt(r.get('replan_threshold'))}"
+        + (f", warm-up {r['warmup']})" if r.get("warmup") else ")")
     )
     settings = dict(r["settings"])
     if "random_policy" in r:

@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from torchrl_recon.collectors import first_episodes
+from torchrl_recon.data import long_trajectories
 from torchrl_recon.envs import close_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.evaluation import episode_metrics, planned_trajectory
@@ -60,12 +61,34 @@ def episode_mean_std(episodes: list[dict], metrics: Sequence[str] = METRICS) -> 
 @dataclass
 class Controller:
     """What every setting's episodes share: the planning model, the re-planning threshold, the
-    β unit and the state scale of the reported MSE."""
+    β unit, the state scale of the reported MSE and the warm-up mode (``random``, ``zeros`` or
+    ``plan``)."""
 
     model: PlanningModel
     threshold: float
     beta_unit: float
     scale: torch.Tensor
+    warmup: str = "random"
+
+
+def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
+    """The recipe's ``warmup``; ``auto`` is ``plan`` when no episode of the random ``data`` has
+    ``training.slice_len`` steps (an env whose episodes end early, e.g. InvertedPendulum: the
+    fits padded them, starting each at rest as ``plan`` plans it, and a random warm-up would
+    end most MPC episodes before their first plan), else ``random`` (the paper's).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 4}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.arange(12) // 3}, [12])  # 3 steps each
+        >>> warmup_mode(cfg, data), warmup_mode(OmegaConf.merge(cfg, {"warmup": "zeros"}), data)
+        ('plan', 'zeros')
+    """
+    mode = str(cfg.warmup)
+    if mode != "auto":
+        return mode
+    return "plan" if long_trajectories(data, cfg.training.slice_len) == 0 else "random"
 
 
 def setting_objective(setting: DictConfig, beta_unit: float) -> tuple[Objective, float]:
@@ -100,8 +123,10 @@ def episode_batch(
 ) -> list[TensorDictBase]:
     """The MPC episodes ``batch`` of ``setting``, played side by side, episode ``e`` seeded with
     ``stage_seed("setting_<name>_<e>")``."""
-    warmup = max(ctx.cfg.warmup_random_steps, controller.model.context_length)
-    policy = mpc_policy(ctx.cfg, planner, controller.threshold, warmup_steps=warmup)
+    mode, steps = controller.warmup, None  # plan: from the first step
+    if mode != "plan":
+        steps = max(ctx.cfg.warmup_random_steps, controller.model.context_length)
+    policy = mpc_policy(ctx.cfg, planner, controller.threshold, warmup_steps=steps, warmup=mode)
     return play_episodes(
         ctx, [ctx.stage_seed(f"setting_{setting.name}_{e}") for e in batch], policy
     )
@@ -200,7 +225,7 @@ def run(ctx: RunContext) -> dict:
     relative = any(s.beta_relative for s in cfg.settings)
     beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
     model = planning_model(cfg, world, estimator)  # the env's action bounds
-    controller = Controller(model, threshold, beta_unit, scale)
+    controller = Controller(model, threshold, beta_unit, scale, warmup_mode(cfg, data))
     results, example = {}, None
     for setting in cfg.settings:
         record = setting_stage(ctx, setting, controller)
@@ -212,6 +237,7 @@ def run(ctx: RunContext) -> dict:
         **ctx.results_header(),
         "replan_threshold": threshold,
         **({"beta_unit": beta_unit} if relative else {}),
+        **({"warmup": controller.warmup} if controller.warmup != "random" else {}),
         "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
         "settings": results,
         "random_policy": random_policy_stage(ctx),

@@ -1,8 +1,10 @@
 """The stages of the exploration experiment (the paper's §3.2 and Table 1), one repeat per seed.
 
-``initial_random`` → ``initial_models`` → ``validation`` → ``guided_data_<r>`` (with
+``validation`` → ``initial_random`` → ``initial_models`` → ``guided_data_<r>`` (with
 ``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings
-fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable.
+fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable. The
+validation set comes first: an env whose random episodes end before ``models.window +
+validation.steps`` steps is refused before any fit.
 """
 
 from __future__ import annotations
@@ -11,11 +13,18 @@ import copy
 import math
 
 import torch
+from omegaconf import DictConfig
 from scipy import stats
 from tensordict import TensorDictBase
 
-from torchrl_recon.collectors import collect, concat_trajectories, validation_trajectories
+from torchrl_recon.collectors import (
+    EpisodesTooShort,
+    collect,
+    concat_trajectories,
+    validation_trajectories,
+)
 from torchrl_recon.envs import close_env
+from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import population_multi_step_errors
 from torchrl_recon.experiments.common import (
     batches,
@@ -47,7 +56,7 @@ MSE_UNITS = (
     "multi-step predictions (real context of `window` steps, then `validation.steps` steps from the real "
     "actions), each state dim divided by its standard deviation in the initial random data (shared by both arms)"
 )
-STAGES = ("initial_random", "initial_models", "validation", "guided_data_{n}", "guided_refit_{n}")
+STAGES = ("validation", "initial_random", "initial_models", "guided_data_{n}", "guided_refit_{n}")
 STAGES += ("random_arm", "retrain_{n}")
 """Stage name templates, in run order (``{n}`` a round or a group of retrainings)."""
 ARMS = ("random", "active")
@@ -60,22 +69,55 @@ def random_steps_stage(ctx: RunContext, name: str, frames: int) -> TensorDictBas
 
 
 def validation_stage(ctx: RunContext) -> TensorDictBase:
-    """Held-out trajectories ``[trajectories, window + validation.steps]``, ``num_envs`` at a time."""
+    """Held-out trajectories ``[trajectories, window + validation.steps]``, ``num_envs`` at a time.
+
+    Raises:
+        RecipeError: the env ends the random episodes sooner (:func:`short_validation_error`).
+    """
     cfg, count = ctx.cfg, ctx.cfg.validation.trajectories
     length = cfg.models.window + cfg.validation.steps
 
     def run():
         seed = ctx.stage_seed("validation")
         env = build_env(cfg, seed=seed, episode_steps=length, num_envs=cfg.num_envs)
-        val = validation_trajectories(
-            env, count=count, length=length, seed=seed, policy=cfg.validation.policy
-        )
-        close_env(env)
+        try:
+            val = validation_trajectories(
+                env, count=count, length=length, seed=seed, policy=cfg.validation.policy
+            )
+        except EpisodesTooShort as err:
+            raise short_validation_error(cfg, err) from None
+        finally:
+            close_env(env)
         ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
         return {"trajectories": count, "length": length}
 
     ctx.stages.run("validation", run)
     return ctx.stages.load_data("validation").reshape(count, length)
+
+
+def short_validation_error(cfg: DictConfig, err: EpisodesTooShort) -> RecipeError:
+    """Why Table 1's protocol cannot run on an env whose random episodes end early (e.g.
+    InvertedPendulum's, of 3-8 steps), and the keys to change.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"env": {"name": "Short-v0"}, "models": {"window": 5},
+        ...     "validation": {"trajectories": 4, "steps": 20, "policy": "random"}})
+        >>> err = EpisodesTooShort(done=0, count=4, length=25, attempts=40, median=3, longest=3)
+        >>> print(short_validation_error(cfg, err))  # doctest: +ELLIPSIS
+        explore on Short-v0: Table 1's validation MSE predicts validation.steps = 20 steps open loop after a real context of models.window = 5 steps, on validation.trajectories = 4 trajectories of 25 steps that the env must not end (validation.policy = random); only 0 of 40 attempts lasted 25 steps (median 3, longest 3): ...
+    """
+    v, window = cfg.validation, cfg.models.window
+    return RecipeError(
+        f"explore on {cfg.env.name}: Table 1's validation MSE predicts validation.steps = "
+        f"{v.steps} steps open loop after a real context of models.window = {window} steps, on "
+        f"validation.trajectories = {v.trajectories} trajectories of {err.length} steps that the "
+        f"env must not end (validation.policy = {v.policy}); only {err.done} of {err.attempts} "
+        f"attempts lasted {err.length} steps (median {err.median}, longest {err.longest}): this "
+        "env's episodes end too early for that protocol. Lower models.window + validation.steps "
+        f"to what most random episodes last (about {err.median}), or study this env with the "
+        "control or online kinds, which run on episodes that end early."
+    )
 
 
 def guided_round_stage(
@@ -156,10 +198,10 @@ def retrain_stage(
 def run(ctx: RunContext) -> dict:
     """Run (or resume) one repeat of the exploration experiment; return its results."""
     cfg, guided = ctx.cfg, ctx.cfg.guided
+    validation = validation_stage(ctx)  # first: an env that ends it early is refused at once
     initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
     scale = state_scale(initial)
     world, estimator = models_stage(ctx, initial, "initial_models")
-    validation = validation_stage(ctx)
     # guided exploration in rounds, both networks refitted on all data after each but the last
     per_round = cfg.env.episode_steps * guided.refit_every_episodes
     rounds = math.ceil(guided.steps / per_round)

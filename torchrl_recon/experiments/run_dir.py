@@ -23,7 +23,7 @@ from torchrl_recon.files import read_json, write_atomically
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
-KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory"}
+KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory", "warmup": "auto"}
 """Keys added to the schema since, with the value an older run directory without them resumes at."""
 VERSION_PACKAGES = ("torch", "torchrl", "tensordict", "gymnasium", "numpy", "pybullet")
 VERSION_PACKAGES += ("torchrl-recon", "hydra-core", "omegaconf", "wandb")

@@ -14,8 +14,9 @@ import math
 import torch
 from tensordict import NestedKey, TensorDictBase
 
-from torchrl_recon.data.buffers import TRAJ_KEY, cut_sequences
+from torchrl_recon.data.buffers import MASK_KEY, TRAJ_KEY, cut_sequences
 from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.padding import windows_at_rest
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 __all__ = ["cost_to_u_ratio", "relative_beta", "window_uncertainty"]
@@ -56,7 +57,11 @@ def window_uncertainty(
 
     ``data`` is cut into non-overlapping sequences of ``sequence_length`` steps (default: the
     estimator's window T) inside each trajectory (``traj_key``, written by TorchRL collectors);
-    every T-window of each sequence is scored on the estimator's device.
+    every T-window of each sequence is scored on the estimator's device. When no trajectory has
+    ``sequence_length`` steps (an env whose episodes end early), each trajectory is one padded
+    sequence and its windows are those the estimator trains on in padded slices
+    (:func:`~torchrl_recon.modules.padding.windows_at_rest`): every window that ends at a real
+    step, an episode shorter than T started at rest.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -66,18 +71,26 @@ def window_uncertainty(
         ...                    ("collector", "traj_ids"): torch.arange(40) // 20}, [40])
         >>> window_uncertainty(data, est).shape, window_uncertainty(data, est, sequence_length=10).shape
         (torch.Size([10]), torch.Size([28]))
+        >>> short = data.clone().set(("collector", "traj_ids"), torch.arange(40) // 2)  # 20 episodes of 2 steps
+        >>> window_uncertainty(short, est, sequence_length=10).shape  # one window (at rest) each
+        torch.Size([20])
     """
     length = estimator.window if sequence_length is None else sequence_length
     if length < estimator.window:
         raise ValueError(
             f"sequence_length={length} is shorter than the estimator's window ({estimator.window})."
         )
-    seqs = cut_sequences(data.select(obs_key, action_key, traj_key), length, traj_key=traj_key)
+    keys = (obs_key, action_key, traj_key)
+    seqs = cut_sequences(data.select(*keys), length, traj_key=traj_key, pad_short=True)
     device = module_device(estimator) if isinstance(estimator, torch.nn.Module) else None
     obs, action = seqs.get(obs_key), seqs.get(action_key)
     if device is not None:
         obs, action = obs.to(device), action.to(device)
-    return estimator.score(obs, action).flatten().cpu()
+    mask = seqs.get(MASK_KEY, None)
+    if mask is None:
+        return estimator.score(obs, action).flatten().cpu()
+    obs, action, valid = windows_at_rest(obs, action, mask.to(obs.device), estimator.window)
+    return estimator.score(obs, action)[valid].cpu()
 
 
 def relative_beta(

@@ -32,7 +32,7 @@ from torchrl_recon.data import (
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.objectives import WorldModelPredictionLoss
-from torchrl_recon.planners import PlannerBase
+from torchrl_recon.planners import PlannerBase, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.training.fit import fit_uncertainty, fit_world_model
@@ -63,7 +63,9 @@ class IterationRecord:
     ``episode_returns``: the summed env reward of every episode that ended in this
     iteration's steps. ``model_error``: the world model's one-step error (standardised Δs,
     mean square) on this iteration's new data before it was refitted on them (NaN for the
-    random data). ``mean_uncertainty``: the estimator's mean u of the new data's windows.
+    random data; over whole episodes when none is ``slice_len`` steps long, see
+    :func:`model_error`). ``mean_uncertainty``: the estimator's mean u of the new data's
+    windows (:func:`mean_uncertainty`).
     ``policy``: what played the steps (``"random"``, ``"explore"`` or ``"mpc"``).
     """
 
@@ -174,12 +176,19 @@ def shared_keys(data: TensorDictBase, new: TensorDictBase) -> list:
 @torch.no_grad()
 def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) -> float:
     """The world model's one-step (teacher-forced) error on ``data``: mean square of the
-    standardised Δs over non-overlapping windows of ``length`` steps (NaN when no trajectory
-    is that long)."""
-    try:
-        windows = cut_sequences(data, length)
-    except ValueError:
-        return float("nan")
+    standardised Δs over non-overlapping windows of ``length`` steps; when no trajectory is
+    that long (episodes that end early), over every step of each whole trajectory, padded and
+    masked (``cut_sequences(..., pad_short=True)``).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> world = LSTMWorldModel(2, 1, window=2)
+        >>> data = TensorDict({"observation": torch.randn(9, 2), "action": torch.rand(9, 1),
+        ...     ("next", "observation"): torch.randn(9, 2), TRAJ_KEY: torch.arange(9) // 3}, [9])
+        >>> model_error(world, data, 5) > 0  # episodes of 3 steps, windows of 5
+        True
+    """
+    windows = cut_sequences(data, length, pad_short=True)
     loss = WorldModelPredictionLoss(world_model, mode="one_step")
     device = next(world_model.parameters()).device
     return float(loss(windows.to(device))["loss_world_model"])
@@ -187,18 +196,22 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
 
 @torch.no_grad()
 def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBase) -> float:
-    """The estimator's mean u over the windows of ``data`` (NaN without an estimator or a
-    trajectory as long as its window)."""
+    """The estimator's mean u over the windows of ``data`` (NaN without an estimator); when no
+    trajectory is as long as its window, over the windows it trains on in padded slices, each
+    short episode started at rest (:func:`~torchrl_recon.planners.window_uncertainty`).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> est = ReconstructionUncertainty(2, 1, window=4)
+        >>> data = TensorDict({"observation": torch.randn(9, 2), "action": torch.rand(9, 1),
+        ...     TRAJ_KEY: torch.arange(9) // 3}, [9])  # episodes of 3 steps
+        >>> mean_uncertainty(est, data) > 0, mean_uncertainty(None, data)
+        (True, nan)
+    """
     if estimator is None:
         return float("nan")
-    try:
-        windows = cut_sequences(data, estimator.window)
-    except ValueError:
-        return float("nan")
-    device = next(estimator.parameters()).device
-    return float(
-        estimator.score(windows["observation"].to(device), windows["action"].to(device)).mean()
-    )
+    return float(window_uncertainty(data, estimator).mean())
 
 
 def new_steps_metrics(

@@ -31,7 +31,7 @@ def test_the_table_holds_each_agents_last_half_and_timings(tmp_path):
     side = _load()
     _pets_run(tmp_path / "seed0", [-1000, -500, -200, -100])  # last half: -150
     _pets_run(tmp_path / "seed1", [-900, -400, -300, -150, -130], random_steps=100)  # -193.3
-    pets = side.pets(tmp_path)
+    pets = side.pets(tmp_path, "pendulum")
     assert pets["curves"][0][0] == (400, -1000)  # after its random episode of 200 steps
     assert pets["curves"][1][0] == (300, -900)
     ours = side.ours(OURS)
@@ -41,6 +41,9 @@ def test_the_table_holds_each_agents_last_half_and_timings(tmp_path):
     ]
     text = side.table({"ours": ours, "PETS": pets})
     assert "| PETS | 2 | 4/5 | — | -172 ± 31 (per seed -150, -193) | 1900.0 | 2.00 |" in text
+    (tmp_path / "seed1" / "timing.json").unlink()  # a run stopped before its end
+    stopped = side.table({"PETS": side.pets(tmp_path, "pendulum")})
+    assert "| PETS | 2 | 4/5 | — | -172 ± 31 (per seed -150, -193) | 1900.0 | 2.00 |" in stopped
     out = tmp_path / "curves.png"
     side.plot({"ours": ours, "PETS": pets}, out, "Pendulum-v1")
     assert out.stat().st_size > 1000

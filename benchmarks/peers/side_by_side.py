@@ -10,7 +10,7 @@ random steps included (ours: ``random_steps``; PETS: its random first episode). 
 writes the learning curves. Runs in the project's environment (it only reads files).
 
 Run: python benchmarks/peers/side_by_side.py --ours docs/results/online/Pendulum-v1
-     --pets docs/results/peers/pets/pendulum --plot docs/results/peers/pendulum.png
+     --pets docs/results/peers/pets/pendulum --task pendulum --plot docs/results/peers/pendulum.png
 """
 
 from __future__ import annotations
@@ -33,6 +33,10 @@ def _mean_std(values: list[float]) -> tuple[float, float]:
     return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
+def _median(values: list[float], spec: str) -> str:
+    return format(statistics.median(values), spec) if values else "— (run stopped)"
+
+
 def _seed_dirs(folder: Path, marker: str) -> list[Path]:
     found = sorted(p.parent for p in folder.glob(f"seed*/{marker}"))
     if not found:
@@ -53,19 +57,22 @@ def ours(folder: Path) -> dict:
     return {"curves": curves, "random": randoms, "plan_ms": plan_ms, "fit_s": fit_s}
 
 
-def pets(folder: Path) -> dict:
-    """PETS's runs: per seed the (env steps, return) of each episode after its random one."""
+def pets(folder: Path, task: str) -> dict:
+    """PETS's runs of ``task``: per seed the (env steps, return) of each episode after its random
+    one; a run stopped before its end (no ``timing.json``) counts the episodes it finished."""
     curves, plan_ms, fit_s = [], [], []
-    for run in _seed_dirs(folder, "timing.json"):
-        timing = json.loads((run / "timing.json").read_text())
+    for run in _seed_dirs(folder, "results.csv"):
         with open(run / "results.csv") as f:
             rows = list(csv.DictReader(f))
-        first = int(timing.get("random_steps", PETS_RANDOM_STEPS[timing["task"]]))
+        timing_file = run / "timing.json"
+        timing = json.loads(timing_file.read_text()) if timing_file.exists() else {}
+        first = int(timing.get("random_steps", PETS_RANDOM_STEPS[task]))
         curves.append(
             [(first + int(float(x["env_step"])), float(x["episode_reward"])) for x in rows]
         )
-        plan_ms.append(timing["plan_ms_per_step"])
-        fit_s.append(timing["fit_s_per_refit"])
+        if timing:
+            plan_ms.append(timing["plan_ms_per_step"])
+            fit_s.append(timing["fit_s_per_refit"])
     return {"curves": curves, "random": [], "plan_ms": plan_ms, "fit_s": fit_s}
 
 
@@ -90,7 +97,7 @@ def table(agents: dict[str, dict]) -> str:
         lines.append(
             f"| {name} | {len(a['curves'])} | {episodes} | {random} | {m:.0f} ± {s:.0f} "
             f"(per seed {', '.join(f'{h:.0f}' for h in halves)}) | "
-            f"{statistics.median(a['plan_ms']):.1f} | {statistics.median(a['fit_s']):.2f} |"
+            f"{_median(a['plan_ms'], '.1f')} | {_median(a['fit_s'], '.2f')} |"
         )
     lines += ["", "| agent | episode | env steps at its end | return, mean over seeds |"]
     lines += ["| --- | ---: | ---: | ---: |"]
@@ -124,12 +131,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ours", type=Path, required=True)
     parser.add_argument("--pets", type=Path, required=True)
+    parser.add_argument("--task", choices=sorted(PETS_RANDOM_STEPS), required=True)
     parser.add_argument("--title", default="")
     parser.add_argument("--plot", type=Path)
     args = parser.parse_args()
     agents = {
         "ours (torchrl-recon online)": ours(args.ours),
-        "PETS (mbrl-lib 0.2.0)": pets(args.pets),
+        "PETS (mbrl-lib 0.2.0)": pets(args.pets, args.task),
     }
     print(table(agents))
     if args.plot:

@@ -20,7 +20,8 @@ from torchrl_recon.planners.sampling import (
 
 
 class CEMPlanner(SamplingPlanner):
-    """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen.
+    """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen
+    (or, with ``return_mean_elites``, the final Gaussian's mean).
 
     The first iteration samples uniformly within the bounds (with a warm start ``init``, half
     of it uniformly and half around ``init``; relative uncertainty bands are resolved from the
@@ -36,6 +37,13 @@ class CEMPlanner(SamplingPlanner):
         num_elites: top-k kept per iteration.
         smoothing: weight of the previous mean/std in the update (0 = plain CEM).
         min_std: floor on the standard deviation, as a fraction of the action range.
+        return_mean_elites: return the mean of the Gaussian after the last iteration (the last
+            elites' mean, smoothed as above) instead of the best single sample seen, as
+            mbrl-lib's CEM with ``return_mean_elites=True`` (PETS's setting): an average of
+            many good plans, less exposed to one candidate that exploits a model error. It
+            costs one more model call of one candidate. With constraints (an uncertainty band
+            or a cost threshold) the mean is returned when it meets them, else the best of the
+            samples seen (the mean included), as without this option.
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
             :meth:`PlanningModel.forward`): many envs' candidates in one call then run at the
             speed of cache-sized batches instead of spilling the rollout state to memory. The
@@ -64,6 +72,7 @@ class CEMPlanner(SamplingPlanner):
         min_std: float = 0.02,
         block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
+        return_mean_elites: bool = False,
     ) -> None:
         super().__init__(
             model,
@@ -79,6 +88,9 @@ class CEMPlanner(SamplingPlanner):
         if not 0.0 <= min_std < math.inf:
             raise ValueError(f"min_std must be a finite number >= 0, got {min_std}.")
         self.num_elites, self.smoothing, self.min_std = num_elites, smoothing, min_std
+        if not isinstance(return_mean_elites, bool):
+            raise TypeError(f"return_mean_elites must be a bool, got {return_mean_elites!r}.")
+        self.return_mean_elites = return_mean_elites
 
     def _elite_update(
         self,
@@ -117,4 +129,17 @@ class CEMPlanner(SamplingPlanner):
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
-        return *seen.result(), bounds
+        candidates, prediction = seen.result()
+        if (
+            self.return_mean_elites
+        ):  # the mean leads; _pick returns it unless it breaks a constraint
+            at_mean = self._evaluate(context_obs, context_action, observation, mean, state)
+            candidates = torch.cat([mean, candidates], -3)
+            prediction = Prediction.concat([at_mean, prediction])
+        return candidates, prediction, bounds
+
+    def _pick(self, objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+        best = super()._pick(objective, violation)
+        if not self.return_mean_elites:
+            return best
+        return torch.where(violation[..., :1] <= 0, torch.zeros_like(best), best)

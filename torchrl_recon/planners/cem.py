@@ -37,6 +37,11 @@ class CEMPlanner(SamplingPlanner):
         num_elites: top-k kept per iteration.
         smoothing: weight of the previous mean/std in the update (0 = plain CEM).
         min_std: floor on the standard deviation, as a fraction of the action range.
+        warm_start_uniform: the fraction of the first iteration's candidates drawn uniformly
+            within the bounds when the plan has a warm start ``init`` (the rest around it);
+            0 samples them all around the warm start, as mbrl-lib's CEM (PETS) samples around
+            the shifted previous plan. Not 0 with an uncertainty band (resolved from the
+            uniform ones).
         return_mean_elites: return the mean of the Gaussian after the last iteration (the last
             elites' mean, smoothed as above) instead of the best single sample seen, as
             mbrl-lib's CEM with ``return_mean_elites=True`` (PETS's setting): an average of
@@ -73,6 +78,7 @@ class CEMPlanner(SamplingPlanner):
         block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
         return_mean_elites: bool = False,
+        warm_start_uniform: float = 0.5,
     ) -> None:
         super().__init__(
             model,
@@ -91,6 +97,14 @@ class CEMPlanner(SamplingPlanner):
         if not isinstance(return_mean_elites, bool):
             raise TypeError(f"return_mean_elites must be a bool, got {return_mean_elites!r}.")
         self.return_mean_elites = return_mean_elites
+        if not 0.0 <= warm_start_uniform <= 1.0:
+            raise ValueError(f"warm_start_uniform must be in [0, 1], got {warm_start_uniform}.")
+        if warm_start_uniform == 0.0 and objective.band is not None:
+            raise ValueError(
+                "warm_start_uniform=0 leaves no uniform candidates to resolve the uncertainty "
+                "band from; give it a fraction above 0."
+            )
+        self.warm_start_uniform = warm_start_uniform
 
     def _elite_update(
         self,
@@ -120,7 +134,7 @@ class CEMPlanner(SamplingPlanner):
         for it in range(self.iterations):
             if mean is None:
                 candidates, uniform = self._first_candidates(
-                    batch, init, WARM_START_STD, self._normal, generator
+                    batch, init, WARM_START_STD, self._normal, generator, self.warm_start_uniform
                 )
             else:
                 noise = self._normal(batch, self.num_candidates, generator)

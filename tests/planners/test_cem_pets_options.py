@@ -1,11 +1,18 @@
-"""CEMPlanner(return_mean_elites=True): the final Gaussian's mean instead of the best sample."""
+"""CEMPlanner's PETS options: return_mean_elites (the final Gaussian's mean instead of the best
+sample) and warm_start_uniform (the first batch's uniform share around a warm start)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from torchrl_recon.planners import CEMPlanner, ICEMPlanner, Objective, PlanningModel
+from torchrl_recon.planners import (
+    CEMPlanner,
+    ICEMPlanner,
+    Objective,
+    PlanningModel,
+    UncertaintyBand,
+)
 
 from .conftest import integrator_cost, integrator_model, optimal_cost
 
@@ -95,3 +102,32 @@ def test_flag_is_checked_and_icem_keeps_its_choice():
         _cem(model, return_mean_elites=1)
     icem = ICEMPlanner(model, Objective(), horizon=H, num_candidates=50, num_elites=5)
     assert icem.return_mean_elites is False
+
+
+def test_warm_start_uniform_sets_the_first_batchs_uniform_share():
+    model = PlanningModel(integrator_model(), integrator_cost)
+    init = torch.full((H, 1), 0.9)
+    for fraction, uniform in ((0.5, 50), (0.0, 0), (1.0, 100), (0.25, 25)):
+        planner = _cem(model, warm_start_uniform=fraction)
+        torch.manual_seed(0)
+        candidates, count = planner._first_candidates(
+            torch.Size(), init, 0.01, planner._normal, None, planner.warm_start_uniform
+        )
+        assert candidates.shape == (100, H, 1) and count == uniform
+        # the candidates after the uniform ones lie around the warm start
+        if uniform < 100:
+            assert (candidates[uniform:] - 0.9).abs().max() < 0.1
+        if uniform:
+            assert (candidates[:uniform] - 0.9).abs().max() > 0.5
+
+
+def test_warm_start_uniform_zero_plans_and_is_refused_with_a_band(context):
+    model = PlanningModel(integrator_model(), integrator_cost)
+    torch.manual_seed(3)
+    result = _cem(model, warm_start_uniform=0.0).plan(*context, init=torch.zeros(H, 1))
+    assert result.feasible and result.actions.shape == (H, 1)
+    with pytest.raises(ValueError, match="warm_start_uniform"):
+        _cem(model, warm_start_uniform=1.5)
+    band = Objective(band=UncertaintyBand(low=0.25, high=0.75, kind="quantile"))
+    with pytest.raises(ValueError, match="band"):
+        CEMPlanner(model, band, horizon=H, num_candidates=10, num_elites=2, warm_start_uniform=0.0)

@@ -133,3 +133,35 @@ def test_exploration_phase_needs_an_explorer_and_an_estimator():
         learn_online(env, world, None, make, explore_iterations=1, make_explorer=make, **common)
     with pytest.raises(ValueError, match="explore_iterations=2 must be between 0 and"):
         learn_online(env, world, None, make, explore_iterations=2, **common)
+
+
+def test_a_world_model_of_members_is_fitted_and_planned_with():
+    """learn_online with an ensemble (num_members=3): every member refitted from its own weights
+    (they stay distinct), the model error the members' mean."""
+    from torchrl_recon.training.online import model_error
+
+    torch.manual_seed(5)
+    env = make_env("Pendulum-v1", seed=5, max_episode_steps=15)
+    world = LSTMWorldModel(3, 1, window=4, hidden_size=8, dense_size=8, num_members=3)
+    model = PlanningModel.from_env(world, pendulum_cost, env)
+    before = [m.head.weight.clone() for m in world.split()]
+    records, data = learn_online(
+        env,
+        world,
+        None,
+        lambda: CEMPlanner(
+            model, Objective(), horizon=4, num_candidates=16, iterations=2, num_elites=4
+        ),
+        iterations=1,
+        steps_per_iteration=30,
+        random_steps=45,
+        schedule=SCHEDULE,
+        seed=5,
+    )
+    members = world.split()
+    assert all(not torch.equal(m.head.weight, b) for m, b in zip(members, before, strict=True))
+    assert not torch.equal(members[0].head.weight, members[1].head.weight)
+    assert bool(members[0].obs_norm.fitted)
+    assert records[1].env_steps == 75 and math.isfinite(records[1].model_error)
+    errors = [model_error(m, data, SCHEDULE.slice_len) for m in members]
+    assert model_error(world, data, SCHEDULE.slice_len) == pytest.approx(sum(errors) / 3)

@@ -198,3 +198,26 @@ def test_population_errors_are_each_members_multi_step_errors():
         torch.testing.assert_close(together[r], alone, rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="L > window=12"):
         population_multi_step_errors(LSTMWorldModel.from_members(models), td, window=12)
+
+
+def test_fit_world_members_fits_each_member_as_its_own_fit():
+    """fit_world_members on a stacked model: member r as fit_world_model(seed=seed + r) on a
+    copy of it, up to float rounding; the result's loss is the members' mean."""
+    from torchrl_recon.training import fit_world_members
+
+    rb = _buffer(0)
+    torch.manual_seed(0)
+    stacked = LSTMWorldModel(N, M, window=4, hidden_size=8, dense_size=8, num_members=2)
+    copies = stacked.split()
+    result = fit_world_members(stacked, rb, seed=7, steps=12, eval_every=4, progress=False)
+    singles = [
+        fit_world_model(m, rb, seed=7 + r, steps=12, eval_every=4, progress=False)
+        for r, m in enumerate(copies)
+    ]
+    for fitted, single in zip(stacked.split(), copies, strict=True):
+        for a, b in zip(fitted.parameters(), single.parameters(), strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    mean = sum(s.best_val_loss for s in singles) / 2
+    assert result.best_val_loss == pytest.approx(mean, rel=1e-4)
+    with pytest.raises(ValueError, match="num_members"):
+        fit_world_members(copies[0], rb, steps=2, progress=False)

@@ -29,6 +29,7 @@ from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_p
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
     fit_uncertainty,
+    fit_world_members,
     fit_world_model,
     load_checkpoint,
     save_checkpoint,
@@ -124,9 +125,13 @@ def random_data_stage(
     return ctx.stages.load_data(name)
 
 
-def build_world_model(cfg: DictConfig, obs_dim: int, action_dim: int) -> LSTMWorldModel:
-    """The world model of the recipe's sizes."""
-    return LSTMWorldModel(obs_dim, action_dim, window=cfg.models.window, **cfg.models.world_model)
+def build_world_model(
+    cfg: DictConfig, obs_dim: int, action_dim: int, members: int | None = None
+) -> LSTMWorldModel:
+    """The world model of the recipe's sizes (``members``: R members, an ensemble)."""
+    return LSTMWorldModel(
+        obs_dim, action_dim, window=cfg.models.window, num_members=members, **cfg.models.world_model
+    )
 
 
 def build_estimator(
@@ -140,11 +145,17 @@ def build_estimator(
 
 
 def build_models(
-    cfg: DictConfig, obs_dim: int, action_dim: int, device: torch.device | None = None
+    cfg: DictConfig,
+    obs_dim: int,
+    action_dim: int,
+    device: torch.device | None = None,
+    *,
+    members: int | None = None,
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """World model and estimator of the recipe's sizes, on ``device`` (default: ``cfg.device``)."""
+    """World model (of ``members`` members, or one) and estimator of the recipe's sizes, on
+    ``device`` (default: ``cfg.device``)."""
     m, device = cfg.models, resolve_device(cfg.device) if device is None else device
-    world = build_world_model(cfg, obs_dim, action_dim).to(device)
+    world = build_world_model(cfg, obs_dim, action_dim, members).to(device)
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
 
@@ -228,6 +239,8 @@ def fit_module(
     kwargs |= {"mode": t.world_model_mode} if world else {}
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
     fit = fit_world_model if world else fit_uncertainty
+    if world and getattr(module, "num_members", None) is not None:
+        fit = fit_world_members
     return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss
 
 

@@ -113,7 +113,8 @@ def run(ctx: RunContext) -> dict:
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
     )
-    world, estimator = build_models(cfg, *dims(data), ctx.device)
+    members = cfg.world_model_members if cfg.world_model_members > 1 else None
+    world, estimator = build_models(cfg, *dims(data), ctx.device, members=members)
     first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
     model = planning_model(cfg, world, estimator)
     iterations = []

@@ -162,10 +162,15 @@ class PlannerBase(nn.Module):
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         raise NotImplementedError
 
+    def _pick(self, objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+        """The index ``[*B, 1]`` of the candidate returned: the best feasible one by J, else the
+        least-violating one (:func:`rank_key`)."""
+        return rank_key(objective, violation).argmax(-1, keepdim=True)
+
     def _choose(self, candidates: torch.Tensor, prediction: Prediction, bounds) -> PlanResult:
         objective = self.objective.score(prediction)
         violation = self.objective.violation(prediction, bounds)
-        best = rank_key(objective, violation).argmax(-1, keepdim=True)  # [*B, 1]
+        best = self._pick(objective, violation)  # [*B, 1]
         feasible = (violation.gather(-1, best) <= 0).squeeze(-1)
         if not feasible.all():
             message = (

@@ -20,7 +20,8 @@ from torchrl_recon.planners.sampling import (
 
 
 class CEMPlanner(SamplingPlanner):
-    """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen.
+    """CEM: sample, keep the elites, refit a diagonal Gaussian, repeat; return the best sample seen
+    (or, with ``return_mean_elites``, the final Gaussian's mean).
 
     The first iteration samples uniformly within the bounds (with a warm start ``init``, half
     of it uniformly and half around ``init``; relative uncertainty bands are resolved from the
@@ -36,6 +37,18 @@ class CEMPlanner(SamplingPlanner):
         num_elites: top-k kept per iteration.
         smoothing: weight of the previous mean/std in the update (0 = plain CEM).
         min_std: floor on the standard deviation, as a fraction of the action range.
+        warm_start_uniform: the fraction of the first iteration's candidates drawn uniformly
+            within the bounds when the plan has a warm start ``init`` (the rest around it);
+            0 samples them all around the warm start, as mbrl-lib's CEM (PETS) samples around
+            the shifted previous plan. Not 0 with an uncertainty band (resolved from the
+            uniform ones).
+        return_mean_elites: return the mean of the Gaussian after the last iteration (the last
+            elites' mean, smoothed as above) instead of the best single sample seen, as
+            mbrl-lib's CEM with ``return_mean_elites=True`` (PETS's setting): an average of
+            many good plans, less exposed to one candidate that exploits a model error. It
+            costs one more model call of one candidate. With constraints (an uncertainty band
+            or a cost threshold) the mean is returned when it meets them, else the best of the
+            samples seen (the mean included), as without this option.
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
             :meth:`PlanningModel.forward`): many envs' candidates in one call then run at the
             speed of cache-sized batches instead of spilling the rollout state to memory. The
@@ -64,6 +77,8 @@ class CEMPlanner(SamplingPlanner):
         min_std: float = 0.02,
         block_rows: int | None = BLOCK_ROWS,
         on_infeasible: OnInfeasible = "fallback",
+        return_mean_elites: bool = False,
+        warm_start_uniform: float = 0.5,
     ) -> None:
         super().__init__(
             model,
@@ -79,6 +94,17 @@ class CEMPlanner(SamplingPlanner):
         if not 0.0 <= min_std < math.inf:
             raise ValueError(f"min_std must be a finite number >= 0, got {min_std}.")
         self.num_elites, self.smoothing, self.min_std = num_elites, smoothing, min_std
+        if not isinstance(return_mean_elites, bool):
+            raise TypeError(f"return_mean_elites must be a bool, got {return_mean_elites!r}.")
+        self.return_mean_elites = return_mean_elites
+        if not 0.0 <= warm_start_uniform <= 1.0:
+            raise ValueError(f"warm_start_uniform must be in [0, 1], got {warm_start_uniform}.")
+        if warm_start_uniform == 0.0 and objective.band is not None:
+            raise ValueError(
+                "warm_start_uniform=0 leaves no uniform candidates to resolve the uncertainty "
+                "band from; give it a fraction above 0."
+            )
+        self.warm_start_uniform = warm_start_uniform
 
     def _elite_update(
         self,
@@ -108,7 +134,7 @@ class CEMPlanner(SamplingPlanner):
         for it in range(self.iterations):
             if mean is None:
                 candidates, uniform = self._first_candidates(
-                    batch, init, WARM_START_STD, self._normal, generator
+                    batch, init, WARM_START_STD, self._normal, generator, self.warm_start_uniform
                 )
             else:
                 noise = self._normal(batch, self.num_candidates, generator)
@@ -117,4 +143,17 @@ class CEMPlanner(SamplingPlanner):
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
-        return *seen.result(), bounds
+        candidates, prediction = seen.result()
+        if (
+            self.return_mean_elites
+        ):  # the mean leads; _pick returns it unless it breaks a constraint
+            at_mean = self._evaluate(context_obs, context_action, observation, mean, state)
+            candidates = torch.cat([mean, candidates], -3)
+            prediction = Prediction.concat([at_mean, prediction])
+        return candidates, prediction, bounds
+
+    def _pick(self, objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+        best = super()._pick(objective, violation)
+        if not self.return_mean_elites:
+            return best
+        return torch.where(violation[..., :1] <= 0, torch.zeros_like(best), best)

@@ -150,6 +150,12 @@ class PlanningModel(nn.Module):
             and ``obs_dim``, ``action_dim``, ``window`` attributes (e.g. :class:`LSTMWorldModel`).
         cost_fn: batched torch cost ``cost(obs, action, next_obs) -> [...]`` (see the env registry).
 
+    A world model with ``num_members=R`` (an :class:`LSTMWorldModel` of R members, an ensemble
+    as PETS's) imagines every candidate with each member from the same real context; a
+    candidate's cost is the members' mean (PETS's expected cost over its ensemble, one
+    deterministic particle per member), its predicted states the members' mean (u and the
+    plan's predictions are of those). It costs R rollouts per candidate.
+
     Keyword Args:
         uncertainty: an :class:`~torchrl_recon.modules.UncertaintyEstimator` or None.
         termination_fn: batched torch ``termination(obs, action, next_obs) -> bool [...]``
@@ -280,7 +286,19 @@ class PlanningModel(nn.Module):
         Pass it as ``state=`` to every call on the same context instead of recomputing it.
         """
         warmup = getattr(self.world_model, "warmup", None)
-        return None if warmup is None else warmup(context_obs, context_action)
+        if warmup is None:
+            return None
+        return warmup(self._per_member(context_obs), self._per_member(context_action))
+
+    @property
+    def num_members(self) -> int | None:
+        """R when the world model holds R members (``num_members``), else None."""
+        return getattr(self.world_model, "num_members", None)
+
+    def _per_member(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` once per member, ``[R, ...]`` (``x`` itself for one model)."""
+        r = self.num_members
+        return x if r is None else x.expand(r, *x.shape)
 
     def check_context(
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
@@ -378,11 +396,25 @@ class PlanningModel(nn.Module):
     ) -> Prediction:
         """One batched pass of :meth:`forward` (u left out unless ``with_u``)."""
         kwargs = {} if state is None else {"state": state}
-        states = self.world_model.imagine(
-            context_obs, context_action, observation, actions, **kwargs
-        )
-        entering = _entering(observation, states)  # s_k for k = 0..H-1
-        cost = self._until_end(self.cost_fn(entering, actions, states), entering, actions, states)
+        if self.num_members is None:
+            states = self.world_model.imagine(
+                context_obs, context_action, observation, actions, **kwargs
+            )
+            entering = _entering(observation, states)  # s_k for k = 0..H-1
+            cost = self._until_end(
+                self.cost_fn(entering, actions, states), entering, actions, states
+            )
+        else:  # every member imagines every candidate; its cost is their mean
+            each = [self._per_member(x) for x in (context_obs, context_action, observation)]
+            per_member_actions = self._per_member(actions)
+            member_states = self.world_model.imagine(*each, per_member_actions, **kwargs)
+            member_entering = _entering(each[2], member_states)
+            member_cost = self.cost_fn(member_entering, per_member_actions, member_states)
+            cost = self._until_end(
+                member_cost, member_entering, per_member_actions, member_states
+            ).mean(0)
+            states = member_states.mean(0)
+            entering = _entering(observation, states)
         uncertainty = None
         if self.uncertainty is not None and with_u:
             u = self._score_uncertainty(context_obs, context_action, entering, actions)

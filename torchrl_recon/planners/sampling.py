@@ -129,16 +129,17 @@ class SamplingPlanner(PlannerBase):
         around_std: float,
         noise: Noise,
         generator: torch.Generator | None,
+        uniform_fraction: float = 0.5,
     ) -> tuple[torch.Tensor, int]:
         """The first iteration's ``num_candidates`` candidates and how many lead them uniformly.
 
-        Without ``init``: all uniform within the bounds. With ``init`` ``[*B, H, M]``: half
-        uniform (the reference of relative bands), half ``init + around_std·range·noise``,
-        clipped to the bounds.
+        Without ``init``: all uniform within the bounds. With ``init`` ``[*B, H, M]``: a
+        ``uniform_fraction`` uniform (the reference of relative bands; half by default), the
+        rest ``init + around_std·range·noise``, clipped to the bounds.
         """
         if init is None:
             return self._uniform(batch, self.num_candidates, generator), self.num_candidates
-        half = self.num_candidates // 2
+        half = int(self.num_candidates * (1 - uniform_fraction))  # K // 2 at 0.5
         uniform = self._uniform(batch, self.num_candidates - half, generator)
         spread = around_std * self._span * noise(batch, half, generator)
         around = self._clamp(init.unsqueeze(-3) + spread)

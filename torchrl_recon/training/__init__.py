@@ -7,6 +7,7 @@ from torchrl_recon.training.fit import (
     FitResult,
     fit_population,
     fit_uncertainty,
+    fit_world_members,
     fit_world_model,
     train_loss_module,
 )
@@ -15,6 +16,7 @@ __all__ = [
     "FitResult",
     "fit_population",
     "fit_uncertainty",
+    "fit_world_members",
     "fit_world_model",
     "load_checkpoint",
     "load_modules",

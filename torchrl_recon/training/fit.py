@@ -263,6 +263,57 @@ def fit_world_model(
     return train_loss_module(loss, buffer, **kwargs)
 
 
+def fit_world_members(
+    model: LSTMWorldModel,
+    buffer: TensorDictReplayBuffer,
+    *,
+    mode: str = "multi_step",
+    fit_normalization: bool = True,
+    seed: int = 0,
+    val_buffer: TensorDictReplayBuffer | None = None,
+    checkpoint_modules: dict[str, nn.Module] | None = None,
+    **kwargs,
+) -> FitResult:
+    """:func:`fit_world_model` for a world model of R members (``num_members=R``): each member
+    fits on ``buffer`` from its own weights, as :func:`fit_population` does (member r draws its
+    batches with ``seed + r``, stops early on its own), and its best weights are loaded back.
+    Returns one :class:`FitResult`: the most steps a member ran and the members' mean best
+    validation loss. ``checkpoint_modules`` is accepted for :func:`fit_world_model`'s callers
+    and must be empty (the members' best weights are kept in memory).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.data import make_sequence_buffer
+        >>> rb = make_sequence_buffer(100, slice_len=8, num_slices=4)
+        >>> obs = torch.randn(40, 3)
+        >>> _ = rb.extend(TensorDict({"observation": obs, "action": torch.randn(40, 2),
+        ...     ("next", "observation"): 0.9 * obs, ("collector", "traj_ids"): torch.arange(40) // 20}, [40]))
+        >>> model = LSTMWorldModel(3, 2, window=4, num_members=3)
+        >>> fit_world_members(model, rb, steps=10, eval_every=5, progress=False).steps
+        10
+    """
+    if getattr(model, "num_members", None) is None:
+        raise ValueError("fit_world_members fits a world model of members (num_members=R).")
+    if checkpoint_modules:
+        raise ValueError(
+            "fit_world_members keeps the best weights in memory: no checkpoint_modules."
+        )
+    members = model.split()
+    results = fit_population(
+        members,
+        buffer,
+        seeds=[seed + r for r in range(len(members))],
+        val_buffers=val_buffer,
+        mode=mode,
+        fit_normalization=fit_normalization,
+        **kwargs,
+    )
+    for r, member in enumerate(members):
+        model.load_member(r, member)
+    losses = [r.best_val_loss for r in results]
+    return FitResult(max(r.steps for r in results), sum(losses) / len(losses))
+
+
 def fit_uncertainty(
     estimator: UncertaintyEstimator,
     buffer: TensorDictReplayBuffer,

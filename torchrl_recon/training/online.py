@@ -35,7 +35,7 @@ from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
-from torchrl_recon.training.fit import fit_uncertainty, fit_world_model
+from torchrl_recon.training.fit import fit_uncertainty, fit_world_members, fit_world_model
 
 
 @dataclass
@@ -99,7 +99,8 @@ def fit_models(
 ) -> dict[str, float]:
     """Fit (``warm=False``: normalisation and ``schedule.steps``) or refit (``warm=True``: the
     current weights and normalisation, ``schedule.refit_steps``) both networks on ``data``,
-    split by trajectory with ``seed``; returns their best validation losses. When a split has no
+    split by trajectory with ``seed``; returns their best validation losses (a world model of
+    members: :func:`~torchrl_recon.training.fit_world_members`, their mean). When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
     slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``)."""
     s = schedule
@@ -117,8 +118,9 @@ def fit_models(
         fit_normalization=not warm,
         checkpoint_modules={},
     )
+    fit_world = fit_world_model if _members(world_model) is None else fit_world_members
     out = {
-        "world_model": fit_world_model(
+        "world_model": fit_world(
             world_model, buffers[0], mode=s.mode, log_prefix=f"{log_prefix}world_model/", **common
         ).best_val_loss
     }
@@ -178,7 +180,8 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
     """The world model's one-step (teacher-forced) error on ``data``: mean square of the
     standardised Δs over non-overlapping windows of ``length`` steps; when no trajectory is
     that long (episodes that end early), over every step of each whole trajectory, padded and
-    masked (``cut_sequences(..., pad_short=True)``).
+    masked (``cut_sequences(..., pad_short=True)``); a world model of members: the members'
+    mean error.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -189,9 +192,18 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
         True
     """
     windows = cut_sequences(data, length, pad_short=True)
-    loss = WorldModelPredictionLoss(world_model, mode="one_step")
     device = next(world_model.parameters()).device
-    return float(loss(windows.to(device))["loss_world_model"])
+    members = [world_model] if _members(world_model) is None else world_model.split()
+    errors = [
+        float(WorldModelPredictionLoss(m, mode="one_step")(windows.to(device))["loss_world_model"])
+        for m in members
+    ]
+    return sum(errors) / len(errors)
+
+
+def _members(world_model) -> int | None:
+    """R for a world model of R members, else None."""
+    return getattr(world_model, "num_members", None)
 
 
 @torch.no_grad()

@@ -260,14 +260,16 @@ PUBLISHED_ONLINE = ROOT / "docs" / "results" / "online"
 
 
 @pytest.mark.parametrize(
-    "recipe, env_id",
+    "recipe, env_id, published",
     [
-        ("online_pendulum", "Pendulum-v1"),
-        ("online_mountain_car", "MountainCarContinuous-v0"),
-        ("online_inverted_pendulum", "InvertedPendulum-v5"),
+        ("online_pendulum", "Pendulum-v1", "Pendulum-v1_refit1000"),
+        ("online_mountain_car", "MountainCarContinuous-v0", "MountainCarContinuous-v0"),
+        ("online_inverted_pendulum", "InvertedPendulum-v5", "InvertedPendulum-v5"),
     ],
 )
-def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(recipe, env_id):
+def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(
+    recipe, env_id, published
+):
     """The task recipes validate (MuJoCo's only where it is installed) and hold exactly the
     config of the runs published from them (keys a resumed run may change aside)."""
     if env_id.startswith("InvertedPendulum"):
@@ -275,9 +277,9 @@ def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(recip
     cfg = load_recipe(GYM / f"{recipe}.yaml", ["seed=0"])
     assert cfg.env.id == env_id and cfg.env.cost.startswith("torchrl_recon.envs.gym_costs:")
     assert cfg.random_steps >= cfg.env.episode_steps == cfg.steps_per_iteration
-    published = PUBLISHED_ONLINE / env_id / "seed0" / "config.yaml"
+    published = PUBLISHED_ONLINE / published / "seed0" / "config.yaml"
     if not published.exists():
-        pytest.skip(f"no published run of {env_id}")
+        pytest.skip(f"no published run of {recipe}")
     from torchrl_recon.experiments.run_dir import config_differences, read_config
 
     ours = OmegaConf.to_container(cfg, resolve=True)

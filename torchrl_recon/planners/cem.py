@@ -144,9 +144,8 @@ class CEMPlanner(SamplingPlanner):
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
         candidates, prediction = seen.result()
-        if (
-            self.return_mean_elites
-        ):  # the mean leads; _pick returns it unless it breaks a constraint
+        # With return_mean_elites the mean leads; _pick returns it unless it breaks a constraint.
+        if self.return_mean_elites:
             at_mean = self._evaluate(context_obs, context_action, observation, mean, state)
             candidates = torch.cat([mean, candidates], -3)
             prediction = Prediction.concat([at_mean, prediction])

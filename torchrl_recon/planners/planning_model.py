@@ -396,24 +396,14 @@ class PlanningModel(nn.Module):
     ) -> Prediction:
         """One batched pass of :meth:`forward` (u left out unless ``with_u``)."""
         kwargs = {} if state is None else {"state": state}
-        if self.num_members is None:
-            states = self.world_model.imagine(
-                context_obs, context_action, observation, actions, **kwargs
-            )
-            entering = _entering(observation, states)  # s_k for k = 0..H-1
-            cost = self._until_end(
-                self.cost_fn(entering, actions, states), entering, actions, states
-            )
-        else:  # every member imagines every candidate; its cost is their mean
-            each = [self._per_member(x) for x in (context_obs, context_action, observation)]
-            per_member_actions = self._per_member(actions)
-            member_states = self.world_model.imagine(*each, per_member_actions, **kwargs)
-            member_entering = _entering(each[2], member_states)
-            member_cost = self.cost_fn(member_entering, per_member_actions, member_states)
-            cost = self._until_end(
-                member_cost, member_entering, per_member_actions, member_states
-            ).mean(0)
-            states = member_states.mean(0)
+        # Members (if any) each imagine every candidate: a leading [R] on every input.
+        obs, act = self._per_member(observation), self._per_member(actions)
+        context = (self._per_member(context_obs), self._per_member(context_action))
+        states = self.world_model.imagine(*context, obs, act, **kwargs)
+        entering = _entering(obs, states)  # s_k for k = 0..H-1
+        cost = self._until_end(self.cost_fn(entering, act, states), entering, act, states)
+        if self.num_members is not None:  # a candidate's cost and states: the members' mean
+            cost, states = cost.mean(0), states.mean(0)
             entering = _entering(observation, states)
         uncertainty = None
         if self.uncertainty is not None and with_u:

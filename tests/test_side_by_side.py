@@ -2,21 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
+
+from tests.scripts import load_script
 
 SCRIPT = Path(__file__).parents[1] / "benchmarks" / "peers" / "side_by_side.py"
 OURS = Path(__file__).parents[1] / "docs" / "results" / "online" / "Pendulum-v1"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("side_by_side", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCRIPT)
 
 
 def _pets_run(folder: Path, returns: list[float], **timing) -> None:

@@ -58,12 +58,9 @@ def test_table_1_summarizes_to_the_published_numbers():
 def test_the_reproduction_pages_table_1_is_what_the_published_runs_give():
     """docs/reproduction.md's headline table is regenerated, not typed: each row equals
     ``docs/results/table1_20seeds/headline.py``'s for the runs published now."""
-    import importlib.util
+    from tests.scripts import load_script
 
-    path = RESULTS / "table1_20seeds" / "headline.py"
-    spec = importlib.util.spec_from_file_location("headline", path)
-    headline = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(headline)
+    headline = load_script(RESULTS / "table1_20seeds" / "headline.py")
     page = (DOCS / "reproduction.md").read_text()
     for label, folder, env in headline.ROWS:
         assert headline.row(label, folder, env) in page, label

@@ -65,19 +65,15 @@ def trained_models(tmp_path_factory):
 
 
 def _train_once(name: str, folder: Path) -> dict:
-    """:func:`_train` run by one worker of the test run; the others load its tensors."""
+    """:func:`_train` run by the first worker of the test run to ask; every worker (that one
+    too) reads its tensors back."""
     path = folder / f"{name}.pt"
     with FileLock(str(path) + ".lock"):
         if not path.exists():
             trained = _train(name)
-            tensors = {k: v for k, v in trained.items() if k not in ("name", "model", "estimator")}
-            tensors = {
-                k: v.to_dict() if k in ("train", "held_out") else v for k, v in tensors.items()
-            }
-            tensors["model"] = trained["model"].state_dict()
-            tensors["estimator"] = trained["estimator"].state_dict()
-            torch.save(tensors, path)
-            return trained
+            modules = {k: trained[k].state_dict() for k in ("model", "estimator")}
+            data = {k: trained[k].to_dict() for k in ("train", "held_out")}
+            torch.save({**modules, **data, "scale": trained["scale"]}, path)
     saved = torch.load(path, weights_only=True)
     train, held_out = (
         TensorDict(saved[k], saved[k]["action"].shape[:1]) for k in ("train", "held_out")

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from _common import parse_args
 
-from torchrl_recon.experiments import control_stages, explore_stages
+from torchrl_recon.experiments import control, explore
 from torchrl_recon.experiments.common import batches, build_planner, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
@@ -55,12 +55,10 @@ def main() -> None:
     cfg = load_recipe(RECIPES / args.env / "control.yaml", overrides)
     with tempfile.TemporaryDirectory() as run_dir:
         ctx = RunContext.create(cfg, Path(run_dir))
-        data = control_stages.random_data_stage(
-            ctx, "random_data", frames=4 * 250, episode_steps=250
-        )
-        world, estimator = explore_stages.models_stage(ctx, data, "models")
+        data = control.random_data_stage(ctx, "random_data", frames=4 * 250, episode_steps=250)
+        world, estimator = explore.models_stage(ctx, data, "models")
         model = planning_model(cfg, world, estimator)
-        controller = control_stages.Controller(model, 1.0, 1.0, control_stages.state_scale(data))
+        controller = control.Controller(model, 1.0, 1.0, control.state_scale(data))
         print(
             f"env={args.env}, {args.episodes} episodes x {args.steps} steps, re-plan every "
             f"{args.replan_every}, threads={args.threads}, device={ctx.device}, load average "
@@ -69,14 +67,14 @@ def main() -> None:
         results = {}
         for name in args.settings:
             setting = next(s for s in cfg.settings if s.name == name)
-            objective, _ = control_stages.setting_objective(setting, 1.0)
+            objective, _ = control.setting_objective(setting, 1.0)
             planner = build_planner(setting.planner, model, objective)
             times: dict[int, list[float]] = {1: [], args.episodes: []}
             for _ in range(args.repeats):
                 for batch_size in times:
                     start = time.perf_counter()
                     for batch in batches(args.episodes, batch_size):
-                        control_stages.episode_batch(ctx, setting, planner, controller, batch)
+                        control.episode_batch(ctx, setting, planner, controller, batch)
                     times[batch_size].append(time.perf_counter() - start)
             one, batched = (min(times[b]) for b in times)
             results[name] = one / batched

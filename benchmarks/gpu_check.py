@@ -52,6 +52,8 @@ from pathlib import Path
 
 import torch
 
+from torchrl_recon.provenance import git_info
+
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 BUDGET_S = 450
@@ -336,11 +338,11 @@ def machine_lines(device: str) -> list[str]:
         done = subprocess.run(query, capture_output=True, text=True, timeout=30)
         if done.returncode == 0:
             lines.append(f"- nvidia-smi: {done.stdout.strip()}")
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-    )
-    if commit.returncode == 0:
-        lines.append(f"- commit: {commit.stdout.strip()}")
+    git = git_info(ROOT)
+    if git["commit"] != "unknown":
+        lines.append(
+            f"- commit: {git['commit'][:7]}" + (" (uncommitted changes)" * bool(git["dirty"]))
+        )
     return lines
 
 

@@ -9,7 +9,7 @@ time per step. Sequential and population calls are interleaved (median of ``--re
 ``fit_population`` runs twice: as by default (each member samples its own batches, exactly
 its separate fit's) and with ``shared_sampling=True`` (one sample per step for all members,
 statistically equivalent). The headline is the shared one's: it is how the explore experiment
-fits Table 1's retrainings (``explore_stages.retrain_stage``).
+fits Table 1's retrainings (``explore.retrain_stage``).
 
 Above the table it prints the GEMM rate measured in this run (one 1024 × 1024 × 1024 float32
 product) and the arithmetic limit of one member's fit step (``_common.fit_step_flops``: the

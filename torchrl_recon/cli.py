@@ -24,13 +24,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.errors import DamagedFileError, RecipeError
-from torchrl_recon.experiments import compose, summary
+from torchrl_recon.experiments import compose
 from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
-from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir, read_results
+from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
 from torchrl_recon.experiments.runner import interrupted_message, run
-from torchrl_recon.experiments.tables import render
+from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
+from torchrl_recon.reports.tables import render
 
 EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}  # command: help line
 _ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
@@ -240,18 +241,11 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    files = summary.find_results(args.dirs)
-    if not files:
-        raise FileNotFoundError(f"no results.json found below {', '.join(args.dirs)}")
-    results = {f: read_results(f) for f in files}
-    by_kind: dict[str, list[Path]] = {}
-    for f, r in results.items():
-        by_kind.setdefault(str(r.get("experiment")), []).append(f)
-    for kind, kind_files in sorted(by_kind.items()):
-        found = summary.summarize(kind_files)
-        print(f"{len(kind_files)} {kind} result file(s)\n{summary.format_table(found)}\n")
+    for found, results in summarize_by_kind(args.dirs):
+        kind, count = found["experiment"], len(results)
+        print(f"{count} {kind} result file(s)\n{format_table(found)}\n")
         if args.out is not None:
-            saved = summary.save_summary(found, [results[f] for f in kind_files], args.out)
+            saved = save_summary(found, results, args.out)
             print(f"summary: {saved[0]}" + "".join(f"\nfigure: {f}" for f in saved[1:]))
     return EXIT_OK
 

@@ -20,8 +20,8 @@ import yaml
 from scipy import stats
 
 from torchrl_recon.archive import run_records
-from torchrl_recon.experiments.control_stages import episode_mean_std
-from torchrl_recon.experiments.summary import save_figures
+from torchrl_recon.reports import save_figures
+from torchrl_recon.reports.stats import episode_mean_std
 
 
 def stage_records(run: Path) -> dict[str, bytes]:

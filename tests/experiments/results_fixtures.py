@@ -6,7 +6,7 @@ import json
 import math
 from pathlib import Path
 
-from torchrl_recon.experiments.control_stages import METRICS
+from torchrl_recon.evaluation.mpc import METRICS
 
 
 def explore_results(

@@ -12,7 +12,7 @@ import torch
 import torchrl_recon
 from tests.experiments.tiny import TINY
 from torchrl_recon.data import TRAJ_KEY, make_sequence_buffer, split_by_trajectory
-from torchrl_recon.experiments import control_stages, explore_stages
+from torchrl_recon.experiments import common, control, explore
 from torchrl_recon.experiments.common import build_env, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
@@ -34,17 +34,17 @@ CONTROL = [
 ]
 
 
-def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control_stages.Controller]:
+def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control.Controller]:
     """A control run's context and controller (its random data and models stages done)."""
     cfg = load_recipe(RECIPES / "control_smoke.yaml", [*CONTROL, *overrides])
     ctx = RunContext.create(cfg, run_dir)
-    data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = explore_stages.models_stage(ctx, data, "models")
-    length = max(cfg.models.window, cfg.training.slice_len)  # as control_stages.run
+    data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimator = explore.models_stage(ctx, data, "models")
+    length = max(cfg.models.window, cfg.training.slice_len)  # as control.run
     u = window_uncertainty(data, estimator, sequence_length=length)
     model = planning_model(cfg, world, estimator)
-    threshold = control_stages.replan_threshold(cfg, u)
-    return ctx, control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
+    threshold = control.replan_threshold(cfg, u)
+    return ctx, control.Controller(model, threshold, 1.0, control.state_scale(data))
 
 
 def _parts(run_dir: Path, setting: str) -> dict[str, str]:
@@ -57,7 +57,7 @@ def test_batched_control_setting_one_record_per_episode_same_seed_same_numbers_a
 ):
     ctx, controller = _control(tmp_path / "a")
     setting = ctx.cfg.settings[0]
-    record = control_stages.setting_stage(ctx, setting, controller)
+    record = control.setting_stage(ctx, setting, controller)
     episodes = record["episodes"]
     assert len(episodes) == 3 and all("real_cost" in m for m in episodes)
     # batches [0, 1] and [2]: one part record each
@@ -68,7 +68,7 @@ def test_batched_control_setting_one_record_per_episode_same_seed_same_numbers_a
 
     # The same seed in another directory: the same numbers.
     ctx_b, controller_b = _control(tmp_path / "b")
-    again = control_stages.setting_stage(ctx_b, setting, controller_b)
+    again = control.setting_stage(ctx_b, setting, controller_b)
     assert again["episodes"] == episodes
 
     # Stopped after the first batch: the resumed run computes the second batch only.
@@ -77,7 +77,7 @@ def test_batched_control_setting_one_record_per_episode_same_seed_same_numbers_a
     (stage / "part_1.json").unlink()
     stage.with_suffix(".json").unlink()
     ctx_c, controller_c = _control(tmp_path / "b")
-    resumed = control_stages.setting_stage(ctx_c, setting, controller_c)
+    resumed = control.setting_stage(ctx_c, setting, controller_c)
     assert resumed["episodes"] == episodes
     assert (stage / "part_0.json").read_text() == first
 
@@ -87,9 +87,9 @@ def test_each_env_of_a_batch_plays_the_episode_of_its_own_seed(tmp_path):
     same observations, rewards and end: the cut trajectory is that env's episode."""
     ctx, controller = _control(tmp_path)
     setting = ctx.cfg.settings[0]
-    objective, _ = control_stages.setting_objective(setting, 1.0)
-    planner = control_stages.build_planner(setting.planner, controller.model, objective)
-    tds = control_stages.episode_batch(ctx, setting, planner, controller, range(0, 2))
+    objective, _ = common.setting_objective(setting, 1.0)
+    planner = control.build_planner(setting.planner, controller.model, objective)
+    tds = control.episode_batch(ctx, setting, planner, controller, range(0, 2))
     steps = ctx.cfg.env.episode_steps
     assert len(tds) == 2 and any(len(td) < steps for td in tds)
     for e, td in enumerate(tds):
@@ -102,7 +102,7 @@ def test_each_env_of_a_batch_plays_the_episode_of_its_own_seed(tmp_path):
         assert len(replay) == len(td)
         torch.testing.assert_close(replay["observation"], td["observation"], rtol=0, atol=0)
         torch.testing.assert_close(replay["next", "reward"], td["next", "reward"], rtol=0, atol=0)
-        assert control_stages.episode_metrics(td, controller.scale)["steps"] == len(td)
+        assert control.episode_metrics(td, controller.scale)["steps"] == len(td)
 
 
 def _assert_contiguous_trajectories(data) -> None:
@@ -133,7 +133,7 @@ def test_batched_exploration_data_is_valid(tmp_path):
         ],
     )
     ctx = RunContext.create(cfg, tmp_path)
-    initial = explore_stages.random_steps_stage(ctx, "initial_random", 60)
+    initial = explore.random_steps_stage(ctx, "initial_random", 60)
     assert initial.numel() == 60
     assert len(initial.get(TRAJ_KEY).unique()) == 6  # 3 envs × 2 episodes, told apart
     _assert_contiguous_trajectories(initial)
@@ -143,11 +143,11 @@ def test_batched_exploration_data_is_valid(tmp_path):
     sample = rb.sample().reshape(4, 6)
     assert (sample.get(TRAJ_KEY) == sample.get(TRAJ_KEY)[:, :1]).all()  # no window crosses
 
-    validation = explore_stages.validation_stage(ctx)
+    validation = explore.validation_stage(ctx)
     assert validation.shape == (5, 7)
     assert (validation["step_count"].squeeze(-1) == torch.arange(7)).all()
 
-    world, estimator = explore_stages.models_stage(ctx, initial, "initial_models")
-    record, data = explore_stages.guided_round_stage(ctx, world, estimator, 0, 1, 40)
+    world, estimator = explore.models_stage(ctx, initial, "initial_models")
+    record, data = explore.guided_round_stage(ctx, world, estimator, 0, 1, 40)
     assert data.numel() == record["steps"] == 40
     _assert_contiguous_trajectories(data)

@@ -10,8 +10,8 @@ from tensordict import TensorDict
 
 from torchrl_recon.cli import main
 from torchrl_recon.evaluation import episode_metrics
-from torchrl_recon.experiments.control import result_table, settings_table
 from torchrl_recon.policies.mpc import FEASIBLE, PRED_COST, PRED_NEXT, PRED_U, REPLANNED
+from torchrl_recon.reports.control import result_table, settings_table
 
 
 def _episode(steps: int, planned_from: int) -> TensorDict:

@@ -7,8 +7,8 @@ import math
 import pytest
 
 from torchrl_recon.evaluation.significance import paired_tests, trend_test
-from torchrl_recon.experiments import control
-from torchrl_recon.experiments.control import across_seeds
+from torchrl_recon.reports import control
+from torchrl_recon.reports.control import across_seeds
 
 BANDS = {"u_low": (0.0, 0.33), "u_mid": (0.33, 0.66), "u_high": (0.66, 1.0)}
 

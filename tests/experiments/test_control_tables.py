@@ -6,7 +6,7 @@ import json
 
 import yaml
 
-from torchrl_recon.experiments.control_stages import METRICS
+from torchrl_recon.evaluation.mpc import METRICS
 
 
 def _episode(value: float) -> dict:

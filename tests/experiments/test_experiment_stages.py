@@ -12,13 +12,13 @@ import torch
 
 import torchrl_recon
 from tests.experiments.tiny import TINY as TINY_OVERRIDES
-from torchrl_recon.experiments import calibrate_stages, control_stages, explore_stages
+from torchrl_recon.experiments import calibrate, control, explore
 from torchrl_recon.experiments.common import build_models, fit_stage, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
-from torchrl_recon.experiments.stats import mean_std
 from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.reports.stats import mean_std
 
 PACKAGE = Path(torchrl_recon.__file__).parent
 RECIPES = PACKAGE.parent / "recipes" / "industrial_benchmark"
@@ -44,17 +44,17 @@ def test_explore_stages_one_by_one(tmp_path):
         "guided.planner.kwargs.horizon=3",
         "guided.planner.kwargs.num_candidates=8",
     )
-    initial = explore_stages.random_steps_stage(ctx, "initial_random", 30)
+    initial = explore.random_steps_stage(ctx, "initial_random", 30)
     assert initial.numel() == 30 and ctx.stages.done("initial_random")
-    world, estimator = explore_stages.models_stage(ctx, initial, "initial_models")
+    world, estimator = explore.models_stage(ctx, initial, "initial_models")
     assert (tmp_path / "checkpoints" / "initial_models.pt").is_file()
-    validation = explore_stages.validation_stage(ctx)
+    validation = explore.validation_stage(ctx)
     assert validation.shape == (2, 3 + 4)
-    record, data = explore_stages.guided_round_stage(ctx, world, estimator, 0, 1, 10)
+    record, data = explore.guided_round_stage(ctx, world, estimator, 0, 1, 10)
     assert data.numel() == record["steps"] == 10 and record["plans"] >= record["feasible_plans"]
     scale = torch.ones(initial["observation"].shape[-1])
     arms = {"random": initial, "active": initial}
-    record = explore_stages.retrain_stage(ctx, 0, [0, 1], arms, validation, scale)
+    record = explore.retrain_stage(ctx, 0, [0, 1], arms, validation, scale)
     assert ctx.stages.done("retrain_0") and record["retrainings"] == [0, 1]
     for arm in ("random", "active"):
         assert len(record[arm]["mse"]) == 2 and all(math.isfinite(v) for v in record[arm]["mse"])
@@ -72,16 +72,16 @@ def test_control_stages_one_by_one(tmp_path):
         "env.episode_steps=8",
         "episodes=1",
     )
-    data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = explore_stages.models_stage(ctx, data, "models")
+    data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimator = explore.models_stage(ctx, data, "models")
     u = window_uncertainty(data, estimator, sequence_length=ctx.cfg.training.slice_len)
-    threshold = control_stages.replan_threshold(ctx.cfg, u)
+    threshold = control.replan_threshold(ctx.cfg, u)
     assert threshold > 0 and u.device.type == "cpu"
     setting = ctx.cfg.settings[0]
     setting.planner.kwargs.horizon, setting.planner.kwargs.num_candidates = 3, 8
     model = planning_model(ctx.cfg, world, estimator)
-    controller = control_stages.Controller(model, threshold, 1.0, control_stages.state_scale(data))
-    record = control_stages.setting_stage(ctx, setting, controller)
+    controller = control.Controller(model, threshold, 1.0, control.state_scale(data))
+    record = control.setting_stage(ctx, setting, controller)
     assert len(record["episodes"]) == 1
     assert math.isnan(record["std"]["real_cost"])  # one episode: no spread to measure
 
@@ -96,12 +96,12 @@ def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):
         "evaluation.horizon=3",
         "evaluation.ood_windows=4",
     )
-    data = calibrate_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimators, fits = calibrate_stages.fit_stages(ctx, data)
+    data = calibrate.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    world, estimators, fits = calibrate.fit_stages(ctx, data)
     assert set(fits) == {"world_model", *estimators}
     assert all("val_loss" in record for record in fits.values())
     scale = torch.ones(data["observation"].shape[-1])
-    evaluation = calibrate_stages.evaluation_stage(ctx, world, estimators, scale)
+    evaluation = calibrate.evaluation_stage(ctx, world, estimators, scale)
     assert set(evaluation["estimators"]) == set(estimators)
     # the timing stage times on the models' device (on CUDA: until the device is done)
     seen = []
@@ -110,18 +110,18 @@ def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):
         seen.append(device)
         return dict.fromkeys(fns, 1.0)
 
-    monkeypatch.setattr(calibrate_stages, "interleaved_median_ms", fake_timer)
-    times = calibrate_stages.timing(ctx.cfg, world, estimators, data)
+    monkeypatch.setattr(calibrate, "interleaved_median_ms", fake_timer)
+    times = calibrate.timing(ctx.cfg, world, estimators, data)
     assert seen and all(d == ctx.device for d in seen)
     assert set(times[f"H{ctx.cfg.timing.horizons[0]}"]) == {"cem_without_u_ms", *estimators}
     if any(ctx.cfg.outcomes[f"{k}_recipe"] for k in ("explore", "control")):
         with pytest.raises(ValueError, match="outcomes run other recipes"):
-            calibrate_stages.outcome_stages(ctx)  # a context without a runner
+            calibrate.outcome_stages(ctx)  # a context without a runner
 
 
 def test_fit_stage_resumes_from_its_checkpoint(tmp_path):
     ctx = _ctx(tmp_path, "control", "random_episodes=2", "random_episode_steps=12")
-    data = control_stages.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
+    data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
     world, estimator = build_models(
         ctx.cfg, data["observation"].shape[-1], data["action"].shape[-1], ctx.device
     )
@@ -156,6 +156,13 @@ def test_one_mean_std_rule():
     assert mean_std([1.0, 3.0]) == pytest.approx((2.0, math.sqrt(2.0)))
 
 
+def test_reports_read_results_without_the_experiments():
+    """Reports depend on results alone: a user summarising published runs needs no runner."""
+    for path in (PACKAGE / "reports").glob("*.py"):
+        found = [m for m in _imports(path) if m.startswith("torchrl_recon.experiments")]
+        assert not found, f"{path.name} imports {found}"
+
+
 def _imports(path: Path) -> set[str]:
     """Modules of torchrl_recon a file imports, at any depth (functions included)."""
     found = set()
@@ -170,10 +177,12 @@ def _imports(path: Path) -> set[str]:
 
 def test_experiments_have_no_import_cycle():
     files = {
-        f"torchrl_recon.experiments.{p.stem}": p for p in (PACKAGE / "experiments").glob("*.py")
+        f"torchrl_recon.{package}.{p.stem}": p
+        for package in ("experiments", "reports")
+        for p in (PACKAGE / package).glob("*.py")
+        if p.stem != "__init__"
     }
     files["torchrl_recon.cli"] = PACKAGE / "cli.py"
-    files.pop("torchrl_recon.experiments.__init__")
     graph = {name: {m for m in _imports(path) if m in files} for name, path in files.items()}
     state: dict[str, int] = {}
 

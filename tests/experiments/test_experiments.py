@@ -10,7 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_recon.experiments import control_stages, explore_stages
+from torchrl_recon.experiments import control, explore
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stages import StopRequested
@@ -20,12 +20,12 @@ from torchrl_recon.planners import cost_to_u_ratio
 
 def run_explore(cfg, run_dir, logger):
     """One explore run in ``run_dir`` without the runner (no results.json, no figures)."""
-    return explore_stages.run(RunContext.create(cfg, run_dir, logger))
+    return explore.run(RunContext.create(cfg, run_dir, logger))
 
 
 def run_control(cfg, run_dir, logger):
     """One control run in ``run_dir`` without the runner."""
-    return control_stages.run(RunContext.create(cfg, run_dir, logger))
+    return control.run(RunContext.create(cfg, run_dir, logger))
 
 
 TRAINING = {

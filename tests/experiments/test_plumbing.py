@@ -15,22 +15,22 @@ from omegaconf import OmegaConf
 from scipy import stats
 
 from torchrl_recon.cli import main, run_recipe
+from torchrl_recon.evaluation.mpc import METRICS
 from torchrl_recon.experiments import runner
 from torchrl_recon.experiments.config import ControlSetting, EstimatorSpec, PlannerConfig
-from torchrl_recon.experiments.control_stages import METRICS
 from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
-from torchrl_recon.experiments.plots import plot_control_errors, plot_table1, plot_trajectory
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.experiments.run_dir import (
     RunDirConflict,
-    git_info,
     prepare_run_dir,
     release_run_dir,
     write_results,
 )
 from torchrl_recon.experiments.stages import StopRequested
-from torchrl_recon.experiments.summary import format_table, save_figures, summarize
+from torchrl_recon.provenance import git_info
+from torchrl_recon.reports import format_table, save_figures, summarize
+from torchrl_recon.reports.plots import plot_control_errors, plot_table1, plot_trajectory
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 ENVS = ("industrial_benchmark", "drone", "minitaur")

@@ -9,7 +9,7 @@ import pytest
 
 from tests.experiments.results_fixtures import known_explore
 from torchrl_recon.archive import ARCHIVE, MANIFEST, read_members
-from torchrl_recon.experiments.summary import summarize
+from torchrl_recon.reports import summarize
 
 FILES = [
     "config.yaml",

@@ -22,7 +22,7 @@ from torchrl_recon.archive import (
 )
 from torchrl_recon.cli import main
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.experiments.summary import summarize
+from torchrl_recon.reports import summarize
 
 RECORDS = {
     "drone/seed0/stages/models.json": b'{"wall_time_s": 1.0}',

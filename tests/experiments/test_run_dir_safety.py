@@ -32,12 +32,11 @@ from torchrl_recon.experiments.run_dir import (
     prepare_run_dir,
     read_config,
     read_meta,
-    read_results,
     release_run_dir,
     write_results,
 )
 from torchrl_recon.experiments.stages import Stages
-from torchrl_recon.experiments.summary import summarize
+from torchrl_recon.reports import read_results, summarize
 from torchrl_recon.training import load_checkpoint, load_modules
 
 ROOT = Path(__file__).resolve().parents[2]

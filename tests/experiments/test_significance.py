@@ -19,7 +19,7 @@ from torchrl_recon.evaluation.significance import (
     seeds_needed,
     significance,
 )
-from torchrl_recon.experiments.summary import format_table, save_summary, summarize
+from torchrl_recon.reports import format_table, save_summary, summarize
 
 DIFF = np.subtract(ACTIVE, RANDOM)  # -3, -4, -3, -4, -3: mean -3.4, sample sd sqrt(0.3)
 

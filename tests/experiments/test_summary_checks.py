@@ -15,8 +15,7 @@ from tests.experiments.results_fixtures import (
 )
 from torchrl_recon.cli import main
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.experiments.results_check import check_results
-from torchrl_recon.experiments.summary import find_results, save_summary, summarize
+from torchrl_recon.reports import check_results, find_results, save_summary, summarize
 
 
 def _damage(path, change):

@@ -1,113 +1,215 @@
-"""The calibrate experiment (uncertainty estimators side by side): its stages
-(:mod:`.calibrate_stages`), summary across seeds, tables, figures and headline numbers."""
+"""The stages of the calibrate experiment: uncertainty estimators side by side on calibration,
+out-of-distribution detection, cost, and the outcome of the two experiments with each.
+
+``random_data`` → ``world_model`` → ``fit_<estimator>`` for each → ``evaluation`` →
+``timing`` → ``outcome_<estimator>_{explore,control}`` (the two experiments at a reduced scale,
+each in its own run directory under ``outcomes/``, through the context's ``run_child``).
+"""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable
 from typing import Any
 
-from torchrl_recon.experiments import calibrate_stages
-from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
-from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
-from torchrl_recon.experiments.plots import plot_calibration
-from torchrl_recon.experiments.recipe_checks import calibrate_errors
-from torchrl_recon.experiments.stats import mean_std
-from torchrl_recon.experiments.tables import fmt, render
+import torch
+from omegaconf import DictConfig, OmegaConf
 
-CALIBRATION_COLUMNS = (
-    ("spearman", "Spearman(Σu, err)"),
-    ("auroc_error_above_median", "AUROC err>median"),
-    ("ood_auroc_state_shift", "OOD AUROC states"),
-    ("ood_auroc_action_bound", "OOD AUROC actions"),
-    ("score_ratio_H{h}", "score time ×AE H={h}"),
-    ("cem_ratio_H{h}", "CEM time ×AE H={h}"),
-    ("explore_ratio", "explore active/random"),
+from torchrl_recon.collectors import collect_random, validation_trajectories
+from torchrl_recon.data import cut_sequences
+from torchrl_recon.envs import close_env
+from torchrl_recon.evaluation import calibration_metrics
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_estimator,
+    build_world_model,
+    cost_fn,
+    dims,
+    fit_stage,
+    random_data_stage,
+    state_scale,
 )
+from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
+from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.experiment_type import ExperimentType
+from torchrl_recon.experiments.recipe_checks import calibrate_errors
+from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.timing import interleaved_median_ms
+
+STAGES = ("random_data", "world_model", "fit_{estimator}", "evaluation", "timing")
+STAGES += ("outcome_{estimator}_{kind}",)
+"""Stage name templates, in run order (``{kind}`` explore or control)."""
+OUTCOME_KINDS = ("explore", "control")
 
 
-def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per estimator, mean ± std across seeds of every numeric entry of its row."""
-    runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    estimators: dict[str, Any] = {}
-    for name in runs[0]["estimators"]:
-        rows = [r["estimators"][name] for r in runs if name in r["estimators"]]
-        keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
-        stats = {k: mean_std([row[k] for row in rows]) for k in keys}
-        mean, std = ({k: s[i] for k, s in stats.items()} for i in (0, 1))
-        estimators[name] = {"mean": mean, "std": std, "n_seeds": len(rows)}
-    seeds = [r.get("seed") for r in runs]
-    return {"seeds": seeds, "horizons": runs[0].get("horizons", []), "estimators": estimators}
+def timing(
+    cfg: DictConfig, world: LSTMWorldModel, estimators: dict[str, UncertaintyEstimator], data
+) -> dict[str, Any]:
+    """Stage ``timing``: scoring K × H windows and one CEM call per estimator (and CEM without
+    u), per horizon, interleaved; on a CUDA device each call is timed until the device is done."""
+    t, window = cfg.timing, cfg.models.window
+    device = module_device(world)
+    score = torch.no_grad()(lambda est, x: est.score_sequence(x))
+    seqs = cut_sequences(data, window + 1).to(device)
+    ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
+    features = torch.cat([data["observation"], data["action"]], -1).to(device)
+    loc, spread = features.mean(0), features.std(0)
+    cost = cost_fn(cfg)
+    out: dict[str, Any] = {"threads": torch.get_num_threads(), "candidates": t.candidates}
+    for horizon in t.horizons:
+        generator = torch.Generator().manual_seed(horizon)
+        x = loc + spread * torch.randn(
+            t.candidates, window - 1 + horizon, features.shape[-1], generator=generator
+        ).to(device)
+        cem = dict(num_candidates=t.candidates, iterations=t.iterations, num_elites=t.num_elites)
+        plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
+        fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
+        for name, est in estimators.items():
+            model = PlanningModel(world, cost, uncertainty=est)
+            planner = CEMPlanner(model, Objective(beta=0.1), horizon=horizon, **cem)
+            fns[f"{name}/score"] = lambda e=est, x=x: score(e, x)
+            fns[f"{name}/cem"] = lambda p=planner: p.plan(*ctx)
+        times = interleaved_median_ms(fns, t.repeats, device=device)
+        row: dict[str, Any] = {"cem_without_u_ms": times["cem_without_u"]}
+        for name in estimators:
+            row[name] = {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}
+        out[f"H{horizon}"] = row
+    return out
 
 
-def estimators_table(title: str, rows_by_name: Mapping[str, Any], horizons: list[int]) -> str:
-    """One row per estimator; ``rows_by_name[name]`` maps column keys to numbers."""
-    h = (horizons or [0])[0]
-    header = ["estimator", *(label.format(h=h) for _, label in CALIBRATION_COLUMNS)]
-    keys = [k.format(h=h) for k, _ in CALIBRATION_COLUMNS]
-    rows = [[name, *(fmt(row.get(k), 3) for k in keys)] for name, row in rows_by_name.items()]
-    return render(header, rows, title)
+def fit_stages(
+    ctx: RunContext, data
+) -> tuple[LSTMWorldModel, dict[str, UncertaintyEstimator], dict[str, dict]]:
+    """Stages ``world_model`` and ``fit_<name>``: the world model and each estimator fitted on
+    ``data``; returns them (in eval mode) and their stage records."""
+    cfg = ctx.cfg
+    world = build_world_model(cfg, *dims(data)).to(ctx.device)
+    fits = {"world_model": fit_stage(ctx, "world_model", data, {"world_model": world})}
+    estimators: dict[str, UncertaintyEstimator] = {}
+    for spec in cfg.estimators:
+        est = build_estimator(spec, *dims(data), cfg.models.window).to(ctx.device)
+        name = f"fit_{spec.name}"
+        fits[spec.name] = fit_stage(ctx, name, data, {name: est})
+        estimators[spec.name] = est.eval()
+    return world.eval(), estimators, fits
 
 
-def result_table(r: Mapping[str, Any]) -> str:
-    """The table of one calibrate results dict: one row per estimator."""
-    title = (
-        f"uncertainty estimators — {r.get('env')} seed {r.get('seed')} "
-        f"(times as ratios to {r.get('reference_estimator')!r}, measured in the same run)"
-    )
-    return estimators_table(title, r["estimators"], r.get("horizons"))
+def evaluation_stage(
+    ctx: RunContext, world: LSTMWorldModel, estimators: dict[str, UncertaintyEstimator], scale
+) -> dict:
+    """Stage ``evaluation``: :func:`~torchrl_recon.evaluation.calibration_metrics` of each
+    estimator on held-out trajectories and windows."""
+    cfg, ev, window = ctx.cfg, ctx.cfg.evaluation, ctx.cfg.models.window
 
-
-def _means(s: Mapping[str, Any]) -> dict[str, Any]:
-    return {name: e["mean"] for name, e in s["estimators"].items()}
-
-
-def summary_table(r: Mapping[str, Any]) -> str:
-    """One table per env of a calibrate summary (means across seeds)."""
-    return "\n\n".join(
-        estimators_table(
-            f"uncertainty estimators — {env}, seeds {s['seeds']}: mean across seeds",
-            _means(s),
-            s["horizons"],
+    def run() -> dict:
+        seed = ctx.stage_seed("evaluation")
+        env = build_env(cfg, seed=seed, episode_steps=window + ev.horizon)
+        trajectories = validation_trajectories(
+            env, count=ev.trajectories, length=window + ev.horizon, seed=seed, policy=ev.policy
         )
-        for env, s in r["envs"].items()
+        held_out = collect_random(env, frames=ev.ood_windows * window, seed=seed + 1)
+        high = env.action_spec.high.to(torch.float32)
+        close_env(env)
+        windows = cut_sequences(held_out, window)
+        kw = dict(window=window, scale=scale, state_shift=ev.ood_state_shift, action_high=high)
+        out = {}
+        for name, est in estimators.items():
+            torch.manual_seed(seed)  # MC dropout draws its masks from the global RNG
+            out[name] = calibration_metrics(world, est, trajectories, windows, **kw)
+        return {"estimators": out, "trajectories": ev.trajectories, "ood_windows": len(windows)}
+
+    return ctx.stages.run("evaluation", run)
+
+
+def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
+    """Stages ``outcome_<estimator>_<kind>``: the ``outcomes`` recipe of each kind with each
+    estimator (this run's seed, threads and window; run directory ``outcomes/<estimator>/<kind>``),
+    run through ``ctx.run_child``; their headline numbers."""
+    cfg = ctx.cfg
+    kinds = [k for k in OUTCOME_KINDS if cfg.outcomes[f"{k}_recipe"] is not None]
+    if kinds and (ctx.run_child is None or ctx.recipes is None):
+        raise ValueError(
+            "calibrate's outcomes run other recipes: run it through "
+            "torchrl_recon.experiments.runner.run (or set outcomes.*_recipe to null)."
+        )
+
+    def outcome(spec: DictConfig, kind: str) -> dict:
+        recipe = ctx.recipes.resolve(cfg.outcomes[f"{kind}_recipe"])
+        sub = ctx.recipes.load(recipe, list(cfg.outcomes[f"{kind}_overrides"]))
+        sub.seed, sub.threads, sub.progress = cfg.seed, cfg.threads, False
+        sub.output_dir = str(ctx.run_dir / "outcomes" / spec.name / kind)
+        sub.logger.backend, sub.models.window = "none", cfg.models.window
+        for key in ("kind", "hidden_size", "activation"):
+            sub.models.uncertainty[key] = spec[key]
+        sub.models.uncertainty.kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
+        return {"result": ctx.run_child(sub)}
+
+    outcomes: dict[str, dict[str, Any]] = {}
+    for spec in cfg.estimators:
+        outcomes[spec.name] = {}
+        for kind in kinds:
+            name = f"outcome_{spec.name}_{kind}"
+            record = ctx.stages.run(name, lambda s=spec, k=kind: outcome(s, k))
+            outcomes[spec.name][kind] = record["result"]
+    return outcomes
+
+
+def run(ctx: RunContext) -> dict[str, Any]:
+    """Run (or resume) the calibrate experiment; return its results: one row per estimator,
+    times as ratios to the first ``reconstruction`` estimator (else the first)."""
+    cfg = ctx.cfg
+    data = random_data_stage(
+        ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.random_episode_steps
     )
-
-
-def headline(results: Mapping[str, Any]) -> dict[str, float]:
-    """Every number of every estimator's row, as ``<estimator>/<key>``."""
+    scale = state_scale(data)
+    world, estimators, fits = fit_stages(ctx, data)
+    evaluation = evaluation_stage(ctx, world, estimators, scale)
+    times = ctx.stages.run("timing", lambda: timing(cfg, world, estimators, data))
+    outcomes = outcome_stages(ctx)
+    reference = next(
+        (s.name for s in cfg.estimators if s.kind == "reconstruction"), cfg.estimators[0].name
+    )
+    table = {}
+    for spec in cfg.estimators:
+        row = table[spec.name] = dict(evaluation["estimators"][spec.name])
+        row["kind"] = spec.kind
+        row["config"] = OmegaConf.to_container(spec, resolve=True)
+        row["fit_val_loss"] = fits[spec.name]["val_loss"]
+        row["fit_wall_time_s"] = fits[spec.name]["wall_time_s"]
+        for h in cfg.timing.horizons:
+            mine, ref = times[f"H{h}"][spec.name], times[f"H{h}"][reference]
+            row[f"score_ms_H{h}"], row[f"cem_ms_H{h}"] = mine["score_ms"], mine["cem_ms"]
+            row[f"score_ratio_H{h}"] = mine["score_ms"] / ref["score_ms"]
+            row[f"cem_ratio_H{h}"] = mine["cem_ms"] / ref["cem_ms"]
+        row["outcomes"] = found = outcomes[spec.name]
+        if found.get("explore"):
+            row["explore_ratio"] = found["explore"]["ratio"]
+        for setting, metrics in (found.get("control") or {}).items():
+            row |= {f"control_{setting}_{key}": value for key, value in metrics.items()}
     return {
-        f"{name}/{key}": value
-        for name, row in results.get("estimators", {}).items()
-        for key, value in row.items()
-        if isinstance(value, (int, float))
+        **ctx.results_header(),
+        "reference_estimator": reference,
+        "horizons": list(cfg.timing.horizons),
+        "mse_units": "squared multi-step prediction error per state dim divided by its standard "
+        "deviation in the random data, averaged over the imagined steps",
+        "estimators": table,
+        "world_model_val_loss": fits["world_model"]["val_loss"],
+        "timing": times,
+        "wall_time_s": dict(ctx.stages.wall_time_s),
     }
-
-
-def figures(results: Mapping[str, Any]) -> Figures:
-    """``calibration.png``."""
-    return [("calibration.png", plot_calibration(results))]
-
-
-def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
-    """``calibration_<env>.png`` for each env of the summary."""
-    return [
-        (f"calibration_{env}.png", plot_calibration({**s, "env": env, "estimators": _means(s)}))
-        for env, s in summary["envs"].items()
-    ]
 
 
 check = calibrate_errors
 
 
-def stage_values(cfg) -> dict:
+def stage_values(cfg: DictConfig) -> dict:
     """``{estimator}`` and ``{kind}`` of the stage names."""
-    return {"estimator": [s.name for s in cfg.estimators], "kind": calibrate_stages.OUTCOME_KINDS}
+    return {"estimator": [s.name for s in cfg.estimators], "kind": OUTCOME_KINDS}
 
 
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    calibrate_stages,
     name="calibrate",
     help="uncertainty estimators side by side: error ranking, OOD detection, cost, outcomes",
     schema=CalibrateConfig,

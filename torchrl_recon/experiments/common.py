@@ -25,7 +25,13 @@ from torchrl_recon.modules import (
     make_estimator,
 )
 from torchrl_recon.modules.padding import loss_takes_mask
-from torchrl_recon.planners import Objective, PlannerBase, PlanningModel, make_planner
+from torchrl_recon.planners import (
+    Objective,
+    PlannerBase,
+    PlanningModel,
+    UncertaintyBand,
+    make_planner,
+)
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
     fit_uncertainty,
@@ -292,6 +298,17 @@ def build_planner(
     """The planner of a recipe's planner block (:func:`~torchrl_recon.planners.make_planner`)."""
     kwargs = OmegaConf.to_container(planner_cfg.kwargs, resolve=True)
     return make_planner(planner_cfg.kind, model, objective, **kwargs)
+
+
+def setting_objective(setting: DictConfig, beta_unit: float) -> tuple[Objective, float]:
+    """The setting's objective and its β (× ``beta_unit`` when relative)."""
+    b = setting.band
+    band = None if b is None else UncertaintyBand(b.low, b.high, b.kind)
+    beta = setting.beta * beta_unit if setting.beta_relative else setting.beta
+    objective = Objective(
+        alpha=setting.alpha, beta=beta, band=band, cost_threshold=setting.cost_threshold
+    )
+    return objective, beta
 
 
 def replan_threshold(cfg: DictConfig, per_window_u: torch.Tensor) -> float:

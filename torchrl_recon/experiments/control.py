@@ -1,207 +1,241 @@
-"""The control experiment (uncertainty-aware MPC vs the cost-only baseline, the paper's §3.1
-and Fig. 3): its stages (:mod:`.control_stages`), summary across seeds, tables, figures and
-headline numbers."""
+"""The stages of the uncertainty-aware control experiment (the paper's §3.1 and Fig. 3).
+
+``random_data`` → ``models`` → ``setting_<name>`` for each setting (one part record per batch
+of ``num_envs`` episodes) → ``random_policy``; each stage is resumable.
+"""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
 
-from torchrl_recon.evaluation.significance import paired_tests, trend_test
-from torchrl_recon.experiments import control_stages
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from torchrl_recon.collectors import first_episodes
+from torchrl_recon.data import long_trajectories
+from torchrl_recon.envs import close_env
+from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.evaluation import episode_metrics, planned_trajectory
+from torchrl_recon.experiments.common import (
+    batches,
+    build_env,
+    build_planner,
+    env_entry,
+    models_stage,
+    mpc_policy,
+    planning_model,
+    random_data_stage,
+    replan_threshold,
+    setting_objective,
+    state_scale,
+)
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
-from torchrl_recon.experiments.control_stages import METRICS, episode_mean_std
-from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
-from torchrl_recon.experiments.plots import plot_control_errors, plot_trajectory
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
+from torchrl_recon.experiments.experiment_type import ExperimentType
 from torchrl_recon.experiments.recipe_checks import control_errors
-from torchrl_recon.experiments.stats import mean_std
-from torchrl_recon.experiments.tables import fmt, pm, render
+from torchrl_recon.planners import (
+    PlanningModel,
+    cost_to_u_ratio,
+    window_uncertainty,
+)
+from torchrl_recon.policies import MPCPolicy
+from torchrl_recon.reports.stats import episode_mean_std, mean_std
 
-TESTED = ("prediction_mse", "real_cost")
-"""The metrics tested across seeds."""
-
-
-def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per setting, mean ± sample std over all episodes of all seeds of one env (NaN values,
-    from episodes without a planned step, are left out); and :func:`across_seeds`."""
-    runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    seeds = [r.get("seed") for r in runs]
-    if len(set(seeds)) != len(seeds):
-        raise ValueError(f"control results of env {runs[0]['env']!r} repeat a seed: {seeds}")
-    names = list(dict.fromkeys(n for r in runs for n in r["settings"]))  # in order of appearance
-    settings: dict[str, Any] = {}
-    for name in names:
-        records = [r["settings"].get(name, {}) for r in runs]
-        episodes = [ep for record in records for ep in record.get("episodes", [])]
-        mean, std = episode_mean_std(
-            episodes, [m for m in METRICS if any(m in e for e in episodes)]
-        )
-        settings[name] = {
-            "mean": mean,
-            "std": std,
-            "n_episodes": len(episodes),
-            "ended_in_warmup": sum(record.get("ended_in_warmup", 0) for record in records),
-            "seeds": [r.get("seed") for r in runs if name in r["settings"]],
-        }
-    if randoms := [x for r in runs for x in r.get("random_policy", {}).get("env_returns", [])]:
-        mean, std = mean_std(randoms)
-        settings["random policy"] = {
-            "mean": {"env_return": mean},
-            "std": {"env_return": std},
-            "n_episodes": len(randoms),
-        }
-    return {"seeds": seeds, "settings": settings, "across_seeds": across_seeds(runs, names)}
+STAGES = ("random_data", "models", "setting_{setting}", "random_policy")
+"""Stage name templates, in run order (``{setting}`` a setting's name)."""
 
 
-def across_seeds(runs: Sequence[Mapping[str, Any]], names: Sequence[str]) -> dict[str, Any]:
-    """Per setting the per-seed means of :data:`TESTED`, their mean ± std across seeds and paired
-    tests against ``names[0]``; per metric, the trend test over the settings with an uncertainty
-    band, from the lowest band to the highest.
+@dataclass
+class Controller:
+    """What every setting's episodes share: the planning model, the re-planning threshold, the
+    β unit, the state scale of the reported MSE and the warm-up mode (``random``, ``zeros`` or
+    ``plan``)."""
+
+    model: PlanningModel
+    threshold: float
+    beta_unit: float
+    scale: torch.Tensor
+    warmup: str = "random"
+
+
+def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
+    """The recipe's ``warmup``; ``auto`` is ``plan`` when no episode of the random ``data`` has
+    ``training.slice_len`` steps (an env whose episodes end early, e.g. InvertedPendulum: the
+    fits padded them, starting each at rest as ``plan`` plans it, and a random warm-up would
+    end most MPC episodes before their first plan), else ``random`` (the paper's).
 
     Examples:
-        >>> runs = [{"seed": s, "settings": {
-        ...     "baseline": {"episodes": [{"prediction_mse": 2.0 + s, "real_cost": 1.0}]},
-        ...     "u_low": {"episodes": [{"prediction_mse": 1.0 + s, "real_cost": 1.0}]}}}
-        ...     for s in range(3)]
-        >>> out = across_seeds(runs, ["baseline", "u_low"])
-        >>> out["settings"]["u_low"]["per_seed"]["prediction_mse"], out["reference"]
-        ([1.0, 2.0, 3.0], 'baseline')
+        >>> from omegaconf import OmegaConf
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 4}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.arange(12) // 3}, [12])  # 3 steps each
+        >>> warmup_mode(cfg, data), warmup_mode(OmegaConf.merge(cfg, {"warmup": "zeros"}), data)
+        ('plan', 'zeros')
     """
-    means = {
-        name: {
-            r["seed"]: episode_mean_std(r["settings"][name].get("episodes", []), TESTED)[0]
-            for r in runs
-            if name in r["settings"]
-        }
-        for name in names
-    }
-    per_seed = {m: {n: {s: v[m] for s, v in means[n].items()} for n in names} for m in TESTED}
-    reference, settings = names[0], {}
-    for name in names:
-        seeds = sorted(per_seed[TESTED[0]][name])
-        entry: dict[str, Any] = {"seeds": seeds, "per_seed": {}, "mean": {}, "std": {}}
-        entry["vs_reference"] = {}
-        for metric in TESTED:
-            values, ref = per_seed[metric][name], per_seed[metric][reference]
-            entry["per_seed"][metric] = [values[s] for s in seeds]
-            entry["mean"][metric], entry["std"][metric] = mean_std(values.values())
-            if name != reference:
-                common = [s for s in seeds if s in ref]
-                pairs = [values[s] for s in common], [ref[s] for s in common]
-                entry["vs_reference"][metric] = paired_tests(*pairs)
-        settings[name] = entry
-    bands = {
-        name: (float(band["low"]), float(band["high"]))
-        for r in runs
-        for name in names
-        if (band := r["settings"].get(name, {}).get("band"))
-    }
-    order = sorted(bands, key=lambda n: bands[n])
-    trend = {metric: trend_test(per_seed[metric], order) for metric in TESTED}
-    return {"reference": reference, "settings": settings, "trend": trend}
+    mode = str(cfg.warmup)
+    if mode != "auto":
+        return mode
+    return "plan" if long_trajectories(data, cfg.training.slice_len) == 0 else "random"
 
 
-def settings_table(title: str, settings: Mapping[str, Any]) -> str:
-    """``title`` over one row per setting: its episodes (those that ended before their first
-    plan, whose planned-step metrics are left out, in brackets) and mean ± std of each metric."""
-    metrics = [m for m in METRICS if any(m in s.get("mean", {}) for s in settings.values())]
-    rows = []
-    for name, s in settings.items():
-        n, unplanned = s.get("n_episodes") or len(s.get("episodes", [])), s.get("ended_in_warmup")
-        n_text = f"{n} ({unplanned} in warm-up)" if unplanned else str(n)
-        rows.append([name, n_text] + [pm(s["mean"].get(m), s["std"].get(m)) for m in metrics])
-    return render(["setting", "episodes", *metrics], rows, title)
-
-
-def result_table(r: Mapping[str, Any]) -> str:
-    """The table of one control results dict."""
-    title = (
-        f"control — {r.get('env')} seed {r.get('seed')}: mean ± std over episodes"
-        f" (re-plan threshold {fmt(r.get('replan_threshold'))}"
-        + (f", warm-up {r['warmup']})" if r.get("warmup") else ")")
+def play_episodes(
+    ctx: RunContext, seeds: list[int], policy: MPCPolicy | None = None
+) -> list[TensorDictBase]:
+    """One episode per seed, side by side (the torch RNG seeded with the first seed), cut at
+    each one's first done; ``policy`` None takes uniform random actions. Envs that ended wait
+    (TorchRL partial steps) until every env is done or ``env.episode_steps`` have run."""
+    steps, batched = ctx.cfg.env.episode_steps, len(seeds) > 1
+    env = build_env(
+        ctx.cfg, seed=seeds if batched else seeds[0], episode_steps=steps, policy=policy
     )
-    settings = dict(r["settings"])
-    if "random_policy" in r:
-        random = r["random_policy"]
-        settings["random policy"] = random | {"n_episodes": len(random["env_returns"])}
-    return settings_table(title, settings)
+    torch.manual_seed(seeds[0])
+    td = env.rollout(steps, policy, break_when_all_done=batched).cpu()  # else: any done
+    close_env(env)
+    return first_episodes(td) if batched else [td]
 
 
-def seeds_table(env: str, seeds: Mapping[str, Any]) -> str:
-    """The across-seed table of one env: per setting and tested metric, mean ± std across the
-    per-seed means and the paired p-values against the reference; then the trend tests."""
-    ref, rows, header = seeds["reference"], [], ["setting", "seeds"]
-    for metric in TESTED:
-        header += [f"{metric} across seeds", f"t p vs {ref}", f"W p vs {ref}"]
-    for name, s in seeds["settings"].items():
-        row = [name, str(len(s["seeds"]))]
-        for metric in TESTED:
-            tests = s["vs_reference"].get(metric, {})
-            p = [fmt((tests.get(k) or {}).get("p_value"), 3) for k in ("paired_t", "wilcoxon")]
-            row += [pm(s["mean"][metric], s["std"][metric]), *p]
-        rows.append(row)
-    title = f"control — {env}: per-seed means, mean ± std across seeds (tests paired by seed)"
-    lines = [render(header, rows, title)]
-    for metric, trend in seeds["trend"].items():
-        test = f"L = {fmt(trend.get('statistic'))}, p = {fmt(trend.get('p_value'), 3)}"
-        found = f"{' < '.join(trend['order'])}: {test}" if "order" in trend else trend["note"]
-        lines.append(f"trend over the u bands ({metric}): {found}")
-    return "\n".join(lines)
+def episode_batch(
+    ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
+) -> list[TensorDictBase]:
+    """The MPC episodes ``batch`` of ``setting``, played side by side, episode ``e`` seeded with
+    ``stage_seed("setting_<name>_<e>")``."""
+    mode, steps = controller.warmup, None  # plan: from the first step
+    if mode != "plan":
+        steps = max(ctx.cfg.warmup_random_steps, controller.model.context_length)
+    policy = mpc_policy(ctx.cfg, planner, controller.threshold, warmup_steps=steps, warmup=mode)
+    return play_episodes(
+        ctx, [ctx.stage_seed(f"setting_{setting.name}_{e}") for e in batch], policy
+    )
 
 
-def summary_table(r: Mapping[str, Any]) -> str:
-    """Per env of a control summary: the table over all episodes, then the across-seed one."""
-    parts = []
-    for env, s in r["envs"].items():
-        title = f"control — {env}, seeds {s['seeds']}: mean ± std over all episodes"
-        parts.append(settings_table(title, s["settings"]))
-        if s.get("across_seeds"):
-            parts.append(seeds_table(env, s["across_seeds"]))
-    return "\n\n".join(parts)
+def batch_part(
+    ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
+) -> dict:
+    """The part record of a batch of episodes: their metrics (logged; ``metrics`` for a batch
+    of one, else ``episodes``) and episode 0's ``trajectory_example``."""
+    tds = episode_batch(ctx, setting, planner, controller, batch)
+    episodes = [episode_metrics(td, controller.scale) for td in tds]
+    for e, metrics in zip(batch, episodes, strict=True):
+        for key, value in metrics.items():
+            if ctx.logger is not None and value == value:  # NaN (no planned step): not logged
+                ctx.logger.log_scalar(f"{setting.name}/{key}", value, step=e)
+    example = None
+    if batch[0] == 0:
+        dims = tds[0]["next", "observation"].shape[-1]
+        names = list(env_entry(ctx.cfg).state_names) or [f"s{i}" for i in range(dims)]
+        example = {"setting": setting.name, **planned_trajectory(tds[0]), "state_names": names}
+    part = {"metrics": episodes[0]} if len(episodes) == 1 else {"episodes": episodes}
+    return part | {"trajectory_example": example}
 
 
-def headline(results: Mapping[str, Any]) -> dict[str, float]:
-    """Each setting's mean of each metric, as ``<setting>/<metric>``."""
-    settings = results.get("settings", {})
-    return {f"{n}/{k}": v for n, s in settings.items() for k, v in s.get("mean", {}).items()}
+def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) -> dict:
+    """Stage ``setting_<name>``: all episodes of ``setting``, one part record per batch of
+    ``num_envs``, so a setting stopped half way resumes at its next unfinished batch."""
+    name = f"setting_{setting.name}"
+
+    def run():
+        objective, beta = setting_objective(setting, controller.beta_unit)
+        planner = build_planner(setting.planner, controller.model, objective)
+        groups = batches(ctx.cfg.episodes, ctx.cfg.num_envs)
+        parts = ctx.stages.run_parts(
+            name,
+            len(groups),
+            lambda b: batch_part(ctx, setting, planner, controller, groups[b]),
+            show_progress=ctx.cfg.progress,
+        )
+        episodes = []
+        for b, (part, batch) in enumerate(zip(parts, groups, strict=True)):
+            found = part["episodes"] if "episodes" in part else [part.get("metrics")]
+            if len(found) != len(batch) or not all(isinstance(m, dict) for m in found):
+                raise DamagedFileError(
+                    f"{ctx.stages.run_dir / 'stages' / name / f'part_{b}.json'}: expected the "
+                    f"metrics of episodes {batch.start}..{batch.stop - 1} ({len(batch)} dicts), "
+                    f"found {len(found)}; it was written with another num_envs or damaged: "
+                    "delete it to compute those episodes again."
+                )
+            episodes += found
+        mean, std = episode_mean_std(episodes)
+        record = {"episodes": episodes, "mean": mean, "std": std}
+        record["trajectory_example"] = parts[0]["trajectory_example"] if parts else None
+        # an episode without a planned step has a NaN predicted cost
+        record["ended_in_warmup"] = sum(
+            e.get("predicted_cost") != e.get("predicted_cost") for e in episodes
+        )
+        if setting.band is not None:  # the across-seed trend test orders the settings by it
+            record["band"] = {k: setting.band[k] for k in ("low", "high", "kind")}
+        return record | ({"beta_effective": beta} if setting.beta_relative else {})
+
+    return ctx.stages.run(name, run)
 
 
-def outcome(results: Mapping[str, Any]) -> dict[str, Any]:
-    """The numbers calibrate keeps of a control run: per setting, the means."""
-    keys = ("prediction_mse", "cost_error", "real_cost", "replans")
-    return {name: {k: s["mean"][k] for k in keys} for name, s in results["settings"].items()}
+def random_policy_stage(ctx: RunContext) -> dict:
+    """Stage ``random_policy``: the env returns of ``episodes`` episodes of uniform random
+    actions, of the settings' length, ``num_envs`` at a time."""
+    cfg = ctx.cfg
+
+    def run() -> dict:
+        seeds = [ctx.stage_seed(f"random_policy_{e}") for e in range(cfg.episodes)]
+        returns = [
+            float(td["next", "reward"].double().sum())
+            for batch in batches(cfg.episodes, cfg.num_envs)
+            for td in play_episodes(ctx, [seeds[e] for e in batch])
+        ]
+        mean, std = mean_std(returns)
+        return {"env_returns": returns, "mean": {"env_return": mean}, "std": {"env_return": std}}
+
+    record = ctx.stages.run("random_policy", run)
+    record.pop("wall_time_s", None)
+    return record
 
 
-def figures(results: Mapping[str, Any]) -> Figures:
-    """``control_errors.png`` and, when the results hold a trajectory example, ``trajectory.png``."""
-    out = [("control_errors.png", plot_control_errors(results))]
-    if (example := results.get("trajectory_example")) and len(example.get("real", [])) > 0:
-        out.append(("trajectory.png", plot_trajectory(example)))
-    return out
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) the control experiment; return its results."""
+    cfg = ctx.cfg
+    frames, steps = cfg.random_episodes * cfg.random_episode_steps, cfg.random_episode_steps
+    data = random_data_stage(ctx, "random_data", frames=frames, episode_steps=steps)
+    scale = state_scale(data)
+    world, estimator = models_stage(ctx, data, "models")
+    length = max(cfg.models.window, cfg.training.slice_len)
+    per_window_u = window_uncertainty(data, estimator, sequence_length=length)
+    threshold = replan_threshold(cfg, per_window_u)
+    relative = any(s.beta_relative for s in cfg.settings)
+    beta_unit = cost_to_u_ratio(data, per_window_u) if relative else 1.0
+    model = planning_model(cfg, world, estimator)  # the env's action bounds
+    controller = Controller(model, threshold, beta_unit, scale, warmup_mode(cfg, data))
+    results, example = {}, None
+    for setting in cfg.settings:
+        record = setting_stage(ctx, setting, controller)
+        first = record.pop("trajectory_example", None)  # kept once, for the first setting
+        example = example or first
+        record.pop("wall_time_s", None)
+        results[setting.name] = record
+    return {
+        **ctx.results_header(),
+        "replan_threshold": threshold,
+        **({"beta_unit": beta_unit} if relative else {}),
+        **({"warmup": controller.warmup} if controller.warmup != "random" else {}),
+        "mse_units": "squared prediction error per state dim divided by its standard deviation in the random data",
+        "settings": results,
+        "random_policy": random_policy_stage(ctx),
+        "trajectory_example": example,
+        "wall_time_s": dict(ctx.stages.wall_time_s),
+    }
 
 
-def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
-    """``control_errors_<env>.png`` for each env of the summary, with each seed's mean as a dot."""
-    envs = summary["envs"].items()
-    return [
-        (f"control_errors_{env}.png", plot_control_errors({"env": env, **s})) for env, s in envs
-    ]
-
-
-def check(cfg, errors, recipes) -> None:
+def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
     """The control recipe's own value checks."""
     control_errors(cfg, errors)
 
 
-def stage_values(cfg) -> dict:
+def stage_values(cfg: DictConfig) -> dict:
     """``{setting}`` of the stage names: the recipe's settings."""
     return {"setting": [s.name for s in cfg.settings]}
 
 
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    control_stages,
     name="control",
     help="uncertainty-aware MPC vs the cost-only baseline: prediction and cost errors (§3.1, Fig. 3)",
     schema=ControlConfig,

@@ -1,160 +1,277 @@
-"""The exploration experiment (active vs random, the paper's §3.2 and Table 1): its stages
-(:mod:`.explore_stages`), summary across seeds, tables, figures and headline numbers."""
+"""The stages of the exploration experiment (the paper's §3.2 and Table 1), one repeat per seed.
+
+``validation`` → ``initial_random`` → ``initial_models`` → ``guided_data_<r>`` (with
+``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings
+fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable. The
+validation set comes first: an env whose random episodes end before ``models.window +
+validation.steps`` steps is refused before any fit.
+"""
 
 from __future__ import annotations
 
+import copy
+import math
 import sys
-from collections.abc import Mapping
-from typing import Any
 
-from torchrl_recon.evaluation.significance import paired_tests, significance
-from torchrl_recon.experiments import explore_stages
+import torch
+from omegaconf import DictConfig
+from scipy import stats
+from tensordict import TensorDictBase
+
+from torchrl_recon.collectors import (
+    EpisodesTooShort,
+    collect,
+    concat_trajectories,
+    validation_trajectories,
+)
+from torchrl_recon.envs import close_env
+from torchrl_recon.errors import RecipeError
+from torchrl_recon.evaluation import population_multi_step_errors
+from torchrl_recon.experiments.common import (
+    batches,
+    build_env,
+    build_planner,
+    build_world_model,
+    dims,
+    fit_kwargs,
+    fit_stage,
+    models_stage,
+    planning_model,
+    random_data_stage,
+    split_buffers,
+    state_scale,
+)
 from torchrl_recon.experiments.config import ExploreConfig
-from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
-from torchrl_recon.experiments.explore_stages import ARMS
-from torchrl_recon.experiments.plots import plot_table1
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
+from torchrl_recon.experiments.experiment_type import ExperimentType
 from torchrl_recon.experiments.recipe_checks import explore_errors
-from torchrl_recon.experiments.stats import mean_std
-from torchrl_recon.experiments.tables import fmt, pm, render
+from torchrl_recon.modules import WorldModelPopulation
+from torchrl_recon.policies import ExplorationPolicy, exploration_objective
+from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
+from torchrl_recon.reports.explore import ARMS
+from torchrl_recon.reports.stats import mean_std
+from torchrl_recon.training import fit_population
+
+_NEXT = ("observation", "reward", "done", "terminated", "truncated")
+DATA_KEYS = ("observation", "action", "is_init", "step_count", *(("next", k) for k in _NEXT))
+DATA_KEYS += (("collector", "traj_ids"),)
+"""What a dataset keeps of a collection (the policies' planning state is not data)."""
+MSE_UNITS = (
+    "mean over validation trajectories, predicted steps and state dims of the squared error of open-loop "
+    "multi-step predictions (real context of `window` steps, then `validation.steps` steps from the real "
+    "actions), each state dim divided by its standard deviation in the initial random data (shared by both arms)"
+)
+STAGES = ("validation", "initial_random", "initial_models", "guided_data_{n}", "guided_refit_{n}")
+STAGES += ("random_arm", "retrain_{n}")
+"""Stage name templates, in run order (``{n}`` a round or a group of retrainings)."""
 
 
-def _ratio(active: float, random: float) -> float:
-    return active / random if random else float("nan")
+def random_steps_stage(ctx: RunContext, name: str, frames: int) -> TensorDictBase:
+    """``frames`` random steps in the env's episodes, keeping :data:`DATA_KEYS`."""
+    steps = ctx.cfg.env.episode_steps
+    return random_data_stage(ctx, name, frames=frames, episode_steps=steps, keys=DATA_KEYS)
 
 
-def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Table 1 across seeds of one env: each arm's mean ± sample std of the per-seed means, their
-    ratio, and the tests and :func:`~torchrl_recon.evaluation.significance.significance` of the
-    per-seed pairs."""
-    runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    seeds = [r.get("seed") for r in runs]
-    if len(set(seeds)) != len(seeds):
-        raise ValueError(f"explore results of env {runs[0]['env']!r} repeat a seed: {seeds}")
-    per_seed = {arm: [float(r["arms"][arm]["mean"]) for r in runs] for arm in ARMS}
-    arms = {}
-    for arm, means in per_seed.items():
-        pooled = [float(v) for r in runs for v in r["arms"][arm]["mse"]]
-        mean, std = mean_std(means)
-        arms[arm] = {
-            "mean": mean,
-            "std": std,
-            "n_seeds": len(means),
-            "std_all_retrainings": mean_std(pooled)[1],
-            "n_retrainings": len(pooled),
-        }
-    active, random = per_seed["active"], per_seed["random"]
-    note = "paired t-test across seeds of the per-seed arm means (active vs random)"
-    return {
-        "seeds": seeds,
-        "per_seed": {
-            **per_seed,
-            "ratio": [_ratio(a, r) for a, r in zip(active, random, strict=True)],
-            "within_seed_test": [r.get("test") for r in runs],
-        },
-        "arms": arms,
-        "ratio": _ratio(arms["active"]["mean"], arms["random"]["mean"]),
-        "tests": paired_tests(active, random, t_note=note),
-        "significance": significance(active, random, runs[0]["env"]),
-        "mse_units": runs[0].get("mse_units", ""),
-    }
+def validation_stage(ctx: RunContext) -> TensorDictBase:
+    """Held-out trajectories ``[trajectories, window + validation.steps]``, ``num_envs`` at a time.
+
+    Raises:
+        RecipeError: the env ends the random episodes sooner (:func:`short_validation_error`).
+    """
+    cfg, count = ctx.cfg, ctx.cfg.validation.trajectories
+    length = cfg.models.window + cfg.validation.steps
+
+    def run():
+        seed = ctx.stage_seed("validation")
+        env = build_env(cfg, seed=seed, episode_steps=length, num_envs=cfg.num_envs)
+        try:
+            val = validation_trajectories(
+                env, count=count, length=length, seed=seed, policy=cfg.validation.policy
+            )
+        except EpisodesTooShort as err:
+            raise short_validation_error(cfg, err) from None
+        finally:
+            close_env(env)
+        ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
+        return {"trajectories": count, "length": length}
+
+    ctx.stages.run("validation", run)
+    return ctx.stages.load_data("validation").reshape(count, length)
 
 
-def result_table(r: Mapping[str, Any]) -> str:
-    """The table of one explore results dict: the arms over retrainings and their test."""
-    arms = r["arms"]
-    rows = [
-        [a, pm(arms[a]["mean"], arms[a]["std"]), str(len(arms[a].get("mse", [])))]
-        for a in ARMS
-        if a in arms
-    ]
-    title = f"explore — {r.get('env')} seed {r.get('seed')}: validation MSE over retrainings"
-    text = [render(["arm", "MSE mean ± std", "retrainings"], rows, title)]
-    text.append(f"ratio active / random: {fmt(r.get('ratio'))}")
-    if test := r.get("test"):
-        text.append(
-            f"{test.get('name', 'test')}: statistic {fmt(test.get('statistic'))}, "
-            f"p = {fmt(test.get('p_value'))}"
-        )
-    if r.get("mse_units"):
-        text.append(f"MSE: {r['mse_units']}")
-    return "\n".join(text)
+def short_validation_error(cfg: DictConfig, err: EpisodesTooShort) -> RecipeError:
+    """Why Table 1's protocol cannot run on an env whose random episodes end early (e.g.
+    InvertedPendulum's, of 3-8 steps), and the keys to change.
 
-
-def summary_table(r: Mapping[str, Any]) -> str:
-    """Table 1 of an explore summary: one row per env, then each env's power statement."""
-    rows, notes = [], []
-    for env, s in r["envs"].items():
-        sig = s.get("significance") or {}
-        ci, sides = sig.get("ratio_ci") or {}, sig.get("directions") or {}
-        arms = [pm(s["arms"][arm]["mean"], s["arms"][arm]["std"]) for arm in ARMS]
-        ratio = (
-            f"{fmt(sig.get('mean_ratio'), 3)} [{fmt(ci.get('low'), 3)}, {fmt(ci.get('high'), 3)}]"
-        )
-        lower = f"{sides.get('active_lower', '-')}/{sides.get('active_higher', '-')}"
-        tests = [fmt(s["tests"][k]["p_value"], 3) for k in ("paired_t", "wilcoxon")]
-        dz = fmt((sig.get("effect_size") or {}).get("cohens_dz"), 3)
-        rows.append(
-            [env, str(len(s["seeds"])), *arms, fmt(s["ratio"], 3), ratio, lower, *tests, dz]
-        )
-        if (sig.get("power") or {}).get("note"):
-            notes.append(f"power, {env}: {sig['power']['note']}")
-    not_computed = {t["note"] for s in r["envs"].values() for t in s["tests"].values()}
-    notes += [f"note: {n}" for n in sorted(not_computed) if n.startswith("not computed")]
-    header = "env|seeds|random|active|active/random|mean ratio [95% CI]|lower/higher|t-test p"
-    header += "|Wilcoxon p|d_z"
-    title = "Table 1 — validation MSE, mean ± std across seeds of the per-seed means"
-    legend = (
-        "mean ratio: of the per-seed ratios, 95% percentile bootstrap over seeds (seeded);"
-        " lower/higher: seeds where active is below / above random; d_z: Cohen's d of the"
-        " per-seed differences active − random"
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"env": {"name": "Short-v0"}, "models": {"window": 5},
+        ...     "validation": {"trajectories": 4, "steps": 20, "policy": "random"}})
+        >>> err = EpisodesTooShort(done=0, count=4, length=25, attempts=40, median=3, longest=3)
+        >>> print(short_validation_error(cfg, err))  # doctest: +ELLIPSIS
+        explore on Short-v0: Table 1's validation MSE predicts validation.steps = 20 steps open loop after a real context of models.window = 5 steps, on validation.trajectories = 4 trajectories of 25 steps that the env must not end (validation.policy = random); only 0 of 40 attempts lasted 25 steps (median 3, longest 3): ...
+    """
+    v, window = cfg.validation, cfg.models.window
+    return RecipeError(
+        f"explore on {cfg.env.name}: Table 1's validation MSE predicts validation.steps = "
+        f"{v.steps} steps open loop after a real context of models.window = {window} steps, on "
+        f"validation.trajectories = {v.trajectories} trajectories of {err.length} steps that the "
+        f"env must not end (validation.policy = {v.policy}); only {err.done} of {err.attempts} "
+        f"attempts lasted {err.length} steps (median {err.median}, longest {err.longest}): this "
+        "env's episodes end too early for that protocol. Lower models.window + validation.steps "
+        f"to what most random episodes last (about {err.median}), or study this env with the "
+        "control or online kinds, which run on episodes that end early."
     )
-    return "\n".join([render(header.split("|"), rows, title), legend, *notes])
 
 
-def headline(results: Mapping[str, Any]) -> dict[str, float]:
-    """Arm means and stds, the ratio and the test's p-value."""
-    arms = results.get("arms", {})
-    scalars = {f"{arm}_mse_{k}": s[k] for arm, s in arms.items() for k in ("mean", "std")}
-    scalars["ratio"] = results.get("ratio", float("nan"))
-    if results.get("test"):
-        scalars["p_value"] = results["test"].get("p_value", float("nan"))
-    return scalars
+def guided_round_stage(
+    ctx: RunContext, world, estimator, r: int, rounds: int, frames: int
+) -> tuple[dict, TensorDictBase]:
+    """Stage ``guided_data_<r>``: ``frames`` steps of the exploration policy planning with
+    ``world`` and ``estimator`` (``num_envs`` envs planned in one call); its record and data."""
+    cfg, guided, name = ctx.cfg, ctx.cfg.guided, f"guided_data_{r}"
+
+    def run():
+        model = planning_model(cfg, world, estimator)  # the env's action bounds
+        objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
+        policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
+        seed, steps = ctx.stage_seed(name), cfg.env.episode_steps
+        env = build_env(cfg, seed=seed, episode_steps=steps, policy=policy, num_envs=cfg.num_envs)
+        desc = f"guided exploration {r + 1}/{rounds}"
+        data = collect(env, policy, frames=frames, seed=seed, progress=cfg.progress, desc=desc)
+        close_env(env)  # the collector has closed a batched env already
+        planned = data[REPLANNED].squeeze(-1)
+        ctx.stages.save_data(name, data.select(*DATA_KEYS))
+        feasible = int(data[FEASIBLE].squeeze(-1)[planned].sum())
+        return {"steps": data.numel(), "plans": int(planned.sum()), "feasible_plans": feasible}
+
+    record = ctx.stages.run(name, run)
+    return record, ctx.stages.load_data(name)
 
 
-def outcome(results: Mapping[str, Any]) -> dict[str, Any]:
-    """The numbers the estimator comparison keeps of an explore run."""
+def retrain_stage(
+    ctx: RunContext,
+    group: int,
+    retrainings: range,
+    arms: dict[str, TensorDictBase],
+    validation: TensorDictBase,
+    scale: torch.Tensor,
+) -> dict[str, dict[str, list]]:
+    """Stage ``retrain_<group>``: retrainings ``retrainings`` of a fresh world model on each
+    arm's data, fitted as one population; per arm the validation MSE (units of ``scale``), best
+    validation loss and fit steps of each.
+
+    Retraining i starts both arms from the same weights (seeded by ``retrain_<i>``); an arm's
+    members share one split of its data (seeded by ``retrain_split``) and one sample per step
+    (``fit_population(shared_sampling=True)``), as the paper's retrainings on the same data do.
+    """
+    cfg, name, n = ctx.cfg, f"retrain_{group}", len(retrainings)
+
+    def run():
+        seeds, initial = [ctx.stage_seed(f"retrain_{i}") for i in retrainings], []
+        for seed in seeds:
+            torch.manual_seed(seed)
+            initial.append(build_world_model(cfg, *dims(arms["random"])).to(ctx.device))
+        members, buffers, val_buffers = [], [], []
+        for arm in ARMS:  # the last arm takes the initial networks, the others copies
+            rb, val_rb = split_buffers(cfg, arms[arm], ctx.stage_seed("retrain_split"))
+            members += [w if arm == ARMS[-1] else copy.deepcopy(w) for w in initial]
+            buffers, val_buffers = buffers + [rb] * n, val_buffers + [val_rb] * n
+        fits = fit_population(
+            members,
+            buffers,
+            seeds=seeds * len(ARMS),
+            val_buffers=val_buffers,
+            mode=cfg.training.world_model_mode,
+            shared_sampling=True,
+            **fit_kwargs(ctx, cfg.training.world_model, f"{name}/"),
+        )
+        population = WorldModelPopulation.from_members(members)
+        window = cfg.models.window
+        errors = population_multi_step_errors(population, validation, window=window, scale=scale)
+        mse, record = errors.mean((-2, -1)).tolist(), {"retrainings": list(retrainings)}
+        for a, arm in enumerate(ARMS):
+            mine = slice(a * n, (a + 1) * n)
+            losses, steps = [f.best_val_loss for f in fits[mine]], [f.steps for f in fits[mine]]
+            record[arm] = {"mse": mse[mine], "val_loss": losses, "steps": steps}
+        return record
+
+    return ctx.stages.run(name, run)
+
+
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) one repeat of the exploration experiment; return its results."""
+    cfg, guided = ctx.cfg, ctx.cfg.guided
+    validation = validation_stage(ctx)  # first: an env that ends it early is refused at once
+    initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
+    scale = state_scale(initial)
+    world, estimator = models_stage(ctx, initial, "initial_models")
+    # guided exploration in rounds, both networks refitted on all data after each but the last
+    per_round = cfg.env.episode_steps * guided.refit_every_episodes
+    rounds = math.ceil(guided.steps / per_round)
+    parts, plans, feasible = [], 0, 0
+    for r in range(rounds):
+        frames = min(per_round, guided.steps - r * per_round)
+        record, data = guided_round_stage(ctx, world, estimator, r, rounds, frames)
+        plans, feasible = plans + record["plans"], feasible + record["feasible_plans"]
+        parts.append(data)
+        if r < rounds - 1:
+            grown = concat_trajectories(initial, *parts)
+            modules = {"world_model": world, "uncertainty": estimator}
+            fit_stage(ctx, f"guided_refit_{r}", grown, modules, fit_normalization=False)
+    random_arm = random_steps_stage(ctx, "random_arm", cfg.random_steps)
+    arms = {
+        "random": concat_trajectories(initial, random_arm),
+        "active": concat_trajectories(initial, *parts),
+    }
+    mse: dict[str, list[float]] = {arm: [] for arm in ARMS}
+    for g, group in enumerate(batches(cfg.retrainings, cfg.retrainings_per_fit)):
+        record = retrain_stage(ctx, g, group, arms, validation, scale)
+        for arm in ARMS:
+            for i, value in zip(group, record[arm]["mse"], strict=True):
+                mse[arm].append(value)
+                if ctx.logger is not None:
+                    ctx.logger.log_scalar(f"validation_mse/{arm}", value, step=i)
+    summary = {}
+    for arm, values in mse.items():
+        mean, std = mean_std(values, dtype=torch.float32)  # as recorded since the first runs
+        summary[arm] = {"mse": values, "mean": mean, "std": std}
+    statistic = p_value = float("nan")
+    if cfg.retrainings > 1:
+        test = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
+        statistic, p_value = float(test.statistic), float(test.pvalue)
     return {
-        "random_mse": results["arms"]["random"]["mean"],
-        "active_mse": results["arms"]["active"]["mean"],
-        "ratio": results["ratio"],
-        "p_value": (results.get("test") or {}).get("p_value"),
-        "active_feasible_fraction": (results.get("data") or {}).get("active_feasible_fraction"),
+        **ctx.results_header(),
+        "mse_units": MSE_UNITS,
+        "arms": summary,
+        "ratio": summary["active"]["mean"] / summary["random"]["mean"],
+        "test": {
+            "name": "Welch t-test, active vs random, across retrainings",
+            "statistic": statistic,
+            "p_value": p_value,
+        },
+        "data": {
+            "initial_steps": initial.numel(),
+            "random_arm_steps": random_arm.numel(),
+            "active_arm_steps": sum(p.numel() for p in parts),
+            "active_feasible_fraction": feasible / plans if plans else float("nan"),
+        },
+        "wall_time_s": dict(ctx.stages.wall_time_s),
     }
 
 
-def figures(results: Mapping[str, Any]) -> Figures:
-    """``table1.png``."""
-    return [("table1.png", plot_table1([results]))]
-
-
-def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
-    """``table1.png`` of all seeds."""
-    return [("table1.png", plot_table1(results))]
-
-
-def check(cfg, errors, recipes) -> None:
+def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
     """The explore recipe's own value checks."""
     explore_errors(cfg, errors)
 
 
-def stage_values(cfg) -> dict:
+def stage_values(cfg: DictConfig) -> dict:
     """``{arm}`` of the stage names: random or active."""
     return {"arm": ARMS}
 
 
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    explore_stages,
     name="explore",
     help="active vs random exploration: validation MSE of models fitted on each (§3.2, Table 1)",
     schema=ExploreConfig,

@@ -1,113 +1,151 @@
-"""The online experiment (PETS's loop: act, add the data, refit warm, act again): its stages
-(:mod:`.online_stages`), summary across seeds, tables, the learning curve and headline numbers."""
+"""The online experiment's stages: random data, a first fit, then per iteration an MPC play
+stage and a warm-started refit (:mod:`torchrl_recon.training.online` does the work)."""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping
-from typing import Any
+import time
 
-import numpy as np
-from matplotlib.figure import Figure
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
 
-from torchrl_recon.experiments import online_stages
+from torchrl_recon.envs import close_env
+from torchrl_recon.experiments.common import (
+    build_env,
+    build_models,
+    build_planner,
+    checkpoint_stage,
+    dims,
+    fit_stage,
+    mpc_policy,
+    planning_model,
+    random_data_stage,
+    replan_threshold,
+)
 from torchrl_recon.experiments.config import OnlineConfig
-from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
+from torchrl_recon.experiments.experiment_type import ExperimentType
 from torchrl_recon.experiments.recipe_checks import online_errors
-from torchrl_recon.experiments.stats import mean_std
-from torchrl_recon.experiments.tables import fmt, pm, render
+from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
+from torchrl_recon.policies import ExplorationPolicy, exploration_objective
+from torchrl_recon.reports.stats import mean_std
+from torchrl_recon.training.online import (
+    FitSchedule,
+    append_steps,
+    episode_returns,
+    fit_models,
+    new_steps_metrics,
+    play,
+    shared_keys,
+)
+
+STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
+"""Stage name templates, in run order (``{n}`` the iteration, from 1)."""
 
 
-def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per iteration, the mean return over seeds (each seed's mean over its episodes), and the
-    random policy's and the last half's mean ± sample std over seeds."""
-    runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    count = min(len(r["iterations"]) for r in runs)
-    per_iteration = [
-        mean_std([_mean(r["iterations"][i]["returns"]) for r in runs], finite=True)
-        for i in range(count)
-    ]
-    return {
-        "seeds": [r.get("seed") for r in runs],
-        "random": mean_std([r["random"]["mean_return"] for r in runs], finite=True),
-        "last_half": mean_std([r["mean_return_last_half"] for r in runs], finite=True),
-        "iterations": [{"mean": m, "std": s} for m, s in per_iteration],
-        "env_steps": [runs[0]["iterations"][i]["env_steps"] for i in range(count)],
-    }
+def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
+    """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
+    ``buffers/play_<n>``, re-planning threshold from all ``data`` so far), or exploring steps in
+    the first ``exploration.iterations`` rounds; the record holds
+    :func:`~torchrl_recon.training.online.new_steps_metrics`, the seconds spent planning and in
+    the env, and which ``policy`` played."""
+    cfg, name = ctx.cfg, f"play_{n}"
 
-
-def result_table(r: Mapping[str, Any]) -> str:
-    """One run: per iteration, env steps, mean return, model error, mean u, re-plans, times."""
-    rows = [
-        [str(it["iteration"]), str(it["env_steps"]), fmt(_mean(it["returns"]))]
-        + [fmt(it["model_error"]), fmt(it["mean_u"]), str(it["replans"])]
-        + [f"{it['fit_s']:.1f} / {it['plan_s']:.1f} / {it['env_s']:.1f}"]
-        for it in r["iterations"]
-    ]
-    header = ["iter", "env steps", "return", "model error", "mean u", "replans", "fit/plan/env s"]
-    title = (
-        f"online {r['env']} seed {r['seed']}: random policy {fmt(r['random']['mean_return'])}, "
-        f"last half {fmt(r['mean_return_last_half'])}"
-    )
-    return render(header, rows, title)
-
-
-def summary_table(r: Mapping[str, Any]) -> str:
-    """Per env: the random policy, each iteration's mean return and the last half, over seeds."""
-    parts = []
-    for env, s in r["envs"].items():
-        rows = [
-            [str(i), str(steps), pm(it["mean"], it["std"])]
-            for i, (it, steps) in enumerate(zip(s["iterations"], s["env_steps"], strict=True), 1)
-        ]
-        title = (
-            f"online {env}, seeds {s['seeds']}: random policy {pm(*s['random'])}, "
-            f"last half {pm(*s['last_half'])}"
+    def run() -> dict:
+        start, threshold, e = time.perf_counter(), None, cfg.exploration
+        exploring = n <= e.iterations
+        if exploring:
+            objective = exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta)
+            mpc = ExplorationPolicy(
+                build_planner(cfg.planner, model, objective), warmup=str(cfg.warmup)
+            )
+        else:
+            if str(cfg.replan.mode) == "uncertainty":
+                length = cfg.training.slice_len
+                u = window_uncertainty(data, model.uncertainty, sequence_length=length)
+                threshold = replan_threshold(cfg, u)
+            objective = Objective(alpha=cfg.alpha, beta=cfg.beta)
+            planner = build_planner(cfg.planner, model, objective)
+            mpc = mpc_policy(cfg, planner, threshold, warmup=str(cfg.warmup))
+        seed = ctx.stage_seed(name)
+        env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
+        new, plan_s = play(
+            env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
         )
-        parts.append(render(["iter", "env steps", "return"], rows, title))
-    return "\n\n".join(parts)
+        close_env(env)
+        ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
+        seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
+        record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}
+        record["policy"] = "explore" if exploring else "mpc"
+        if ctx.logger is not None:
+            for key in ("model_error", "mean_u", "replans"):
+                ctx.logger.log_scalar(f"online/{key}", record[key], step=n)
+        return record
+
+    return ctx.stages.run(name, run)
 
 
-def headline(results: Mapping[str, Any]) -> dict[str, float]:
-    """The random policy's and the last half's mean returns."""
-    return {
-        "random_return": results["random"]["mean_return"],
-        "return_last_half": results["mean_return_last_half"],
+def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
+    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks on all
+    data so far, from their current weights."""
+    cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
+    sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
+    schedule = FitSchedule(
+        **t.world_model, refit_steps=cfg.refit_steps, mode=str(t.world_model_mode), **sizes
+    )
+    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
+
+    def fit() -> dict:
+        start, seed = time.perf_counter(), ctx.stage_seed(name)
+        losses = fit_models(
+            *modules.values(),
+            data,
+            schedule,
+            seed=seed,
+            warm=True,
+            progress=cfg.progress,
+            logger=ctx.logger,
+            log_prefix=f"{name}/",
+        )
+        return {"val_loss": losses, "fit_s": time.perf_counter() - start}
+
+    return checkpoint_stage(ctx, name, modules, fit)
+
+
+def run(ctx: RunContext) -> dict:
+    """Run (or resume) the online experiment; return its results."""
+    cfg = ctx.cfg
+    data = random_data_stage(
+        ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
+    )
+    members = cfg.world_model_members if cfg.world_model_members > 1 else None
+    world, estimator = build_models(cfg, *dims(data), ctx.device, members=members)
+    first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
+    model = planning_model(cfg, world, estimator)
+    iterations = []
+    for n in range(1, cfg.iterations + 1):
+        played = play_stage(ctx, n, model, data)
+        data = append_steps(data, ctx.stages.load_data(f"play_{n}"))
+        refit = refit_stage(ctx, n, model, data)
+        iterations.append({"iteration": n, "env_steps": len(data), **played, **refit})
+    random_returns = episode_returns(data[: cfg.random_steps])
+    late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]
+    return ctx.results_header() | {
+        "random": {"returns": random_returns, "mean_return": mean_std(random_returns)[0]},
+        "first_fit": first,
+        "iterations": iterations,
+        "mean_return_last_half": mean_std(late)[0],
+        "env_steps": len(data),
     }
 
 
-def plot_learning_curve(results: Mapping[str, Any]) -> Figure:
-    """Return of each episode against the env steps when it ended, beside the random policy's."""
-    figure = Figure(figsize=(6, 3.5), layout="constrained")
-    ax = figure.add_subplot()
-    for it in results["iterations"]:
-        steps = np.full(len(it["returns"]), it["env_steps"])
-        ax.plot(steps, it["returns"], "o", color="C0", alpha=0.6)
-    if means := [(it["env_steps"], _mean(it["returns"])) for it in results["iterations"]]:
-        ax.plot(*zip(*means, strict=True), "-", color="C0", label="MPC (mean per iteration)")
-    ax.axhline(results["random"]["mean_return"], color="C3", ls="--", label="random policy")
-    ax.set(xlabel="env steps", ylabel="episode return", title=f"online {results['env']}")
-    ax.legend(loc="lower right")
-    return figure
-
-
-def figures(results: Mapping[str, Any]) -> Figures:
-    """``learning_curve.png``."""
-    return [("learning_curve.png", plot_learning_curve(results))]
-
-
-def check(cfg, errors, recipes) -> None:
+def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
     """The online recipe's own value checks."""
     online_errors(cfg, errors)
 
 
-def _mean(values: list[float]) -> float:
-    return float(np.mean(values)) if values else float("nan")
-
-
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
-    online_stages,
     name="online",
     help="learn a task online: act with MPC, add the data, refit warm, repeat (PETS's loop)",
     schema=OnlineConfig,

@@ -245,7 +245,7 @@ def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
 
 def control_errors(cfg: DictConfig, errors: _Errors) -> None:
     """The control recipe's own checks."""
-    from torchrl_recon.experiments.control_stages import setting_objective
+    from torchrl_recon.experiments.common import setting_objective
 
     _data_errors(errors, "random_episode_steps")
     warmup = max(cfg.warmup_random_steps, cfg.models.window)

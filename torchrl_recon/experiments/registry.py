@@ -1,6 +1,6 @@
 """The registry of experiment kinds, by name. A new kind: a module defining its ``EXPERIMENT``
-(an :class:`~torchrl_recon.experiments.experiment_type.ExperimentType`), listed below, and its
-recipes (``experiment: <name>``)."""
+(an :class:`~torchrl_recon.experiments.experiment_type.ExperimentType`), listed below, its report
+(:mod:`torchrl_recon.reports.registry`) and its recipes (``experiment: <name>``)."""
 
 from __future__ import annotations
 

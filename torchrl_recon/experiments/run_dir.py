@@ -5,12 +5,9 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-import platform
 import socket
-import subprocess
 import sys
 from collections.abc import Mapping, Sequence
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +17,12 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.files import read_json, write_atomically
+from torchrl_recon.provenance import git_info, package_versions
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory", "warmup": "auto"}
 """Keys added to the schema since, with the value an older run directory without them resumes at."""
-VERSION_PACKAGES = ("torch", "torchrl", "tensordict", "gymnasium", "numpy", "pybullet")
-VERSION_PACKAGES += ("torchrl-recon", "hydra-core", "omegaconf", "wandb")
-"""The packages whose versions ``meta.json`` records."""
 _START_KEYS = ("started_utc", "git", "argv", "hostname")
 """What ``meta.json`` keeps of each earlier start of a resumed run."""
 _LOCKS: dict[str, FileLock] = {}
@@ -74,38 +69,6 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
             shown = ["(absent)" if v is absent else repr(v) for v in (before, after)]
             diffs.append(f"{key}: {shown[0]} -> {shown[1]}")
     return diffs
-
-
-def package_versions(names: Sequence[str] = VERSION_PACKAGES) -> dict[str, str | None]:
-    """Installed versions (``importlib.metadata``) of ``names``, plus ``python``; None if absent."""
-    versions: dict[str, str | None] = {"python": platform.python_version()}
-    for name in names:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = None
-    return versions
-
-
-def git_info(directory: str | os.PathLike[str] | None = None) -> dict[str, Any]:
-    """Commit and dirty flag of the git checkout holding ``directory`` (default: this package),
-    read-only; ``{"commit": "unknown", "dirty": None}`` outside a checkout or without git."""
-    cwd = Path(__file__).resolve().parents[1] if directory is None else Path(directory)
-
-    def git(*args: str) -> str | None:
-        try:
-            proc = subprocess.run(
-                ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=20
-            )
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return proc.stdout if proc.returncode == 0 else None
-
-    commit = (git("rev-parse", "HEAD") or "").strip()
-    if not commit:
-        return {"commit": "unknown", "dirty": None}
-    status = git("--no-optional-locks", "status", "--porcelain")
-    return {"commit": commit, "dirty": None if status is None else bool(status.strip())}
 
 
 def portable_path(path: str | os.PathLike[str]) -> str:
@@ -298,25 +261,3 @@ def read_meta(run_dir: str | os.PathLike[str]) -> dict[str, Any]:
     if not isinstance(meta, dict) or not isinstance(meta.get("previous", []), list):
         raise DamagedFileError(f"{path} is not the JSON object meta.json holds; {remedy}")
     return meta
-
-
-def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A ``results.json`` file (or the one in a run directory) as checked plain JSON.
-
-    Examples:
-        >>> import tempfile
-        >>> run_dir = Path(tempfile.mkdtemp())
-        >>> _ = write_results(run_dir, {"experiment": "explore", "env": "drone", "seed": 0})
-        >>> read_results(run_dir)["env"]
-        'drone'
-    """
-    path = Path(path) / "results.json" if Path(path).is_dir() else Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"No results file at {path}.")
-    remedy = "re-run the experiment to write it again, or leave that run directory out."
-    results = read_json(path, remedy=remedy)
-    if not isinstance(results, dict) or not isinstance(results.get("experiment"), str):
-        raise DamagedFileError(
-            f"{path} is not the results of an experiment (no 'experiment'); {remedy}"
-        )
-    return results

@@ -21,13 +21,13 @@ from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, v
 from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
 from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
-from torchrl_recon.experiments.summary import format_table, save_figures
+from torchrl_recon.reports import format_table, get_report, save_figures
 
 
 def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
     """Run a child experiment (calibrate's outcomes) made by ``argv``; its headline numbers."""
     results = run(cfg, argv=argv)
-    outcome = get_type(cfg.experiment).outcome
+    outcome = get_report(cfg.experiment).outcome
     if outcome is None:
         raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
     return None if results is None else outcome(results)
@@ -102,7 +102,7 @@ def run(
         results_path = write_results(run_dir, results)
         figures = save_figures(results, run_dir)
         if logger is not None:  # the headline numbers, as scalars under results/
-            for name, value in kind.headline(results).items():
+            for name, value in get_report(cfg.experiment).headline(results).items():
                 if isinstance(value, (int, float)):
                     logger.log_scalar(f"results/{name}", float(value), step=0)
         print(format_table(results))

@@ -2,7 +2,7 @@
 
 Run: python docs/results/table1_20seeds/headline.py   (prints a Markdown table)
 
-It summarizes the published runs with ``torchrl_recon.experiments.summary.summarize`` (which
+It summarizes the published runs with ``torchrl_recon.reports.summarize`` (which
 checks every ``results.json`` and the records archive first): IB and the Drone at up to 20
 seeds with the shipped recipes, IB's ``offset_noise`` validation variant, and the Minitaur's
 five full-scale repeats with the retrainings fitted as one population.
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchrl_recon.experiments.summary import summarize
+from torchrl_recon.reports import summarize
 
 RESULTS = Path(__file__).resolve().parents[1]
 ROWS = (  # label, folder, env

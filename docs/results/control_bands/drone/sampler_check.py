@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from torchrl_recon.experiments import control_stages
+from torchrl_recon.experiments import control
 from torchrl_recon.experiments.common import build_models, fit_module
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.runner import validate
@@ -68,9 +68,9 @@ def main() -> None:
         torch.manual_seed(seed)  # the initial weights
         _, estimator = build_models(ctx.cfg, obs_dim, action_dim, ctx.device)
         val = fit_module(ctx, estimator, train, seed=seed, prefix="sampler_check/")
-        length = max(ctx.cfg.models.window, ctx.cfg.training.slice_len)  # as control_stages.run
+        length = max(ctx.cfg.models.window, ctx.cfg.training.slice_len)  # as control.run
         u = window_uncertainty(data, estimator, sequence_length=length)
-        threshold = control_stages.replan_threshold(ctx.cfg, u)
+        threshold = control.replan_threshold(ctx.cfg, u)
         sampling = ctx.cfg.training.window_sampling
         print(
             f"chunk {args.chunk} sampling {sampling} fit seed {seed}: val loss {val:.4f}, "

@@ -1,6 +1,6 @@
 """Aggregate ``results.json`` files across seeds, print them as plain-text tables and save their
-figures, each kind's part (``summarize_env``, tables, figures) looked up in the registry. Each
-file is checked first (:func:`~torchrl_recon.experiments.results_check.check_results`), a
+figures, each kind's part (``summarize_env``, tables, figures) from its :class:`~.report.Report`. Each
+file is checked first (:func:`~.results_check.check_results`), a
 published one also against its folder's SHA-256 manifest (:mod:`~torchrl_recon.archive`).
 """
 
@@ -14,10 +14,33 @@ from typing import Any
 
 from torchrl_recon.archive import verify_results
 from torchrl_recon.devices import processor
-from torchrl_recon.experiments.experiment_type import ExperimentType, Figures
-from torchrl_recon.experiments.registry import get_type
-from torchrl_recon.experiments.results_check import check_results
-from torchrl_recon.experiments.run_dir import read_results
+from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.files import read_json
+from torchrl_recon.reports.registry import get_report
+from torchrl_recon.reports.report import Figures
+from torchrl_recon.reports.results_check import check_results
+
+
+def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A ``results.json`` file (or the one in a run directory) as checked plain JSON.
+
+    Examples:
+        >>> import tempfile
+        >>> run_dir = Path(tempfile.mkdtemp())
+        >>> _ = (run_dir / "results.json").write_text('{"experiment": "explore", "env": "drone"}')
+        >>> read_results(run_dir)["env"]
+        'drone'
+    """
+    path = Path(path) / "results.json" if Path(path).is_dir() else Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"No results file at {path}.")
+    remedy = "re-run the experiment to write it again, or leave that run directory out."
+    results = read_json(path, remedy=remedy)
+    if not isinstance(results, dict) or not isinstance(results.get("experiment"), str):
+        raise DamagedFileError(
+            f"{path} is not the results of an experiment (no 'experiment'); {remedy}"
+        )
+    return results
 
 
 def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
@@ -39,6 +62,23 @@ def find_results(paths: Iterable[str | os.PathLike[str]]) -> list[Path]:
     return list(unique.values())
 
 
+def summarize_by_kind(
+    paths: Iterable[str | os.PathLike[str]],
+) -> list[tuple[dict[str, Any], list[dict[str, Any]]]]:
+    """Each experiment kind's :func:`summarize` of the ``results.json`` files found at
+    ``paths``, with the results it read (each file read and checked once), by kind's name."""
+    paths = list(paths)
+    if not (files := find_results(paths)):
+        raise FileNotFoundError(f"no results.json found below {', '.join(map(str, paths))}")
+    by_kind: dict[str, list[tuple[Path, dict[str, Any]]]] = {}
+    for f in files:
+        check_results(r := read_results(f), f)
+        by_kind.setdefault(r["experiment"], []).append((f, r))
+    return [
+        (_summary(kind, found), [r for _, r in found]) for kind, found in sorted(by_kind.items())
+    ]
+
+
 def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
     """Aggregate the ``results.json`` files of one experiment kind found at ``paths`` into
     ``{"experiment", "files", "envs": {env: <the kind's summarize_env>}, "processors",
@@ -50,28 +90,26 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
             from its folder's manifest.
         ValueError: the files mix experiment kinds, or one env repeats a seed.
     """
-    files = find_results(paths)
-    if not files:
-        raise FileNotFoundError("No results.json found in the given paths.")
-    results = [read_results(f) for f in files]
-    for f, r in zip(files, results, strict=True):
-        check_results(r, f)
-    archives = verify_results(files)
-    kinds = sorted({r.get("experiment") for r in results}, key=str)
-    if len(kinds) != 1:
+    found = summarize_by_kind(paths)
+    if len(found) != 1:
+        kinds = [s["experiment"] for s, _ in found]
         raise ValueError(
             f"summarize takes results of one experiment kind, got {kinds}; summarise them separately."
         )
+    return found[0][0]
+
+
+def _summary(kind: str, found: list[tuple[Path, dict[str, Any]]]) -> dict[str, Any]:
     by_env: dict[str, list[dict[str, Any]]] = {}
-    for r in results:
+    for _, r in found:
         by_env.setdefault(r["env"], []).append(r)
-    kind = _kind_of(kinds[0])
+    files = [f for f, _ in found]
     return {
-        "experiment": kinds[0],
+        "experiment": kind,
         "files": [f.as_posix() for f in files],
-        "envs": {env: kind.summarize_env(runs) for env, runs in by_env.items()},
-        "processors": sorted({processor(r.get("meta", {}).get("device")) for r in results}),
-        "archives": archives,
+        "envs": {env: get_report(kind).summarize_env(runs) for env, runs in by_env.items()},
+        "processors": sorted({processor(r.get("meta", {}).get("device")) for _, r in found}),
+        "archives": verify_results(files),
     }
 
 
@@ -85,18 +123,11 @@ def relative_to(path: str | os.PathLike[str], root: str | os.PathLike[str]) -> s
     return Path(os.path.relpath(os.path.abspath(path), os.path.abspath(root))).as_posix()
 
 
-def _kind_of(name: Any) -> ExperimentType:
-    try:
-        return get_type(name)
-    except ValueError:
-        raise ValueError(f"Unknown experiment kind {name!r} in results.") from None
-
-
 def format_table(results_or_summary: Mapping[str, Any]) -> str:
     """A plain-text table of one results dict or of a :func:`summarize` output (which ends with
     the processors the runs were made on and the archives verified)."""
     r = results_or_summary
-    kind = _kind_of(r.get("experiment"))
+    kind = get_report(r.get("experiment"))
     text = kind.summary_table(r) if "envs" in r else kind.result_table(r)
     if "processors" in r:
         text += "\nmade on: " + "; ".join(r["processors"])
@@ -117,7 +148,7 @@ def _save(figures: Figures, directory: Path) -> list[Path]:
 def save_figures(results: Mapping[str, Any], run_dir: str | os.PathLike[str]) -> list[Path]:
     """Write the figures of one results dict (its kind's ``figures``) into ``run_dir``; return
     their paths."""
-    kind = _kind_of(results.get("experiment"))
+    kind = get_report(results.get("experiment"))
     Path(run_dir).mkdir(parents=True, exist_ok=True)
     return _save(kind.figures(results), Path(run_dir))
 
@@ -135,5 +166,5 @@ def save_summary(
     archives = summary.get("archives", [])
     archives = [{**a, "archive": relative_to(a["archive"], out)} for a in archives]
     path.write_text(json.dumps({**summary, "files": files, "archives": archives}, indent=1))
-    figures = get_type(summary["experiment"]).summary_figures(summary, results)
+    figures = get_report(summary["experiment"]).summary_figures(summary, results)
     return [path, *_save(figures, out)]

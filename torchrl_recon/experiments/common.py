@@ -11,7 +11,12 @@ from tensordict import TensorDictBase
 from torchrl.envs import DeviceCastTransform, EnvBase
 
 from torchrl_recon.collectors import collect_random
-from torchrl_recon.data import needs_padding, sequence_buffers, split_by_trajectory
+from torchrl_recon.data import (
+    long_trajectories,
+    needs_padding,
+    sequence_buffers,
+    split_by_trajectory,
+)
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
@@ -123,6 +128,25 @@ def random_data_stage(
 
     ctx.stages.run(name, run)
     return ctx.stages.load_data(name)
+
+
+def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
+    """The recipe's ``warmup`` (control and online kinds); ``auto`` is ``plan`` when no episode of the random ``data`` has
+    ``training.slice_len`` steps (an env whose episodes end early, e.g. InvertedPendulum: the
+    fits padded them, starting each at rest as ``plan`` plans it, and a random warm-up would
+    end most MPC episodes before their first plan), else ``random`` (the paper's).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 4}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.arange(12) // 3}, [12])  # 3 steps each
+        >>> warmup_mode(cfg, data), warmup_mode(OmegaConf.merge(cfg, {"warmup": "zeros"}), data)
+        ('plan', 'zeros')
+    """
+    mode = str(cfg.warmup)
+    if mode != "auto":
+        return mode
+    return "plan" if long_trajectories(data, cfg.training.slice_len) == 0 else "random"
 
 
 def build_world_model(

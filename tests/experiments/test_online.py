@@ -153,3 +153,30 @@ def test_padded_slices_with_an_estimator_that_takes_no_mask_are_one_clear_error(
     assert main([*args, f"output_dir={tmp_path / 'short'}"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert len(err) == 1 and "models.uncertainty.kind = ensemble cannot train" in err[0], err
+
+
+def test_random_steps_below_an_episode_and_a_slice_run_where_episodes_end_early(
+    tmp_path, monkeypatch, capsys
+):
+    """With ``env.termination``, ``random_steps`` need not reach ``env.episode_steps`` (25) +
+    ``training.slice_len`` (10): 12 steps of 3-step episodes are four episodes to split."""
+    args = ["online", "gym/online_smoke", *short_env(tmp_path, monkeypatch, termination=True)]
+    out = tmp_path / "short"
+    assert main([*args, "random_steps=12", "stop_after=models", f"output_dir={out}"]) == 0
+    assert (out / "checkpoints" / "models.pt").exists(), capsys.readouterr().err
+
+
+def test_random_data_with_fewer_than_two_episodes_are_one_error_before_any_fit(
+    costs, tmp_path, capsys
+):
+    """Where episodes may end (``env.termination``) but do not, the random data are checked once
+    collected: 26 steps of 25-step episodes leave one episode and a 1-step piece."""
+    args = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    out = tmp_path / "pendulum"
+    args += [f"env.termination={costs}:spinning", "random_steps=26", f"output_dir={out}"]
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "'random_steps' = 26 gave 1 episode that ended or held" in err[0]
+    assert "env.episode_steps + training.slice_len = 35" in err[0], err
+    assert (out / "stages" / "random_data.json").exists()  # collected and kept
+    assert not (out / "checkpoints").exists()  # refused before the first fit

@@ -197,6 +197,39 @@ def dims(data: TensorDictBase) -> tuple[int, int]:
     return data["observation"].shape[-1], data["action"].shape[-1]
 
 
+def check_random_data(cfg: DictConfig, data: TensorDictBase, key: str = "random_steps") -> None:
+    """Refuse random ``data`` (``key`` steps) that hold fewer than two episodes a fit can use,
+    each ended or of ``training.slice_len`` steps (a piece cut short by the step budget is
+    not one): a fit holds whole episodes out to validate. Where episodes may end early
+    (``env.termination``), this replaces the recipe check ``key >= env.episode_steps +
+    training.slice_len``, which holds two such episodes on envs that never end one.
+
+    Raises:
+        RecipeError: naming ``key``, before any fit.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"training": {"slice_len": 4}, "random_steps": 5,
+        ...     "env": {"episode_steps": 10}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.tensor([0, 0, 0, 1, 1]),
+        ...     ("next", "done"): torch.tensor([[0], [0], [1], [0], [0]]).bool()}, [5])
+        >>> check_random_data(cfg, data)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        torchrl_recon.errors.RecipeError: 'random_steps' = 5 gave 1 episode that ended or held...
+    """
+    t, steps = cfg.training, cfg[key]
+    count = long_trajectories(data, t.slice_len, ended=True)
+    if count < 2:
+        enough = cfg.env.episode_steps + t.slice_len
+        raise RecipeError(
+            f"'{key}' = {steps} gave {count} episode{'' if count == 1 else 's'} that ended or "
+            f"held training.slice_len = {t.slice_len} steps; a fit holds whole episodes out to "
+            "validate, so it needs two: "
+            f"raise {key} (env.episode_steps + training.slice_len = {enough} always gives two) "
+            "in a new output_dir."
+        )
+
+
 def check_padding(cfg: DictConfig) -> None:
     """Refuse what padding short episodes cannot train (called when a split of the data has no
     trajectory of ``training.slice_len`` steps, e.g. InvertedPendulum's random episodes of 3-8

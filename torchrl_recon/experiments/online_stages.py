@@ -12,6 +12,7 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    check_random_data,
     checkpoint_stage,
     dims,
     fit_stage,
@@ -115,6 +116,7 @@ def run(ctx: RunContext) -> dict:
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
     )
+    check_random_data(cfg, data)  # two episodes to split, before any fit
     warmup = warmup_mode(cfg, data)  # from the random data only, once
     members = cfg.world_model_members if cfg.world_model_members > 1 else None
     world, estimator = build_models(cfg, *dims(data), ctx.device, members=members)

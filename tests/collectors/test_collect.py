@@ -15,21 +15,29 @@ def test_default_batches_divide_the_frames_when_they_can():
     assert default_frames_per_batch(15000) == 1000
     assert default_frames_per_batch(1500) == 750
     assert default_frames_per_batch(50) == 50
-    assert default_frames_per_batch(1499) == 1000  # prime: its only divisors are 1 and 1499
+    # prime: its only divisors up to 1000 are 1 and itself; the fewest near-equal batches
+    assert default_frames_per_batch(1499) == 750  # 2 batches, 1 step dropped
+    assert default_frames_per_batch(1019) == 510
+    assert default_frames_per_batch(2003) == 668  # 3 batches of 668: 2004, 1 dropped
 
 
-def test_odd_frame_counts_collect_no_extra_steps_and_the_same_data():
+@pytest.mark.parametrize("frames", [1500, 1019])
+def test_odd_frame_counts_collect_few_extra_steps_and_the_same_data(frames):
+    """1500 in batches of 750, 1019 in two of 510 (one step dropped): no TorchRL warning, and
+    the data of batches of 1000 (981 steps collected and dropped for 1019), bit for bit."""
+
     def data(frames_per_batch):
         env = make_env("industrial_benchmark", seed=0, max_episode_steps=100)
-        return collect_random(env, frames=1500, seed=3, frames_per_batch=frames_per_batch)
+        return collect_random(env, frames=frames, seed=3, frames_per_batch=frames_per_batch)
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # TorchRL warns when a batch would overshoot
-        divided = data(None)
+        default = data(None)
     overshooting = data(1000)
-    assert divided.batch_size == overshooting.batch_size == torch.Size([1500])
-    assert torch.equal(divided["observation"], overshooting["observation"])
-    assert torch.equal(divided["action"], overshooting["action"])
+    assert default.batch_size == overshooting.batch_size == torch.Size([frames])
+    assert set(default.keys(True, True)) == set(overshooting.keys(True, True))
+    for key in default.keys(True, True):
+        assert torch.equal(default[key], overshooting[key]), key
 
 
 def test_a_batch_of_envs_gives_env_major_contiguous_trajectories():

@@ -12,6 +12,8 @@ import pytest
 
 from tests.experiments.tiny import short_env
 from torchrl_recon.cli import main
+from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.run_dir import RunDirConflict, prepare_run_dir, release_run_dir
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 
@@ -80,17 +82,34 @@ def test_pendulum_online_smoke_with_a_termination_resumes_to_the_same_numbers(
     args += [f"env.termination={costs}:spinning"]
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     assert main([*args, f"output_dir={whole}"]) == 0, capsys.readouterr().err
-    assert main([*args, f"output_dir={parts}", "stop_after=play_1"]) == 0
+    # warmup auto (the default) is random here: 25-step episodes hold a training slice, so the
+    # run stopped and resumed with warmup=random gives the same numbers
+    args_random = [*args, "warmup=random"]
+    assert main([*args_random, f"output_dir={parts}", "stop_after=play_1"]) == 0
     assert not (parts / "results.json").exists()
-    assert main([*args, f"output_dir={parts}"]) == 0, capsys.readouterr().err
+    assert main([*args_random, f"output_dir={parts}"]) == 0, capsys.readouterr().err
     a, b = _results(whole), _results(parts)
     for r in (a, b):
         for it in r["iterations"]:
             for key in ("fit_s", "plan_s", "env_s", "wall_time_s"):
                 it.pop(key)
         r.pop("first_fit"), r.pop("meta")  # wall times; when and how each ran
-    assert a == b
+    assert a == b and "warmup" not in a  # results name a warm-up other than random only
     assert a["env"] == "Pendulum-v1" and len(a["iterations"]) == 2
+
+
+def test_a_run_dir_made_with_warmup_random_resumes_with_it_not_with_the_new_default(tmp_path):
+    """Online run dirs written before ``warmup: auto`` say ``warmup: random``: resuming one
+    under the default is one clear conflict naming the key; ``warmup=random`` resumes it."""
+    base = [f"output_dir={tmp_path / 'run'}", "env.id=Pendulum-v1"]
+    base += ["env.cost=torchrl_recon.envs.gym_costs:pendulum"]
+    old = load_recipe(RECIPES / "gym" / "online_smoke.yaml", [*base, "warmup=random"])
+    release_run_dir(prepare_run_dir(old))
+    with pytest.raises(RunDirConflict, match=r"warmup: 'random' -> 'auto'"):
+        prepare_run_dir(load_recipe(RECIPES / "gym" / "online_smoke.yaml", base))
+    resumed = prepare_run_dir(old)
+    release_run_dir(resumed)
+    assert json.loads((resumed / "meta.json").read_text())["resumed"] is True
 
 
 def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
@@ -114,10 +133,14 @@ def _short_env_args(tmp_path, monkeypatch) -> list[str]:
     return ["online", "gym/online_smoke", *short_env(tmp_path, monkeypatch)]
 
 
-def test_episodes_shorter_than_a_training_window_train_on_padded_slices(tmp_path, monkeypatch):
+def test_episodes_shorter_than_a_training_window_train_on_padded_slices(
+    tmp_path, monkeypatch, capsys
+):
     out = tmp_path / "short"
     assert main([*_short_env_args(tmp_path, monkeypatch), f"output_dir={out}"]) == 0
+    assert "warm-up plan" in capsys.readouterr().out  # the table's title names it
     results = json.loads((out / "results.json").read_text())
+    assert results["warmup"] == "plan"  # auto: no random episode holds a training slice
     # 3-step episodes: the smoke recipe's 75 random steps hold 25, each with its return
     assert len(results["random"]["returns"]) == 25
     assert all(math.isfinite(loss) for loss in results["first_fit"].values())
@@ -130,3 +153,30 @@ def test_padded_slices_with_an_estimator_that_takes_no_mask_are_one_clear_error(
     assert main([*args, f"output_dir={tmp_path / 'short'}"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert len(err) == 1 and "models.uncertainty.kind = ensemble cannot train" in err[0], err
+
+
+def test_random_steps_below_an_episode_and_a_slice_run_where_episodes_end_early(
+    tmp_path, monkeypatch, capsys
+):
+    """With ``env.termination``, ``random_steps`` need not reach ``env.episode_steps`` (25) +
+    ``training.slice_len`` (10): 12 steps of 3-step episodes are four episodes to split."""
+    args = ["online", "gym/online_smoke", *short_env(tmp_path, monkeypatch, termination=True)]
+    out = tmp_path / "short"
+    assert main([*args, "random_steps=12", "stop_after=models", f"output_dir={out}"]) == 0
+    assert (out / "checkpoints" / "models.pt").exists(), capsys.readouterr().err
+
+
+def test_random_data_with_fewer_than_two_episodes_are_one_error_before_any_fit(
+    costs, tmp_path, capsys
+):
+    """Where episodes may end (``env.termination``) but do not, the random data are checked once
+    collected: 26 steps of 25-step episodes leave one episode and a 1-step piece."""
+    args = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    out = tmp_path / "pendulum"
+    args += [f"env.termination={costs}:spinning", "random_steps=26", f"output_dir={out}"]
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "'random_steps' = 26 gave 1 episode that ended or held" in err[0]
+    assert "env.episode_steps + training.slice_len = 35" in err[0], err
+    assert (out / "stages" / "random_data.json").exists()  # collected and kept
+    assert not (out / "checkpoints").exists()  # refused before the first fit

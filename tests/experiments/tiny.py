@@ -47,15 +47,21 @@ def cost(obs, action, next_obs):
     return next_obs[..., 0].pow(2)
 
 
+def never(obs, action, next_obs):  # a termination rule: the env ends by its step count only
+    return torch.zeros(next_obs.shape[:-1], dtype=torch.bool, device=next_obs.device)
+
+
 gym.register(id="{env_id}", entry_point="{module}:Short", max_episode_steps=50)
 '''
 
 
-def short_env(tmp_path, monkeypatch) -> list[str]:
-    """The ``env.id`` and ``env.cost`` overrides of :data:`SHORT_ENV`, written as a fresh module
-    under ``tmp_path`` (put on ``sys.path`` by pytest's ``monkeypatch``)."""
+def short_env(tmp_path, monkeypatch, termination: bool = False) -> list[str]:
+    """The ``env.id`` and ``env.cost`` overrides of :data:`SHORT_ENV` (and ``env.termination``
+    with ``termination``), written as a fresh module under ``tmp_path`` (put on ``sys.path`` by
+    pytest's ``monkeypatch``)."""
     module, env_id = f"short_env_{uuid.uuid4().hex[:8]}", f"Short{uuid.uuid4().hex[:6]}-v0"
     source = SHORT_ENV.replace("{env_id}", env_id).replace("{module}", module)
     (tmp_path / f"{module}.py").write_text(source)
     monkeypatch.syspath_prepend(str(tmp_path))
-    return [f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
+    overrides = [f"env.id={module}:{env_id}", f"env.cost={module}:cost"]
+    return overrides + ([f"env.termination={module}:never"] if termination else [])

@@ -16,14 +16,18 @@ def default_frames_per_batch(frames: int, largest: int = 1000, smallest: int = 1
     """The largest divisor of ``frames`` up to ``largest``, so no batch collects unused steps.
 
     When every such divisor is below ``smallest`` (batches that small cost per-batch overhead),
-    ``min(frames, largest)``: the last batch then collects steps that are dropped.
+    the fewest near-equal batches up to ``largest``: the last one then collects fewer than one
+    step a batch that is dropped (1019 frames: 2 batches of 510, 1 step dropped).
 
     Examples:
-        >>> default_frames_per_batch(15000), default_frames_per_batch(1500), default_frames_per_batch(1499)
-        (1000, 750, 1000)
+        >>> default_frames_per_batch(15000), default_frames_per_batch(1500), default_frames_per_batch(1019)
+        (1000, 750, 510)
     """
     divisor = next(d for d in range(min(frames, largest), 0, -1) if frames % d == 0)
-    return divisor if divisor >= min(smallest, frames) else min(frames, largest)
+    if divisor >= min(smallest, frames):
+        return divisor
+    batches = -(-frames // largest)
+    return -(-frames // batches)
 
 
 def collect_random(
@@ -108,9 +112,8 @@ def collect(
     frames_per_batch = frames_per_batch or default_frames_per_batch(frames)
     if envs > 1:  # whole batched steps: every env takes the same number of steps
         frames_per_batch = -(-frames_per_batch // envs) * envs
-        total = -(-frames // frames_per_batch) * frames_per_batch
-    else:
-        total = frames
+    # whole batches (what TorchRL collects anyway, without its warning); the tail is dropped
+    total = -(-frames // frames_per_batch) * frames_per_batch
     # TorchRL resets torch's thread count when the collector shuts a batched env down
     with keep_num_threads():
         collector = Collector(

@@ -162,18 +162,29 @@ def buffer_contents(buffer: TensorDictReplayBuffer) -> TensorDictBase:
     return buffer[:]
 
 
-def long_trajectories(data: TensorDictBase, length: int, *, traj_key: NestedKey = TRAJ_KEY) -> int:
-    """How many trajectories of flat transitions have ``length`` steps or more.
+def long_trajectories(
+    data: TensorDictBase, length: int, *, ended: bool = False, traj_key: NestedKey = TRAJ_KEY
+) -> int:
+    """How many trajectories of flat transitions have ``length`` steps or more; with ``ended``,
+    also those shorter that ended (``("next", "done")`` at their last step), so that only a
+    piece cut short by the end of a collection is left out.
 
     Examples:
         >>> from tensordict import TensorDict
         >>> td = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 0, 1, 2, 2, 2, 2])}, [8])
-        >>> long_trajectories(td, 3), long_trajectories(td, 4)
-        (2, 1)
+        >>> td["next", "done"] = torch.tensor([0, 0, 1, 1, 0, 0, 0, 0]).bool().unsqueeze(-1)
+        >>> long_trajectories(td, 3), long_trajectories(td, 4), long_trajectories(td, 4, ended=True)
+        (2, 1, 3)
     """
     ids = _trajectory_ids(data, traj_key, "long_trajectories")
-    _, counts = torch.unique(ids, return_counts=True)
-    return int((counts >= length).sum())
+    _, inverse, counts = torch.unique(ids, return_inverse=True, return_counts=True)
+    counted = counts >= length
+    if ended:
+        done = data["next", "done"].reshape(len(ids), -1).any(-1)
+        steps = torch.arange(len(ids), device=ids.device)
+        last = torch.zeros_like(counts).scatter_reduce(0, inverse, steps, "amax")
+        counted |= done[last]
+    return int(counted.sum())
 
 
 def needs_padding(slice_len: int, *parts: TensorDictBase, traj_key: NestedKey = TRAJ_KEY) -> bool:

@@ -11,7 +11,12 @@ from tensordict import TensorDictBase
 from torchrl.envs import DeviceCastTransform, EnvBase
 
 from torchrl_recon.collectors import collect_random
-from torchrl_recon.data import needs_padding, sequence_buffers, split_by_trajectory
+from torchrl_recon.data import (
+    long_trajectories,
+    needs_padding,
+    sequence_buffers,
+    split_by_trajectory,
+)
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import close_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
@@ -131,6 +136,25 @@ def random_data_stage(
     return ctx.stages.load_data(name)
 
 
+def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
+    """The recipe's ``warmup`` (control and online kinds); ``auto`` is ``plan`` when no episode of the random ``data`` has
+    ``training.slice_len`` steps (an env whose episodes end early, e.g. InvertedPendulum: the
+    fits padded them, starting each at rest as ``plan`` plans it, and a random warm-up would
+    end most MPC episodes before their first plan), else ``random`` (the paper's).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 4}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.arange(12) // 3}, [12])  # 3 steps each
+        >>> warmup_mode(cfg, data), warmup_mode(OmegaConf.merge(cfg, {"warmup": "zeros"}), data)
+        ('plan', 'zeros')
+    """
+    mode = str(cfg.warmup)
+    if mode != "auto":
+        return mode
+    return "plan" if long_trajectories(data, cfg.training.slice_len) == 0 else "random"
+
+
 def build_world_model(
     cfg: DictConfig, obs_dim: int, action_dim: int, members: int | None = None
 ) -> LSTMWorldModel:
@@ -177,6 +201,39 @@ def models_stage(
 def dims(data: TensorDictBase) -> tuple[int, int]:
     """The observation and action sizes of ``data``."""
     return data["observation"].shape[-1], data["action"].shape[-1]
+
+
+def check_random_data(cfg: DictConfig, data: TensorDictBase, key: str = "random_steps") -> None:
+    """Refuse random ``data`` (``key`` steps) that hold fewer than two episodes a fit can use,
+    each ended or of ``training.slice_len`` steps (a piece cut short by the step budget is
+    not one): a fit holds whole episodes out to validate. Where episodes may end early
+    (``env.termination``), this replaces the recipe check ``key >= env.episode_steps +
+    training.slice_len``, which holds two such episodes on envs that never end one.
+
+    Raises:
+        RecipeError: naming ``key``, before any fit.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> cfg = OmegaConf.create({"training": {"slice_len": 4}, "random_steps": 5,
+        ...     "env": {"episode_steps": 10}})
+        >>> data = TensorDict({("collector", "traj_ids"): torch.tensor([0, 0, 0, 1, 1]),
+        ...     ("next", "done"): torch.tensor([[0], [0], [1], [0], [0]]).bool()}, [5])
+        >>> check_random_data(cfg, data)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        torchrl_recon.errors.RecipeError: 'random_steps' = 5 gave 1 episode that ended or held...
+    """
+    t, steps = cfg.training, cfg[key]
+    count = long_trajectories(data, t.slice_len, ended=True)
+    if count < 2:
+        enough = cfg.env.episode_steps + t.slice_len
+        raise RecipeError(
+            f"'{key}' = {steps} gave {count} episode{'' if count == 1 else 's'} that ended or "
+            f"held training.slice_len = {t.slice_len} steps; a fit holds whole episodes out to "
+            "validate, so it needs two: "
+            f"raise {key} (env.episode_steps + training.slice_len = {enough} always gives two) "
+            "in a new output_dir."
+        )
 
 
 def check_padding(cfg: DictConfig) -> None:

@@ -57,8 +57,7 @@ BandKind = choice("BandKind", "absolute quantile mean_ratio", __name__)
 DataPolicy = choice("DataPolicy", "random offset_noise", __name__)
 ReplanMode = choice("ReplanMode", "every_step every_n uncertainty", __name__)
 ThresholdOn = choice("ThresholdOn", "step cumulative", __name__)
-WarmupMode = choice("WarmupMode", "random zeros plan", __name__)
-ControlWarmup = choice("ControlWarmup", "auto random zeros plan", __name__)
+Warmup = choice("Warmup", "auto random zeros plan", __name__)
 
 
 @dataclass
@@ -303,9 +302,10 @@ class OnlineConfig(RunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
     (``refit_steps``) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
-    members (an ensemble, PETS's: each refitted as one batch, a plan's cost their mean); ``warmup``: what the steps before each
-    episode's first plan do (see :class:`~torchrl_recon.policies.MPCPolicy`); ``exploration``:
-    how many of the first rounds explore instead."""
+    members (an ensemble, PETS's: each refitted as one batch, a plan's cost their mean);
+    ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
+    the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
+    explore instead."""
 
     experiment: str = "online"
     output_dir: str = checked("outputs/online", _directory)
@@ -317,7 +317,7 @@ class OnlineConfig(RunConfig):
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))
     beta: float = 0.0
-    warmup: WarmupMode = WarmupMode.random
+    warmup: Warmup = Warmup.auto
     replan: ReplanConfig = field(default_factory=lambda: ReplanConfig(mode=ReplanMode.every_step))
     exploration: OnlineExplorationConfig = field(default_factory=OnlineExplorationConfig)
 
@@ -345,7 +345,7 @@ class ControlConfig(RunConfig):
     random_episode_steps: int = count(500)
     episodes: int = count(10)
     warmup_random_steps: int = count(10, 0)
-    warmup: ControlWarmup = ControlWarmup.auto
+    warmup: Warmup = Warmup.auto
     replan: ReplanConfig = field(default_factory=ReplanConfig)
     settings: list[ControlSetting] = _non_empty("control recipe needs at least one setting")
 

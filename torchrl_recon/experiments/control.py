@@ -14,7 +14,6 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from torchrl_recon.collectors import first_episodes
-from torchrl_recon.data import long_trajectories
 from torchrl_recon.envs import close_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.evaluation import episode_metrics, planned_trajectory
@@ -30,6 +29,7 @@ from torchrl_recon.experiments.common import (
     replan_threshold,
     setting_objective,
     state_scale,
+    warmup_mode,
 )
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
@@ -58,26 +58,6 @@ class Controller:
     beta_unit: float
     scale: torch.Tensor
     warmup: str = "random"
-
-
-def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
-    """The recipe's ``warmup``; ``auto`` is ``plan`` when no episode of the random ``data`` has
-    ``training.slice_len`` steps (an env whose episodes end early, e.g. InvertedPendulum: the
-    fits padded them, starting each at rest as ``plan`` plans it, and a random warm-up would
-    end most MPC episodes before their first plan), else ``random`` (the paper's).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> from tensordict import TensorDict
-        >>> cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 4}})
-        >>> data = TensorDict({("collector", "traj_ids"): torch.arange(12) // 3}, [12])  # 3 steps each
-        >>> warmup_mode(cfg, data), warmup_mode(OmegaConf.merge(cfg, {"warmup": "zeros"}), data)
-        ('plan', 'zeros')
-    """
-    mode = str(cfg.warmup)
-    if mode != "auto":
-        return mode
-    return "plan" if long_trajectories(data, cfg.training.slice_len) == 0 else "random"
 
 
 def play_episodes(

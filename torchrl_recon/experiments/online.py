@@ -14,6 +14,7 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    check_random_data,
     checkpoint_stage,
     dims,
     fit_stage,
@@ -21,6 +22,7 @@ from torchrl_recon.experiments.common import (
     planning_model,
     random_data_stage,
     replan_threshold,
+    warmup_mode,
 )
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
@@ -43,10 +45,13 @@ STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 """Stage name templates, in run order (``{n}`` the iteration, from 1)."""
 
 
-def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
+def play_stage(
+    ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, warmup: str
+) -> dict:
     """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
     ``buffers/play_<n>``, re-planning threshold from all ``data`` so far), or exploring steps in
-    the first ``exploration.iterations`` rounds; the record holds
+    the first ``exploration.iterations`` rounds, each episode started by ``warmup`` (resolved:
+    ``random``, ``zeros`` or ``plan``); the record holds
     :func:`~torchrl_recon.training.online.new_steps_metrics`, the seconds spent planning and in
     the env, and which ``policy`` played."""
     cfg, name = ctx.cfg, f"play_{n}"
@@ -56,9 +61,7 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
         exploring = n <= e.iterations
         if exploring:
             objective = exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta)
-            mpc = ExplorationPolicy(
-                build_planner(cfg.planner, model, objective), warmup=str(cfg.warmup)
-            )
+            mpc = ExplorationPolicy(build_planner(cfg.planner, model, objective), warmup=warmup)
         else:
             if str(cfg.replan.mode) == "uncertainty":
                 length = cfg.training.slice_len
@@ -66,7 +69,7 @@ def play_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBa
                 threshold = replan_threshold(cfg, u)
             objective = Objective(alpha=cfg.alpha, beta=cfg.beta)
             planner = build_planner(cfg.planner, model, objective)
-            mpc = mpc_policy(cfg, planner, threshold, warmup=str(cfg.warmup))
+            mpc = mpc_policy(cfg, planner, threshold, warmup=warmup)
         seed = ctx.stage_seed(name)
         env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
         new, plan_s = play(
@@ -118,19 +121,22 @@ def run(ctx: RunContext) -> dict:
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
     )
+    check_random_data(cfg, data)  # two episodes to split, before any fit
+    warmup = warmup_mode(cfg, data)  # from the random data only, once
     members = cfg.world_model_members if cfg.world_model_members > 1 else None
     world, estimator = build_models(cfg, *dims(data), ctx.device, members=members)
     first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
     model = planning_model(cfg, world, estimator)
     iterations = []
     for n in range(1, cfg.iterations + 1):
-        played = play_stage(ctx, n, model, data)
+        played = play_stage(ctx, n, model, data, warmup)
         data = append_steps(data, ctx.stages.load_data(f"play_{n}"))
         refit = refit_stage(ctx, n, model, data)
         iterations.append({"iteration": n, "env_steps": len(data), **played, **refit})
     random_returns = episode_returns(data[: cfg.random_steps])
     late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]
     return ctx.results_header() | {
+        **({"warmup": warmup} if warmup != "random" else {}),
         "random": {"returns": random_returns, "mean_return": mean_std(random_returns)[0]},
         "first_fit": first,
         "iterations": iterations,

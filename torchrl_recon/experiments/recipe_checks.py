@@ -291,12 +291,14 @@ def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | N
 
 
 def online_errors(cfg: DictConfig, errors: _Errors) -> None:
-    """The online recipe's own checks: random data that holds two training slices, episodes
-    long enough to plan in, the planner built with the recipe's objective (and the exploration
-    objective when the first rounds explore)."""
+    """The online recipe's own checks: episodes long enough for a training slice and, where
+    they never end early (no ``env.termination``), random data that holds two of them (else the
+    data are checked once collected, :func:`~.common.check_random_data`), the planner built with
+    the recipe's objective (and the exploration objective when the first rounds explore)."""
     from torchrl_recon.planners import Objective
 
-    _data_errors(errors, "env.episode_steps", "random_steps")
+    ends_early = cfg.env.termination is not None
+    _data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
     _planner_errors(
         errors,
         "planner",

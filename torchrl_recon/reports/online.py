@@ -45,6 +45,7 @@ def result_table(r: Mapping[str, Any]) -> str:
     title = (
         f"online {r['env']} seed {r['seed']}: random policy {fmt(r['random']['mean_return'])}, "
         f"last half {fmt(r['mean_return_last_half'])}"
+        + (f", warm-up {r['warmup']}" if r.get("warmup") else "")
     )
     return render(header, rows, title)
 

@@ -335,9 +335,9 @@ class ControlConfig(RunConfig):
     steps, 5000 samples"): an env whose episodes end early fills it with more, shorter ones.
     (In Python, ``collect_random(..., episodes=N)`` stops at N whole episodes instead.)
     ``warmup``: what the steps before each episode's first plan do (``random``, ``zeros``,
-    ``plan``, see :class:`~torchrl_recon.policies.MPCPolicy`); ``auto``: ``plan`` when no random
-    episode has ``training.slice_len`` steps (episodes that end early, whose fits started them
-    at rest as ``plan`` plans them), else ``random`` (the paper's)."""
+    ``plan``, see :class:`~torchrl_recon.policies.MPCPolicy`); ``auto``: ``plan`` when most random
+    episodes are shorter than ``training.slice_len`` steps (episodes that end early, whose fits
+    started them at rest as ``plan`` plans them), else ``random`` (the paper's)."""
 
     experiment: str = "control"
     output_dir: str = checked("outputs/control", _directory)

@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_recon.collectors import collect_random, validation_trajectories
 from torchrl_recon.data import cut_sequences
 from torchrl_recon.envs import close_env
+from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import calibration_metrics
 from torchrl_recon.experiments.common import (
     build_env,
@@ -30,9 +31,14 @@ from torchrl_recon.experiments.common import (
     state_scale,
 )
 from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
-from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import calibrate_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    data_errors,
+    duplicate_errors,
+    estimator_errors,
+)
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
@@ -200,7 +206,30 @@ def run(ctx: RunContext) -> dict[str, Any]:
     }
 
 
-check = calibrate_errors
+def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
+    """The estimator comparison recipe's own checks; its outcome recipes are loaded (and so
+    checked, with this recipe's window) with ``recipes`` when given."""
+    duplicate_errors(errors, "estimators", "estimator")
+    for i, spec in enumerate(cfg.estimators):
+        estimator_errors(errors, f"estimators[{i}]", spec)
+    data_errors(errors, "random_episode_steps", "random_steps")
+    for kind in ("explore", "control"):
+        recipe, key = cfg.outcomes[f"{kind}_recipe"], f"outcomes.{kind}_recipe"
+        if recipe is None or recipes is None:
+            continue
+        try:
+            path = recipes.resolve(recipe)
+        except FileNotFoundError as e:
+            errors.append(f"'{key}': {e}")
+            continue
+        overrides, window = list(cfg.outcomes[f"{kind}_overrides"]), cfg.models.window
+        try:
+            recipes.load(path, [*overrides, f"models.window={window}"])
+        except (RecipeError, FileNotFoundError) as e:
+            errors.append(
+                f"'{key}' (with outcomes.{kind}_overrides {overrides} and this recipe's "
+                f"models.window = {window}): {e}"
+            )
 
 
 def stage_values(cfg: DictConfig) -> dict:

@@ -34,7 +34,12 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import control_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    data_errors,
+    duplicate_errors,
+    planner_errors,
+)
 from torchrl_recon.planners import (
     PlanningModel,
     cost_to_u_ratio,
@@ -204,9 +209,23 @@ def run(ctx: RunContext) -> dict:
     }
 
 
-def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
-    """The control recipe's own value checks."""
-    control_errors(cfg, errors)
+def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
+    """The control recipe's own checks."""
+    data_errors(errors, "random_episode_steps")
+    warmup = max(cfg.warmup_random_steps, cfg.models.window)
+    errors.need(
+        "env.episode_steps",
+        cfg.env.episode_steps > warmup,
+        f"above max(warmup_random_steps, models.window) = {warmup} (or no step is planned)",
+    )
+    duplicate_errors(errors, "settings", "setting")
+    for i, s in enumerate(cfg.settings):
+        planner_errors(
+            errors,
+            f"settings[{i}].planner",
+            lambda s=s: setting_objective(s, 1.0)[0],
+            f"with settings[{i}].alpha = {s.alpha}, beta = {s.beta}",
+        )
 
 
 def stage_values(cfg: DictConfig) -> dict:

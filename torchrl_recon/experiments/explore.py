@@ -44,7 +44,11 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import explore_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    data_errors,
+    planner_errors,
+)
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
@@ -260,9 +264,16 @@ def run(ctx: RunContext) -> dict:
     }
 
 
-def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
-    """The explore recipe's own value checks."""
-    explore_errors(cfg, errors)
+def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
+    """The explore recipe's own checks."""
+    g = cfg.guided
+    data_errors(errors, "env.episode_steps", "initial_random_steps")
+    planner_errors(
+        errors,
+        "guided.planner",
+        lambda: exploration_objective(ratio=g.ratio, cap=g.cap, beta=g.beta),
+        f"with the exploration objective: alpha 0, guided.beta = {g.beta}",
+    )
 
 
 def stage_values(cfg: DictConfig) -> dict:

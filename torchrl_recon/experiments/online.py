@@ -27,7 +27,11 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import online_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    data_errors,
+    planner_errors,
+)
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.reports.stats import mean_std
@@ -145,9 +149,32 @@ def run(ctx: RunContext) -> dict:
     }
 
 
-def check(cfg: DictConfig, errors: list[str], recipes: RecipeLoader) -> None:
-    """The online recipe's own value checks."""
-    online_errors(cfg, errors)
+def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
+    """The online recipe's own checks: episodes long enough for a training slice and, where
+    they never end early (no ``env.termination``), random data that holds two of them (else the
+    data are checked once collected, :func:`~.common.check_random_data`), the planner built with
+    the recipe's objective (and the exploration objective when the first rounds explore)."""
+    ends_early = cfg.env.termination is not None
+    data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
+    planner_errors(
+        errors,
+        "planner",
+        lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
+        f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
+    )
+    e = cfg.exploration
+    errors.need(
+        "exploration.iterations",
+        e.iterations <= cfg.iterations,
+        f"at most iterations = {cfg.iterations} (the rounds that explore)",
+    )
+    if e.iterations > 0:
+        planner_errors(
+            errors,
+            "planner",
+            lambda: exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta),
+            f"with the exploration objective: alpha 0, exploration.beta = {e.beta}",
+        )
 
 
 EXPERIMENT = ExperimentType.of_module(

@@ -1,8 +1,9 @@
 """The checks of a merged recipe that span several keys or need the env or a registry, run by
 :func:`recipe_errors` after the schema's own (:func:`~.field_checks.schema_errors`): the env
 (:func:`torchrl_recon.envs.entry_errors`), the planner and estimator blocks (class, keywords, a
-build on a tiny model), data sizes against ``training.slice_len``, unique names, ``stop_after``
-and a calibration's outcome recipes. One message per problem, naming the key and the value."""
+build on a tiny model), data sizes against ``training.slice_len``, unique names and
+``stop_after``, and the parts each kind's own ``check`` (in its module) is made of. One message
+per problem, naming the key and the value."""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ from typing import TYPE_CHECKING, Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.field_checks import finite, finite_error, nonfinite, schema_errors
 
@@ -23,8 +23,8 @@ if TYPE_CHECKING:
     from torchrl_recon.planners import Objective
 
 
-class _Errors(list):
-    """The messages of one recipe ``cfg``."""
+class RecipeErrors(list):
+    """The messages of one recipe ``cfg`` (what a kind's ``check`` adds to)."""
 
     def __init__(self, cfg: DictConfig) -> None:
         super().__init__()
@@ -60,7 +60,7 @@ def recipe_errors(
         number, got nan", "'guided.planner.kwargs': RandomShootingPlanner does not accept
         ['num_elites']; it accepts ['block_rows', 'horizon', 'num_candidates', 'on_infeasible']."]
     """
-    errors = _Errors(cfg)
+    errors = RecipeErrors(cfg)
     kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
     defaults = _env_errors(cfg, kwargs, errors)
     for key, value in nonfinite(kwargs, "env.kwargs"):
@@ -78,7 +78,7 @@ def recipe_errors(
     return list(errors)
 
 
-def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: _Errors) -> dict[str, Any]:
+def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: RecipeErrors) -> dict[str, Any]:
     """``env.id`` / ``env.name`` known and agreeing, then the entry's own checks. Returns the
     env's keyword defaults ({} when the env or a keyword is unknown)."""
     from torchrl_recon.envs import ENVS, entry_errors
@@ -112,7 +112,7 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: _Errors) -> dic
     return entry.keywords() or {}
 
 
-def _run_errors(errors: _Errors) -> None:
+def _run_errors(errors: RecipeErrors) -> None:
     """Keys every experiment has: a training slice holds a window; the world model and the
     estimator build with tiny dims, so that a bad value fails before any work."""
     from torchrl_recon.experiments.common import build_world_model
@@ -132,11 +132,11 @@ def _run_errors(errors: _Errors) -> None:
             build_world_model(cfg, 1, 1)
         except (ValueError, TypeError) as e:
             errors.append(f"'models.world_model': {e}")
-    _estimator_errors(errors, "models.uncertainty", m.uncertainty)
+    estimator_errors(errors, "models.uncertainty", m.uncertainty)
 
 
 def _part_errors(
-    errors: _Errors,
+    errors: RecipeErrors,
     key: str,
     get_class: Callable[[str], type],
     check_kwargs: Callable[[type, dict], None],
@@ -166,7 +166,7 @@ def _part_errors(
         errors.append(f"'{where}'{note if where == key else ''}: {e}")
 
 
-def _estimator_errors(errors: _Errors, key: str, spec: DictConfig) -> None:
+def estimator_errors(errors: RecipeErrors, key: str, spec: DictConfig) -> None:
     """The estimator block ``key``, built with tiny dims."""
     from torchrl_recon.experiments.common import build_estimator
     from torchrl_recon.modules import get_estimator_class
@@ -180,8 +180,8 @@ def _estimator_errors(errors: _Errors, key: str, spec: DictConfig) -> None:
     _part_errors(errors, key, get_estimator_class, check, build)
 
 
-def _planner_errors(
-    errors: _Errors, key: str, objective: Callable[[], Objective], note: str
+def planner_errors(
+    errors: RecipeErrors, key: str, objective: Callable[[], Objective], note: str
 ) -> None:
     """The planner block ``key``, built on a tiny model (one state and one action dim, with an
     estimator, on the CPU) with the recipe's objective (``objective()``, described by
@@ -205,13 +205,14 @@ def _planner_errors(
     _part_errors(errors, key, get_planner_class, check_planner_kwargs, build_if, f" ({note})")
 
 
-def _duplicate_errors(errors: _Errors, key: str, what: str) -> None:
+def duplicate_errors(errors: RecipeErrors, key: str, what: str) -> None:
+    """Each name the list ``key`` of ``what`` holds twice."""
     names = [s.name for s in errors.cfg[key]]
     for name in sorted({n for n in names if names.count(n) > 1}):
         errors.append(f"'{key}': duplicate {what} name {name!r}")
 
 
-def _data_errors(errors: _Errors, episode_key: str, frames_key: str | None = None) -> None:
+def data_errors(errors: RecipeErrors, episode_key: str, frames_key: str | None = None) -> None:
     """Random data in episodes of ``episode_key`` steps must hold a training slice per episode
     and, with ``frames_key`` steps in all, two trajectories (one is held out to validate a fit)."""
     cfg = errors.cfg
@@ -226,97 +227,4 @@ def _data_errors(errors: _Errors, episode_key: str, frames_key: str | None = Non
             cfg[frames_key] >= episode + slice_len,
             f"at least {episode_key} + training.slice_len = {episode + slice_len} (two "
             "trajectories: one is held out to validate the fit)",
-        )
-
-
-def explore_errors(cfg: DictConfig, errors: _Errors) -> None:
-    """The explore recipe's own checks."""
-    from torchrl_recon.policies import exploration_objective
-
-    g = cfg.guided
-    _data_errors(errors, "env.episode_steps", "initial_random_steps")
-    _planner_errors(
-        errors,
-        "guided.planner",
-        lambda: exploration_objective(ratio=g.ratio, cap=g.cap, beta=g.beta),
-        f"with the exploration objective: alpha 0, guided.beta = {g.beta}",
-    )
-
-
-def control_errors(cfg: DictConfig, errors: _Errors) -> None:
-    """The control recipe's own checks."""
-    from torchrl_recon.experiments.common import setting_objective
-
-    _data_errors(errors, "random_episode_steps")
-    warmup = max(cfg.warmup_random_steps, cfg.models.window)
-    errors.need(
-        "env.episode_steps",
-        cfg.env.episode_steps > warmup,
-        f"above max(warmup_random_steps, models.window) = {warmup} (or no step is planned)",
-    )
-    _duplicate_errors(errors, "settings", "setting")
-    for i, s in enumerate(cfg.settings):
-        _planner_errors(
-            errors,
-            f"settings[{i}].planner",
-            lambda s=s: setting_objective(s, 1.0)[0],
-            f"with settings[{i}].alpha = {s.alpha}, beta = {s.beta}",
-        )
-
-
-def calibrate_errors(cfg: DictConfig, errors: _Errors, recipes: RecipeLoader | None) -> None:
-    """The estimator comparison recipe's own checks; its outcome recipes are loaded (and so
-    checked, with this recipe's window) with ``recipes`` when given."""
-    _duplicate_errors(errors, "estimators", "estimator")
-    for i, spec in enumerate(cfg.estimators):
-        _estimator_errors(errors, f"estimators[{i}]", spec)
-    _data_errors(errors, "random_episode_steps", "random_steps")
-    for kind in ("explore", "control"):
-        recipe, key = cfg.outcomes[f"{kind}_recipe"], f"outcomes.{kind}_recipe"
-        if recipe is None or recipes is None:
-            continue
-        try:
-            path = recipes.resolve(recipe)
-        except FileNotFoundError as e:
-            errors.append(f"'{key}': {e}")
-            continue
-        overrides, window = list(cfg.outcomes[f"{kind}_overrides"]), cfg.models.window
-        try:
-            recipes.load(path, [*overrides, f"models.window={window}"])
-        except (RecipeError, FileNotFoundError) as e:
-            errors.append(
-                f"'{key}' (with outcomes.{kind}_overrides {overrides} and this recipe's "
-                f"models.window = {window}): {e}"
-            )
-
-
-def online_errors(cfg: DictConfig, errors: _Errors) -> None:
-    """The online recipe's own checks: episodes long enough for a training slice and, where
-    they never end early (no ``env.termination``), random data that holds two of them (else the
-    data are checked once collected, :func:`~.common.check_random_data`), the planner built with
-    the recipe's objective (and the exploration objective when the first rounds explore)."""
-    from torchrl_recon.planners import Objective
-
-    ends_early = cfg.env.termination is not None
-    _data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
-    _planner_errors(
-        errors,
-        "planner",
-        lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
-        f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
-    )
-    e = cfg.exploration
-    errors.need(
-        "exploration.iterations",
-        e.iterations <= cfg.iterations,
-        f"at most iterations = {cfg.iterations} (the rounds that explore)",
-    )
-    if e.iterations > 0:
-        from torchrl_recon.policies import exploration_objective
-
-        _planner_errors(
-            errors,
-            "planner",
-            lambda: exploration_objective(ratio=e.ratio, cap=e.cap, beta=e.beta),
-            f"with the exploration objective: alpha 0, exploration.beta = {e.beta}",
         )

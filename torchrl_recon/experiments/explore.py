@@ -276,11 +276,6 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
     )
 
 
-def stage_values(cfg: DictConfig) -> dict:
-    """``{arm}`` of the stage names: random or active."""
-    return {"arm": ARMS}
-
-
 EXPERIMENT = ExperimentType.of_module(
     sys.modules[__name__],
     name="explore",

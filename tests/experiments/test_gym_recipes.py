@@ -264,7 +264,7 @@ PUBLISHED_ONLINE = ROOT / "docs" / "results" / "online"
     [
         ("online_pendulum", "Pendulum-v1", "Pendulum-v1_refit1000"),
         ("online_mountain_car", "MountainCarContinuous-v0", "MountainCarContinuous-v0"),
-        ("online_inverted_pendulum", "InvertedPendulum-v5", "InvertedPendulum-v5"),
+        ("online_inverted_pendulum", "InvertedPendulum-v5", "InvertedPendulum-v5_upright"),
     ],
 )
 def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(

@@ -140,9 +140,8 @@ def test_episodes_shorter_than_a_training_window_train_on_padded_slices(
     assert main([*_short_env_args(tmp_path, monkeypatch), f"output_dir={out}"]) == 0
     assert "warm-up plan" in capsys.readouterr().out  # the table's title names it
     results = json.loads((out / "results.json").read_text())
-    assert (
-        results["warmup"] == "plan"
-    )  # auto: most random episodes are shorter than a training slice
+    # auto: most random episodes are shorter than a training slice
+    assert results["warmup"] == "plan"
     # 3-step episodes: the smoke recipe's 75 random steps hold 25, each with its return
     assert len(results["random"]["returns"]) == 25
     assert all(math.isfinite(loss) for loss in results["first_fit"].values())

@@ -36,9 +36,8 @@ def test_control_on_episodes_of_3_steps_plans_them_from_the_first_step(
     # the threshold and β's unit come from the padded episodes' windows
     assert math.isfinite(results["replan_threshold"]) and results["replan_threshold"] > 0
     assert math.isfinite(results["beta_unit"]) and results["beta_unit"] > 0
-    assert (
-        results["warmup"] == "plan"
-    )  # auto: most random episodes are shorter than a training slice
+    # auto: most random episodes are shorter than a training slice
+    assert results["warmup"] == "plan"
     for setting in results["settings"].values():
         assert setting["ended_in_warmup"] == 0
         assert all(e["steps"] == 3 and e["replans"] >= 1 for e in setting["episodes"])

@@ -16,8 +16,8 @@ def default_frames_per_batch(frames: int, largest: int = 1000, smallest: int = 1
     """The largest divisor of ``frames`` up to ``largest``, so no batch collects unused steps.
 
     When every such divisor is below ``smallest`` (batches that small cost per-batch overhead),
-    the fewest near-equal batches up to ``largest``: the last one then collects fewer than one
-    step a batch that is dropped (1019 frames: 2 batches of 510, 1 step dropped).
+    the fewest near-equal batches up to ``largest``, whose steps past ``frames`` (fewer than one
+    per batch) are dropped: 1019 frames are 2 batches of 510, 1 step dropped.
 
     Examples:
         >>> default_frames_per_batch(15000), default_frames_per_batch(1500), default_frames_per_batch(1019)

@@ -15,7 +15,6 @@ import sys
 
 import torch
 from omegaconf import DictConfig
-from scipy import stats
 from tensordict import TensorDictBase
 
 from torchrl_recon.collectors import (
@@ -242,6 +241,8 @@ def run(ctx: RunContext) -> dict:
         summary[arm] = {"mse": values, "mean": mean, "std": std}
     statistic = p_value = float("nan")
     if cfg.retrainings > 1:
+        from scipy import stats  # here: importing scipy.stats costs every command ~0.5 s
+
         test = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
         statistic, p_value = float(test.statistic), float(test.pvalue)
     return {

@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
+from torchrl_recon.reports.plots import plot_learning_curve
 from torchrl_recon.reports.report import Figures, Report
 from torchrl_recon.reports.stats import mean_std
 from torchrl_recon.reports.tables import fmt, pm, render
@@ -72,21 +72,6 @@ def headline(results: Mapping[str, Any]) -> dict[str, float]:
         "random_return": results["random"]["mean_return"],
         "return_last_half": results["mean_return_last_half"],
     }
-
-
-def plot_learning_curve(results: Mapping[str, Any]) -> Figure:
-    """Return of each episode against the env steps when it ended, beside the random policy's."""
-    figure = Figure(figsize=(6, 3.5), layout="constrained")
-    ax = figure.add_subplot()
-    for it in results["iterations"]:
-        steps = np.full(len(it["returns"]), it["env_steps"])
-        ax.plot(steps, it["returns"], "o", color="C0", alpha=0.6)
-    if means := [(it["env_steps"], _mean(it["returns"])) for it in results["iterations"]]:
-        ax.plot(*zip(*means, strict=True), "-", color="C0", label="MPC (mean per iteration)")
-    ax.axhline(results["random"]["mean_return"], color="C3", ls="--", label="random policy")
-    ax.set(xlabel="env steps", ylabel="episode return", title=f"online {results['env']}")
-    ax.legend(loc="lower right")
-    return figure
 
 
 def figures(results: Mapping[str, Any]) -> Figures:

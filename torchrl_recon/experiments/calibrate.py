@@ -1,5 +1,6 @@
-"""The stages of the calibrate experiment: uncertainty estimators side by side on calibration,
-out-of-distribution detection, cost, and the outcome of the two experiments with each.
+"""The calibrate experiment (its stages, recipe check and ``EXPERIMENT``): uncertainty
+estimators side by side on calibration, out-of-distribution detection, cost, and the outcome of
+the two experiments with each.
 
 ``random_data`` → ``world_model`` → ``fit_<estimator>`` for each → ``evaluation`` →
 ``timing`` → ``outcome_<estimator>_{explore,control}`` (the two experiments at a reduced scale,

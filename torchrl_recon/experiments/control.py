@@ -1,4 +1,5 @@
-"""The stages of the uncertainty-aware control experiment (the paper's §3.1 and Fig. 3).
+"""The uncertainty-aware control experiment (the paper's §3.1 and Fig. 3): its stages, its
+recipe check and its ``EXPERIMENT``.
 
 ``random_data`` → ``models`` → ``setting_<name>`` for each setting (one part record per batch
 of ``num_envs`` episodes) → ``random_policy``; each stage is resumable.

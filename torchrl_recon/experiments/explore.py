@@ -1,4 +1,5 @@
-"""The stages of the exploration experiment (the paper's §3.2 and Table 1), one repeat per seed.
+"""The exploration experiment (the paper's §3.2 and Table 1), one repeat per seed: its stages,
+its recipe check and its ``EXPERIMENT``.
 
 ``validation`` → ``initial_random`` → ``initial_models`` → ``guided_data_<r>`` (with
 ``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings

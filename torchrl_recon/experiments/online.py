@@ -1,5 +1,6 @@
-"""The online experiment's stages: random data, a first fit, then per iteration an MPC play
-stage and a warm-started refit (:mod:`torchrl_recon.training.online` does the work)."""
+"""The online experiment (its stages, recipe check and ``EXPERIMENT``): random data, a first
+fit, then per iteration an MPC play stage and a warm-started refit
+(:mod:`torchrl_recon.training.online` does the work)."""
 
 from __future__ import annotations
 

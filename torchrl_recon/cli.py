@@ -241,7 +241,11 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _summarize(args: argparse.Namespace) -> int:
-    for found, results in summarize_by_kind(args.dirs):
+    try:  # files of several kinds, or of one env and seed twice: the user's choice of folders
+        summaries = summarize_by_kind(args.dirs)
+    except ValueError as e:
+        return report(e, EXIT_USER)
+    for found, results in summaries:
         kind, count = found["experiment"], len(results)
         print(f"{count} {kind} result file(s)\n{format_table(found)}\n")
         if args.out is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -137,3 +138,14 @@ def test_runs_inside_another_run_are_part_of_its_results_not_found_on_their_own(
     inner = write_runs(outer[0].parent / "outcomes" / "x", known_explore()[:1])
     assert find_results([tmp_path]) == outer
     assert find_results([outer[0].parent / "outcomes"]) == inner  # asked for: found
+
+
+def test_summarizing_two_variants_of_one_env_is_one_user_error(capsys):
+    """docs/results/online holds several variants of InvertedPendulum-v5, each with seeds 0-4:
+    pooled, a seed would count twice; the command says so (exit 2), one folder summarises."""
+    online = Path(__file__).resolve().parents[2] / "docs" / "results" / "online"
+    assert main(["summarize", str(online)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "repeat a seed" in err[0] and "unexpected" not in err[0], err
+    assert main(["summarize", str(online / "Pendulum-v1")]) == 0
+    assert "online Pendulum-v1, seeds [0, 1, 2, 3, 4]" in capsys.readouterr().out

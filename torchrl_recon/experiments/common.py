@@ -40,10 +40,9 @@ from torchrl_recon.planners import (
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
     fit_uncertainty,
-    fit_world_members,
-    fit_world_model,
     load_checkpoint,
     save_checkpoint,
+    world_model_fit,
 )
 
 
@@ -305,9 +304,7 @@ def fit_module(
     kwargs = fit_kwargs(ctx, t.world_model if world else t.uncertainty, prefix)
     kwargs |= {"mode": t.world_model_mode} if world else {}
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
-    fit = fit_world_model if world else fit_uncertainty
-    if world and getattr(module, "num_members", None) is not None:
-        fit = fit_world_members
+    fit = world_model_fit(module) if world else fit_uncertainty
     return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss
 
 

@@ -10,6 +10,7 @@ from torchrl_recon.training.fit import (
     fit_world_members,
     fit_world_model,
     train_loss_module,
+    world_model_fit,
 )
 
 __all__ = [
@@ -22,4 +23,5 @@ __all__ = [
     "load_modules",
     "save_checkpoint",
     "train_loss_module",
+    "world_model_fit",
 ]

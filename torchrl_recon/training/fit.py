@@ -6,7 +6,7 @@ import contextlib
 import copy
 import math
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -312,6 +312,18 @@ def fit_world_members(
         model.load_member(r, member)
     losses = [r.best_val_loss for r in results]
     return FitResult(max(r.steps for r in results), sum(losses) / len(losses))
+
+
+def world_model_fit(model: nn.Module) -> Callable[..., FitResult]:
+    """The fit of ``model``: :func:`fit_world_members` for a world model of members
+    (``num_members=R``), else :func:`fit_world_model` (both take the same keywords).
+
+    Examples:
+        >>> one, members = LSTMWorldModel(3, 2), LSTMWorldModel(3, 2, num_members=2)
+        >>> world_model_fit(one).__name__, world_model_fit(members).__name__
+        ('fit_world_model', 'fit_world_members')
+    """
+    return fit_world_model if getattr(model, "num_members", None) is None else fit_world_members
 
 
 def fit_uncertainty(

@@ -35,7 +35,7 @@ from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
-from torchrl_recon.training.fit import fit_uncertainty, fit_world_members, fit_world_model
+from torchrl_recon.training.fit import fit_uncertainty, world_model_fit
 
 
 @dataclass
@@ -118,7 +118,7 @@ def fit_models(
         fit_normalization=not warm,
         checkpoint_modules={},
     )
-    fit_world = fit_world_model if _members(world_model) is None else fit_world_members
+    fit_world = world_model_fit(world_model)
     out = {
         "world_model": fit_world(
             world_model, buffers[0], mode=s.mode, log_prefix=f"{log_prefix}world_model/", **common
@@ -193,17 +193,13 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
     """
     windows = cut_sequences(data, length, pad_short=True)
     device = next(world_model.parameters()).device
-    members = [world_model] if _members(world_model) is None else world_model.split()
+    one = getattr(world_model, "num_members", None) is None
+    members = [world_model] if one else world_model.split()
     errors = [
         float(WorldModelPredictionLoss(m, mode="one_step")(windows.to(device))["loss_world_model"])
         for m in members
     ]
     return sum(errors) / len(errors)
-
-
-def _members(world_model) -> int | None:
-    """R for a world model of R members, else None."""
-    return getattr(world_model, "num_members", None)
 
 
 @torch.no_grad()

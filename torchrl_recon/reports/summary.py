@@ -88,7 +88,7 @@ def summarize(paths: Iterable[str | os.PathLike[str]]) -> dict[str, Any]:
         FileNotFoundError: a path does not exist or no ``results.json`` was found.
         DamagedFileError: a file is not an experiment's results, fails its checks or differs
             from its folder's manifest.
-        ValueError: the files mix experiment kinds, or one env repeats a seed.
+        ValueError: the files mix experiment kinds, or one env repeats a seed (any kind).
     """
     found = summarize_by_kind(paths)
     if len(found) != 1:
@@ -103,6 +103,10 @@ def _summary(kind: str, found: list[tuple[Path, dict[str, Any]]]) -> dict[str, A
     by_env: dict[str, list[dict[str, Any]]] = {}
     for _, r in found:
         by_env.setdefault(r["env"], []).append(r)
+    for env, runs in by_env.items():  # e.g. two variants of one env: each folder alone
+        seeds = [r.get("seed") for r in sorted(runs, key=lambda r: r.get("seed", 0))]
+        if len(set(seeds)) != len(seeds):
+            raise ValueError(f"{kind} results of env {env!r} repeat a seed: {seeds}")
     files = [f for f, _ in found]
     return {
         "experiment": kind,

@@ -301,7 +301,8 @@ class ReplanConfig:
 class OnlineConfig(RunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
-    (``refit_steps``) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
+    (``refit_steps``; on the round's new steps plus ``refit_old_steps`` older ones drawn by
+    whole trajectories, or on all data when null) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
     members (an ensemble, PETS's: each refitted as one batch, a plan's cost their mean);
     ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
     the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
@@ -313,6 +314,7 @@ class OnlineConfig(RunConfig):
     iterations: int = count(10)
     steps_per_iteration: int = count(200)
     refit_steps: int = count(300)
+    refit_old_steps: int | None = count(None)
     world_model_members: int = count(1)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))

@@ -93,14 +93,16 @@ def play_stage(
     return ctx.stages.run(name, run)
 
 
-def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase) -> dict:
-    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks on all
-    data so far, from their current weights."""
+def refit_stage(
+    ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, new_steps: int
+) -> dict:
+    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks from
+    their current weights on all data so far, or (``refit_old_steps``) on the ``new_steps``
+    last steps plus a sample of the older ones."""
     cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
     sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
-    schedule = FitSchedule(
-        **t.world_model, refit_steps=cfg.refit_steps, mode=str(t.world_model_mode), **sizes
-    )
+    sizes |= {"refit_steps": cfg.refit_steps, "refit_old_steps": cfg.refit_old_steps}
+    schedule = FitSchedule(**t.world_model, mode=str(t.world_model_mode), **sizes)
     modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 
     def fit() -> dict:
@@ -111,6 +113,7 @@ def refit_stage(ctx: RunContext, n: int, model: PlanningModel, data: TensorDictB
             schedule,
             seed=seed,
             warm=True,
+            new_steps=new_steps,
             progress=cfg.progress,
             logger=ctx.logger,
             log_prefix=f"{name}/",
@@ -135,8 +138,9 @@ def run(ctx: RunContext) -> dict:
     iterations = []
     for n in range(1, cfg.iterations + 1):
         played = play_stage(ctx, n, model, data, warmup)
-        data = append_steps(data, ctx.stages.load_data(f"play_{n}"))
-        refit = refit_stage(ctx, n, model, data)
+        new = ctx.stages.load_data(f"play_{n}")
+        data = append_steps(data, new)
+        refit = refit_stage(ctx, n, model, data, len(new))
         iterations.append({"iteration": n, "env_steps": len(data), **played, **refit})
     random_returns = episode_returns(data[: cfg.random_steps])
     late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]

@@ -43,10 +43,14 @@ class FitSchedule:
     """How the two networks are fitted online: the first fit from scratch (``steps``), every
     later one warm-started from the current weights with the first fit's normalisation
     (``refit_steps``). Windows of ``slice_len`` steps, ``num_slices`` a batch; ``val_fraction``
-    of the trajectories held out for early stopping."""
+    of the trajectories held out for early stopping. ``refit_old_steps``: a refit trains on the
+    training split's new steps (those of the last iteration) plus whole earlier trajectories of
+    it drawn at random until they hold ``refit_old_steps`` steps (:func:`recent_and_sampled`);
+    None: on the whole training split."""
 
     steps: int = 1000
     refit_steps: int = 300
+    refit_old_steps: int | None = None
     lr: float = 3e-3
     eval_every: int = 100
     patience: int = 10
@@ -93,6 +97,7 @@ def fit_models(
     *,
     seed: int,
     warm: bool,
+    new_steps: int | None = None,
     progress: bool = False,
     logger: Logger | None = None,
     log_prefix: str = "",
@@ -102,9 +107,16 @@ def fit_models(
     split by trajectory with ``seed``; returns their best validation losses (a world model of
     members: :func:`~torchrl_recon.training.fit_world_members`, their mean). When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
-    slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``)."""
+    slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``).
+    ``new_steps``: how many of ``data``'s last steps are new, for a refit with
+    ``schedule.refit_old_steps``; the validation split is drawn from all ``data`` either way."""
     s = schedule
     parts = split_by_trajectory(data, s.val_fraction, seed=seed)
+    if warm and s.refit_old_steps is not None:
+        if new_steps is None:
+            raise ValueError("a refit with schedule.refit_old_steps needs new_steps.")
+        first_new = data.get(TRAJ_KEY)[len(data) - new_steps]
+        parts = (recent_and_sampled(parts[0], first_new, s.refit_old_steps, seed=seed), parts[1])
     buffers = sequence_buffers(parts, slice_len=s.slice_len, num_slices=s.num_slices)
     common = dict(
         val_buffer=buffers[1],
@@ -129,6 +141,29 @@ def fit_models(
             estimator, buffers[0], log_prefix=f"{log_prefix}uncertainty/", **common
         ).best_val_loss
     return out
+
+
+def recent_and_sampled(
+    data: TensorDictBase, first_new: int | torch.Tensor, old_steps: int, *, seed: int
+) -> TensorDictBase:
+    """The steps of ``data``'s trajectories with an id from ``first_new`` on (the new ones),
+    after whole older trajectories drawn at random (``seed``) until they hold ``old_steps``
+    steps (the last one drawn may take it past ``old_steps``; all of them if they hold fewer).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> ids = torch.tensor([0, 0, 1, 1, 2, 2, 3, 3, 3])
+        >>> data = TensorDict({TRAJ_KEY: ids, "t": torch.arange(9)}, [9])
+        >>> out = recent_and_sampled(data, 3, old_steps=3, seed=0)
+        >>> len(out), out[TRAJ_KEY][-3:].tolist()  # two old trajectories (4 steps), then the new
+        (7, [3, 3, 3])
+    """
+    ids = data.get(TRAJ_KEY)
+    old, counts = torch.unique(ids[ids < first_new], return_counts=True)
+    order = torch.randperm(len(old), generator=torch.Generator().manual_seed(seed))
+    drawn = int((counts[order].cumsum(0) < old_steps).sum()) + 1 if old_steps > 0 else 0
+    taken = old[order[:drawn]]
+    return data[torch.isin(ids, taken) | (ids >= first_new)]
 
 
 def episode_returns(data: TensorDictBase) -> list[float]:
@@ -394,6 +429,7 @@ def learn_online(
             schedule,
             seed=seed + i,
             warm=True,
+            new_steps=len(new),
             progress=progress,
             logger=logger,
             log_prefix=f"iteration_{i}/",

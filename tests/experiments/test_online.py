@@ -119,6 +119,7 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         ("planner.kind=mpc", "'planner.kind'"),
         ("random_steps=20", "'random_steps'"),
         ("warmup=sometimes", "'warmup'"),
+        ("refit_old_steps=0", "'refit_old_steps'"),
         ("exploration.iterations=3", "'exploration.iterations' must be at most iterations = 2"),
         ("exploration.beta=1", "'exploration.beta'"),
         ("exploration.cap=1.1", "'exploration.cap' must be null or above exploration.ratio = 1.2"),
@@ -127,6 +128,17 @@ def test_online_recipe_errors_before_any_work(costs, tmp_path, capsys):
         err = capsys.readouterr().err
         assert expected in err, err
         assert not out.exists()
+
+
+def test_refits_on_the_new_steps_and_a_sample_of_the_old_run_from_the_recipe(
+    costs, tmp_path, capsys
+):
+    args = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    out = tmp_path / "mixed"
+    assert main([*args, f"output_dir={out}", "refit_old_steps=25"]) == 0, capsys.readouterr().err
+    r = _results(out)
+    assert len(r["iterations"]) == 2 and all(math.isfinite(it["fit_s"]) for it in r["iterations"])
+    capsys.readouterr()
 
 
 def _short_env_args(tmp_path, monkeypatch) -> list[str]:

@@ -6,13 +6,23 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 
+import torchrl_recon.training.online as online
+from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import split_by_trajectory
+from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import exploration_objective
-from torchrl_recon.training.online import FitSchedule, learn_online
+from torchrl_recon.training.fit import FitResult
+from torchrl_recon.training.online import (
+    FitSchedule,
+    fit_models,
+    learn_online,
+    recent_and_sampled,
+)
 
 SCHEDULE = FitSchedule(
     steps=6, refit_steps=3, eval_every=3, slice_len=8, num_slices=4, val_fraction=0.34
@@ -165,3 +175,52 @@ def test_a_world_model_of_members_is_fitted_and_planned_with():
     assert records[1].env_steps == 75 and math.isfinite(records[1].model_error)
     errors = [model_error(m, data, SCHEDULE.slice_len) for m in members]
     assert model_error(world, data, SCHEDULE.slice_len) == pytest.approx(sum(errors) / 3)
+
+
+def test_recent_and_sampled_keeps_the_new_trajectories_and_draws_whole_old_ones():
+    ids = torch.arange(96) // 8  # 10 old trajectories of 8 steps (ids 0..9), 2 new (10, 11)
+    data = TensorDict({TRAJ_KEY: ids, "t": torch.arange(96)}, [96])
+    mixed = recent_and_sampled(data, 10, 20, seed=0)
+    kept = torch.unique(mixed[TRAJ_KEY]).tolist()
+    assert kept[-2:] == [10, 11] and len(kept) == 5  # 3 old ones: 24 steps, the first >= 20
+    assert all((ids == i).sum() == (mixed[TRAJ_KEY] == i).sum() for i in kept)  # whole ones
+    assert mixed["t"].tolist() == recent_and_sampled(data, 10, 20, seed=0)["t"].tolist()
+    draws = {
+        tuple(torch.unique(recent_and_sampled(data, 10, 20, seed=s)[TRAJ_KEY]).tolist())
+        for s in range(5)
+    }
+    assert len(draws) > 1  # the seed draws the old ones
+    assert len(recent_and_sampled(data, 10, 0, seed=0)) == 16  # the new steps only
+    assert len(recent_and_sampled(data, 10, 10**6, seed=0)) == 96  # every old one
+
+
+def test_a_refit_with_refit_old_steps_trains_on_the_new_steps_and_a_sample(monkeypatch):
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=8)
+    data = collect_random(env, frames=96, seed=0)  # trajectories 0..11, the last two new
+    schedule = FitSchedule(
+        steps=2,
+        refit_steps=2,
+        eval_every=1,
+        slice_len=6,
+        num_slices=2,
+        val_fraction=0.2,
+        refit_old_steps=8,
+    )
+    world = LSTMWorldModel(3, 1, window=4)
+    fit_models(world, None, data, schedule, seed=0, warm=False)
+    seen = {}
+
+    def spy(model, buffer, **kwargs):
+        seen["train"] = torch.unique(buffer[:][TRAJ_KEY]).tolist()
+        seen["val"] = torch.unique(kwargs["val_buffer"][:][TRAJ_KEY]).tolist()
+        return FitResult(0, 0.0)
+
+    monkeypatch.setattr(online, "world_model_fit", lambda model: spy)
+    fit_models(world, None, data, schedule, seed=3, warm=True, new_steps=16)
+    train, val = split_by_trajectory(data, 0.2, seed=3)
+    new = [i for i in torch.unique(train[TRAJ_KEY]).tolist() if i >= 10]
+    assert seen["train"][len(seen["train"]) - len(new) :] == new
+    assert len(seen["train"]) == len(new) + 1  # one old trajectory of 8 steps
+    assert seen["val"] == torch.unique(val[TRAJ_KEY]).tolist()  # drawn from all data
+    with pytest.raises(ValueError, match="needs new_steps"):
+        fit_models(world, None, data, schedule, seed=3, warm=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from torchrl_recon.data.buffers import (
+    FIT_KEYS,
     MASK_KEY,
     TRAJ_KEY,
     GatherTensorStorage,
@@ -22,6 +23,7 @@ from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSa
 
 __all__ = [
     "MASK_KEY",
+    "FIT_KEYS",
     "TRAJ_KEY",
     "GatherTensorStorage",
     "StepUniformSliceSampler",

@@ -12,6 +12,7 @@ from torchrl.envs import DeviceCastTransform, EnvBase
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import (
+    FIT_KEYS,
     long_trajectories,
     needs_padding,
     sequence_buffers,
@@ -280,7 +281,7 @@ def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
     if needs_padding(t.slice_len, *parts):
         check_padding(cfg)
     sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
-    return sequence_buffers(parts, **sizes)
+    return sequence_buffers(parts, **sizes, keys=FIT_KEYS)
 
 
 def fit_kwargs(ctx: RunContext, fit: DictConfig, prefix: str) -> dict:

@@ -25,6 +25,7 @@ from torchrl.record.loggers import Logger
 
 from torchrl_recon.collectors import collect, collect_random, concat_trajectories
 from torchrl_recon.data import (
+    FIT_KEYS,
     cut_sequences,
     sequence_buffers,
     split_by_trajectory,
@@ -117,7 +118,8 @@ def fit_models(
             raise ValueError("a refit with schedule.refit_old_steps needs new_steps.")
         first_new = data.get(TRAJ_KEY)[len(data) - new_steps]
         parts = (recent_and_sampled(parts[0], first_new, s.refit_old_steps, seed=seed), parts[1])
-    buffers = sequence_buffers(parts, slice_len=s.slice_len, num_slices=s.num_slices)
+    sizes = dict(slice_len=s.slice_len, num_slices=s.num_slices)
+    buffers = sequence_buffers(parts, **sizes, keys=FIT_KEYS)
     common = dict(
         val_buffer=buffers[1],
         steps=s.refit_steps if warm else s.steps,

@@ -141,6 +141,52 @@ def test_refits_on_the_new_steps_and_a_sample_of_the_old_run_from_the_recipe(
     capsys.readouterr()
 
 
+def test_the_estimator_is_refitted_only_when_the_plans_read_u(costs, tmp_path, capsys):
+    """beta = 0, re-planning every step and no exploring round: refits leave the estimator as
+    the first fit made it, and the plans (which never read u) are the same as with
+    ``refit_uncertainty=always``; only the u of the new steps differs."""
+    args = ["online", "gym/online_smoke", "env.id=Pendulum-v1", f"env.cost={costs}:pendulum"]
+    runs = {}
+    for mode in ("auto", "always"):
+        out = tmp_path / mode
+        assert main([*args, f"output_dir={out}", f"refit_uncertainty={mode}"]) == 0
+        runs[mode] = _results(out)["iterations"]
+    auto, always = runs["auto"], runs["always"]
+    assert [sorted(it["val_loss"]) for it in auto] == [["world_model"]] * 2
+    assert [sorted(it["val_loss"]) for it in always] == [["uncertainty", "world_model"]] * 2
+    for key in ("returns", "model_error", "replans"):
+        assert [it[key] for it in auto] == [it[key] for it in always]
+    assert auto[0]["mean_u"] == always[0]["mean_u"]  # before any refit
+    assert auto[1]["mean_u"] != always[1]["mean_u"]  # after one
+    # a round that explores reads u: the refit before it fits the estimator
+    out = tmp_path / "explore"
+    assert main([*args, f"output_dir={out}", "exploration.iterations=2"]) == 0
+    assert [sorted(it["val_loss"]) for it in _results(out)["iterations"]] == [
+        ["uncertainty", "world_model"],
+        ["world_model"],
+    ]
+    capsys.readouterr()
+
+
+def test_a_run_dir_made_before_refit_uncertainty_resumes_with_always(tmp_path):
+    """Online run dirs written before ``refit_uncertainty`` refitted the estimator every time:
+    such a config reads as ``always``, so resuming under ``auto`` is one clear conflict;
+    ``refit_uncertainty=always`` resumes it."""
+    base = [f"output_dir={tmp_path / 'run'}", "env.id=Pendulum-v1"]
+    base += ["env.cost=torchrl_recon.envs.gym_costs:pendulum"]
+    old = load_recipe(RECIPES / "gym" / "online_smoke.yaml", base)
+    run_dir = prepare_run_dir(old)
+    release_run_dir(run_dir)
+    saved = (run_dir / "config.yaml").read_text()
+    (run_dir / "config.yaml").write_text(saved.replace("refit_uncertainty: auto\n", ""))
+    with pytest.raises(RunDirConflict, match="refit_uncertainty: 'always' -> 'auto'"):
+        prepare_run_dir(old)
+    resumed = load_recipe(
+        RECIPES / "gym" / "online_smoke.yaml", [*base, "refit_uncertainty=always"]
+    )
+    release_run_dir(prepare_run_dir(resumed))
+
+
 def _short_env_args(tmp_path, monkeypatch) -> list[str]:
     return ["online", "gym/online_smoke", *short_env(tmp_path, monkeypatch)]
 

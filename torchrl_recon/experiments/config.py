@@ -58,6 +58,7 @@ DataPolicy = choice("DataPolicy", "random offset_noise", __name__)
 ReplanMode = choice("ReplanMode", "every_step every_n uncertainty", __name__)
 ThresholdOn = choice("ThresholdOn", "step cumulative", __name__)
 Warmup = choice("Warmup", "auto random zeros plan", __name__)
+RefitUncertainty = choice("RefitUncertainty", "auto always", __name__)
 
 
 @dataclass
@@ -302,7 +303,8 @@ class OnlineConfig(RunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
     (``refit_steps``; on the round's new steps plus ``refit_old_steps`` older ones drawn by
-    whole trajectories, or on all data when null) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
+    whole trajectories, or on all data when null; the estimator too when the plans read u,
+    ``refit_uncertainty: auto``, or always) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
     members (an ensemble, PETS's: each refitted as one batch, a plan's cost their mean);
     ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
     the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
@@ -315,6 +317,7 @@ class OnlineConfig(RunConfig):
     steps_per_iteration: int = count(200)
     refit_steps: int = count(300)
     refit_old_steps: int | None = count(None)
+    refit_uncertainty: RefitUncertainty = RefitUncertainty.auto
     world_model_members: int = count(1)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))

@@ -93,16 +93,34 @@ def play_stage(
     return ctx.stages.run(name, run)
 
 
+def reads_uncertainty(cfg: DictConfig, n: int) -> bool:
+    """Whether a plan from iteration ``n`` on reads the estimator's u: β ≠ 0, re-planning on u,
+    or a round that explores.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"beta": 0.0, "replan": {"mode": "every_step"},
+        ...     "exploration": {"iterations": 2}})
+        >>> reads_uncertainty(cfg, 2), reads_uncertainty(cfg, 3)
+        (True, False)
+    """
+    return cfg.beta != 0 or str(cfg.replan.mode) == "uncertainty" or n <= cfg.exploration.iterations
+
+
 def refit_stage(
     ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, new_steps: int
 ) -> dict:
     """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks from
     their current weights on all data so far, or (``refit_old_steps``) on the ``new_steps``
-    last steps plus a sample of the older ones."""
+    last steps plus a sample of the older ones; the estimator when a later plan reads it
+    (:func:`reads_uncertainty`) or ``refit_uncertainty`` is ``always``."""
     cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
     sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
     sizes |= {"refit_steps": cfg.refit_steps, "refit_old_steps": cfg.refit_old_steps}
-    schedule = FitSchedule(**t.world_model, mode=str(t.world_model_mode), **sizes)
+    refit_u = cfg.refit_uncertainty == "always" or reads_uncertainty(cfg, n + 1)
+    schedule = FitSchedule(
+        **t.world_model, mode=str(t.world_model_mode), refit_uncertainty=refit_u, **sizes
+    )
     modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 
     def fit() -> dict:

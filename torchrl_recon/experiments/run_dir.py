@@ -22,10 +22,13 @@ from torchrl_recon.provenance import git_info, package_versions
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory", "warmup": "auto"}
-"""Keys added to the schema since, with the value an older run directory without them resumes at."""
+KEYS_ADDED_SINCE["refit_uncertainty"] = "always"  # online runs before it refitted the estimator
+"""Keys added to the schema since, with the value an older run directory without them ran at
+(:func:`read_config` reads them so; a new default other than that is a difference)."""
 _START_KEYS = ("started_utc", "git", "argv", "hostname")
 """What ``meta.json`` keeps of each earlier start of a resumed run."""
 _LOCKS: dict[str, FileLock] = {}
+_ABSENT = object()
 
 
 class RunDirConflict(RuntimeError):
@@ -243,8 +246,15 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
         raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
     saved = upgrade_legacy_config(saved)  # planner blocks written flat, before `kwargs`
     kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
-    try:  # keys added to the schema after the run was made compare at their defaults
-        return saved if kind is None else OmegaConf.merge(OmegaConf.structured(kind.schema), saved)
+    if kind is None:
+        return saved
+    schema = OmegaConf.structured(kind.schema)
+    for key, value in KEYS_ADDED_SINCE.items():  # as the run was made, where the key is the kind's
+        if OmegaConf.select(saved, key, default=_ABSENT) is _ABSENT:
+            if OmegaConf.select(schema, key, default=_ABSENT) is not _ABSENT:
+                OmegaConf.update(saved, key, value, force_add=True)
+    try:  # other keys added to the schema after the run was made compare at their defaults
+        return OmegaConf.merge(schema, saved)
     except Exception as err:
         reason = str(err).strip().splitlines()[0]
         raise DamagedFileError(

@@ -47,11 +47,14 @@ class FitSchedule:
     of the trajectories held out for early stopping. ``refit_old_steps``: a refit trains on the
     training split's new steps (those of the last iteration) plus whole earlier trajectories of
     it drawn at random until they hold ``refit_old_steps`` steps (:func:`recent_and_sampled`);
-    None: on the whole training split."""
+    None: on the whole training split. ``refit_uncertainty``: False leaves the estimator as
+    the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
+    exploring rounds)."""
 
     steps: int = 1000
     refit_steps: int = 300
     refit_old_steps: int | None = None
+    refit_uncertainty: bool = True
     lr: float = 3e-3
     eval_every: int = 100
     patience: int = 10
@@ -104,7 +107,8 @@ def fit_models(
     log_prefix: str = "",
 ) -> dict[str, float]:
     """Fit (``warm=False``: normalisation and ``schedule.steps``) or refit (``warm=True``: the
-    current weights and normalisation, ``schedule.refit_steps``) both networks on ``data``,
+    current weights and normalisation, ``schedule.refit_steps``; the estimator only with
+    ``schedule.refit_uncertainty``) both networks on ``data``,
     split by trajectory with ``seed``; returns their best validation losses (a world model of
     members: :func:`~torchrl_recon.training.fit_world_members`, their mean). When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
@@ -138,7 +142,7 @@ def fit_models(
             world_model, buffers[0], mode=s.mode, log_prefix=f"{log_prefix}world_model/", **common
         ).best_val_loss
     }
-    if estimator is not None:
+    if estimator is not None and (s.refit_uncertainty or not warm):
         out["uncertainty"] = fit_uncertainty(
             estimator, buffers[0], log_prefix=f"{log_prefix}uncertainty/", **common
         ).best_val_loss

@@ -262,7 +262,7 @@ PUBLISHED_ONLINE = ROOT / "docs" / "results" / "online"
 @pytest.mark.parametrize(
     "recipe, env_id, published",
     [
-        ("online_pendulum", "Pendulum-v1", "Pendulum-v1_refit1000"),
+        ("online_pendulum", "Pendulum-v1", "Pendulum-v1_one_step"),
         ("online_mountain_car", "MountainCarContinuous-v0", "MountainCarContinuous-v0"),
         ("online_inverted_pendulum", "InvertedPendulum-v5", "InvertedPendulum-v5_upright"),
     ],

@@ -304,8 +304,9 @@ class OnlineConfig(RunConfig):
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
     (``refit_steps``; on the round's new steps plus ``refit_old_steps`` older ones drawn by
     whole trajectories, or on all data when null; the estimator too when the plans read u,
-    ``refit_uncertainty: auto``, or always) planning for Σ(α·r − β·u); ``world_model_members``: 1 world model, or R
-    members (an ensemble, PETS's: each refitted as one batch, a plan's cost their mean);
+    ``refit_uncertainty: auto``, or always) planning for Σ(α·r − β·u);
+    ``world_model_members``: 1 world model, or R members (an ensemble, PETS's: each refitted
+    as one batch, a plan's cost their mean);
     ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
     the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
     explore instead."""

@@ -152,9 +152,10 @@ def fit_models(
 def recent_and_sampled(
     data: TensorDictBase, first_new: int | torch.Tensor, old_steps: int, *, seed: int
 ) -> TensorDictBase:
-    """The steps of ``data``'s trajectories with an id from ``first_new`` on (the new ones),
-    after whole older trajectories drawn at random (``seed``) until they hold ``old_steps``
-    steps (the last one drawn may take it past ``old_steps``; all of them if they hold fewer).
+    """The steps of ``data``'s trajectories with an id from ``first_new`` on (the new ones: ids
+    grow with each :func:`append_steps`), after whole older trajectories drawn at random
+    (``seed``) until they hold ``old_steps`` steps (the last one drawn may take it past
+    ``old_steps``; all of them if they hold fewer).
 
     Examples:
         >>> from tensordict import TensorDict

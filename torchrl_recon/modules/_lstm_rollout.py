@@ -294,17 +294,20 @@ def rollout_inplace(
 ) -> torch.Tensor:
     """The rollout of :class:`LSTMRollout` for one model (2-D weights) without autograd.
 
-    Preallocated buffers, in-place ops, 14 small kernels a step.
-
-    The gates are one ``[R, 4·hidden]`` buffer reused every step (a large per-call slab of
-    all steps' gates cost page faults between planner iterations), filled by three matmuls
-    with columns reordered to ``[i, f, o | g]``. Both tanh are computed as
-    ``tanh(x) = 2·sigmoid(2x) − 1`` (:func:`sigmoid_tanh`): the CPU's ``tanh`` kernel is about
-    5× slower per element than its ``sigmoid`` and was half of a CEM call. The ``g`` columns of
-    the weights are doubled (exact: a power of two), so one in-place sigmoid covers all four
-    gates. States, ``h`` and the dense output each carry a constant-1 column, so every bias
-    rides inside a matmul, and the state update ``s + z·W`` is one ``addmm`` written straight
-    into the ``[H + 1, R, N + 1]`` state slab.
+    Preallocated buffers, in-place ops, 14 small kernels a step, feature-major: every buffer is
+    ``[features, R]``, so each matmul is ``W @ X`` with the R candidates as its long side. The
+    output head (N state columns) and the dense layer read as ``X @ W`` had a short side of
+    N + 1 or dense columns, which the CPU's GEMM runs at a fraction of its rate; feature-major
+    the same products take about a quarter of the time and a CEM call about 13 % less (see
+    ``docs/benchmarks.md``). The four gates are row blocks of one ``[4·hidden, R]`` buffer
+    reused every step (a large per-call slab of all steps' gates cost page faults between
+    planner iterations), filled by three matmuls with rows reordered to ``[i, f, o | g]``.
+    Both tanh are computed as ``tanh(x) = 2·sigmoid(2x) − 1`` (:func:`sigmoid_tanh`): the
+    CPU's ``tanh`` kernel is about 5× slower per element than its ``sigmoid`` and was half of a
+    CEM call. The ``g`` rows of the weights are doubled (exact: a power of two), so one in-place
+    sigmoid covers all four gates. States, ``h`` and the dense output each carry a constant-1
+    row, so every bias rides inside a matmul, and the state update ``s + W·z`` is one ``addmm``
+    written straight into the ``[H + 1, N + 1, R]`` state slab.
     """
     w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
     n, hid, dense = s.shape[-1], h.shape[-1], w_d.shape[-1]
@@ -317,33 +320,37 @@ def rollout_inplace(
             torch.arange(2 * hid, 3 * hid, device=s.device),
         ]
     )
-    double_g = torch.ones(4 * hid, **like)
+    double_g = torch.ones(4 * hid, 1, **like)
     double_g[3 * hid :] = 2  # after the reordering: sigmoid(2g) in the last block
-    w_s1 = torch.cat([w_sh[:n], bias[None]])[:, order] * double_g  # [N + 1, 4 hid]
-    w_hh1 = torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)])[:, order] * double_g
-    w_d1 = torch.cat([w_d, b_d[None]]).contiguous()  # [hid + 1, dense]
-    w_out1 = torch.zeros(dense + 1, n + 1, **like)  # the last column keeps the states' 1
-    w_out1[:dense, :n], w_out1[dense, :n] = w_out, b_out
-    w_a = w_a[:, order] * double_g
-    steps = actions.transpose(0, 1).contiguous()  # [H, R, M]: one contiguous slice per step
-    gates = torch.empty(rows, 4 * hid, **like)
-    states = torch.ones(horizon + 1, rows, n + 1, **like)
-    states[0, :, :n] = s
-    h1 = torch.ones(rows, hid + 1, **like)
-    h1[:, :hid] = h
-    z1 = torch.ones(rows, dense + 1, **like)
-    h_view, z_view = h1[:, :hid], z1[:, :dense]
-    c = c.contiguous().clone()
-    tg = torch.empty(rows, hid, **like)
+
+    def gate_rows(w: torch.Tensor) -> torch.Tensor:  # [K, 4 hid] -> [4 hid, K], reordered
+        return (w.t()[order] * double_g).contiguous()
+
+    w_s1 = gate_rows(torch.cat([w_sh[:n], bias[None]]))  # [4 hid, N + 1]
+    w_hh1 = gate_rows(torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)]))  # [4 hid, hid + 1]
+    w_a = gate_rows(w_a)  # [4 hid, M]
+    w_d1 = torch.cat([w_d, b_d[None]]).t().contiguous()  # [dense, hid + 1]
+    w_out1 = torch.zeros(n + 1, dense + 1, **like)  # the last row keeps the states' 1
+    w_out1[:n, :dense], w_out1[:n, dense] = w_out.t(), b_out
+    steps = actions.permute(1, 2, 0).contiguous()  # [H, M, R]: one contiguous slice per step
+    gates = torch.empty(4 * hid, rows, **like)
+    states = torch.ones(horizon + 1, n + 1, rows, **like)
+    states[0, :n] = s.t()
+    h1 = torch.ones(hid + 1, rows, **like)
+    h1[:hid] = h.t()
+    z1 = torch.ones(dense + 1, rows, **like)
+    h_view, z_view = h1[:hid], z1[:dense]
+    c = c.t().contiguous()
+    tg = torch.empty(hid, rows, **like)
     act_ = INPLACE_ACTIVATIONS[activation]
-    i, f, o, g2 = (gates[:, k * hid : (k + 1) * hid] for k in range(4))
+    i, f, o, g2 = (gates[k * hid : (k + 1) * hid] for k in range(4))
     for t in range(horizon):
-        torch.mm(steps[t], w_a, out=gates).addmm_(states[t], w_s1).addmm_(h1, w_hh1)
+        torch.mm(w_a, steps[t], out=gates).addmm_(w_s1, states[t]).addmm_(w_hh1, h1)
         gates.sigmoid_()  # i, f, o, sigmoid(2g)
         torch.mul(g2, 2, out=tg).sub_(1)  # tanh(g)
         c.mul_(f).addcmul_(i, tg)
         torch.mul(c, 2, out=tg).sigmoid_().mul_(2).sub_(1)  # tanh(c)
         torch.mul(o, tg, out=h_view)
-        act_(torch.mm(h1, w_d1, out=z_view))
-        torch.addmm(states[t], z1, w_out1, out=states[t + 1])
-    return states[1:, :, :n].transpose(0, 1)
+        act_(torch.mm(w_d1, h1, out=z_view))
+        torch.addmm(states[t], w_out1, z1, out=states[t + 1])
+    return states[1:, :n].permute(2, 0, 1)

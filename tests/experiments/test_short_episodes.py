@@ -58,6 +58,28 @@ def test_explore_on_episodes_of_3_steps_is_one_clear_error_before_any_fit(
     assert not (out / "stages" / "initial_random.json").exists()
 
 
+def test_calibrate_on_episodes_of_3_steps_is_one_clear_error_before_any_fit(
+    tmp_path, monkeypatch, capsys
+):
+    args = ["calibrate", "industrial_benchmark/calibrate_smoke", *short_env(tmp_path, monkeypatch)]
+    args += ["env.name=short", "random_steps=120", "outcomes.explore_recipe=null"]
+    args += ["outcomes.control_recipe=null"]
+    # the evaluation's held-out trajectories (models.window + evaluation.horizon = 15 steps)
+    out = tmp_path / "long"
+    assert main([*args, f"output_dir={out}"]) == 2
+    err = _error_lines(capsys)
+    assert len(err) == 1 and "no random episode lasted 15 steps" in err[0], err
+    assert "models.window + evaluation.horizon" in err[0]
+    assert sorted(p.name for p in (out / "stages").glob("*.json")) == ["random_data.json"]
+    # trajectories that fit the episodes: an estimator that cannot train on padded slices
+    out = tmp_path / "padded"
+    fit = ["models.window=1", "evaluation.horizon=2"]
+    assert main([*args, *fit, f"output_dir={out}"]) == 2
+    err = _error_lines(capsys)
+    assert len(err) == 1 and "estimators[1].kind = ensemble cannot train on padded" in err[0]
+    assert sorted(p.name for p in (out / "stages").glob("*.json")) == ["random_data.json"]
+
+
 def test_explore_runs_when_the_validation_trajectories_fit_the_episodes(tmp_path, monkeypatch):
     out = tmp_path / "explore"
     args = ["explore", "gym/explore_smoke", *short_env(tmp_path, monkeypatch), *TINY]

@@ -16,8 +16,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.collectors import collect_random, validation_trajectories
-from torchrl_recon.data import cut_sequences
+from torchrl_recon.collectors import EpisodesTooShort, collect_random, validation_trajectories
+from torchrl_recon.data import cut_sequences, long_trajectories
 from torchrl_recon.envs import close_env
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import calibration_metrics
@@ -102,6 +102,27 @@ def fit_stages(
     return world.eval(), estimators, fits
 
 
+def short_episodes_error(cfg: DictConfig, found: str) -> RecipeError:
+    """Why the evaluation cannot run on an env whose episodes end before its held-out
+    trajectories of ``models.window + evaluation.horizon`` steps (``found`` says what was seen),
+    and the keys to change.
+
+    Examples:
+        >>> cfg = OmegaConf.create({"env": {"name": "Short-v0"}, "models": {"window": 5},
+        ...     "evaluation": {"horizon": 10}})
+        >>> print(short_episodes_error(cfg, "no random episode lasted 15 steps"))  # doctest: +ELLIPSIS
+        calibrate on Short-v0: the evaluation imagines evaluation.horizon = 10 steps after a real context of models.window = 5 steps, ...
+    """
+    h, w = cfg.evaluation.horizon, cfg.models.window
+    return RecipeError(
+        f"calibrate on {cfg.env.name}: the evaluation imagines evaluation.horizon = {h} steps "
+        f"after a real context of models.window = {w} steps, on held-out trajectories of "
+        f"{w + h} steps that the env must not end; {found}: lower models.window + "
+        "evaluation.horizon to what most episodes last, or study this env with the control or "
+        "online kinds, which run on episodes that end early."
+    )
+
+
 def evaluation_stage(
     ctx: RunContext, world: LSTMWorldModel, estimators: dict[str, UncertaintyEstimator], scale
 ) -> dict:
@@ -111,10 +132,17 @@ def evaluation_stage(
 
     def run() -> dict:
         seed = ctx.stage_seed("evaluation")
-        env = build_env(cfg, seed=seed, episode_steps=window + ev.horizon)
-        trajectories = validation_trajectories(
-            env, count=ev.trajectories, length=window + ev.horizon, seed=seed, policy=ev.policy
-        )
+        length = window + ev.horizon
+        env = build_env(cfg, seed=seed, episode_steps=length)
+        try:
+            trajectories = validation_trajectories(
+                env, count=ev.trajectories, length=length, seed=seed, policy=ev.policy
+            )
+        except EpisodesTooShort as err:
+            close_env(env)
+            found = f"only {err.done} of {err.attempts} attempts lasted {length} steps"
+            found += f" (median {err.median}, longest {err.longest})"
+            raise short_episodes_error(cfg, found) from None
         held_out = collect_random(env, frames=ev.ood_windows * window, seed=seed + 1)
         high = env.action_spec.high.to(torch.float32)
         close_env(env)
@@ -169,6 +197,9 @@ def run(ctx: RunContext) -> dict[str, Any]:
     data = random_data_stage(
         ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.random_episode_steps
     )
+    length = cfg.models.window + cfg.evaluation.horizon  # refused before any fit, if it can be
+    if length <= cfg.random_episode_steps and long_trajectories(data, length) == 0:
+        raise short_episodes_error(cfg, f"no random episode lasted {length} steps")
     scale = state_scale(data)
     world, estimators, fits = fit_stages(ctx, data)
     evaluation = evaluation_stage(ctx, world, estimators, scale)

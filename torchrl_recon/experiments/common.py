@@ -244,7 +244,8 @@ def check_padding(cfg: DictConfig) -> None:
     """Refuse what padding short episodes cannot train (called when a split of the data has no
     trajectory of ``training.slice_len`` steps, e.g. InvertedPendulum's random episodes of 3-8
     steps, so its slices are padded and masked): ``training.window_sampling = step``, or an
-    estimator whose loss takes no mask (``models.uncertainty.kind``).
+    estimator whose loss takes no mask (``models.uncertainty.kind``, or each of a calibrate
+    recipe's ``estimators``), before the first fit.
 
     Raises:
         RecipeError: naming the key to change.
@@ -264,12 +265,14 @@ def check_padding(cfg: DictConfig) -> None:
             f"{where}, which needs training.window_sampling = trajectory (got "
             f"{t.window_sampling}): set it, {lower}."
         )
-    kind = cfg.models.uncertainty.kind
-    if not loss_takes_mask(get_estimator_class(kind)):
-        raise RecipeError(
-            f"{where}, and models.uncertainty.kind = {kind} cannot train on padded slices: "
-            f"use reconstruction or rnd, {lower}."
-        )
+    specs = cfg.get("estimators") or [cfg.models.uncertainty]
+    keys = [f"estimators[{i}].kind" for i in range(len(specs))] if "estimators" in cfg else []
+    for key, spec in zip(keys or ["models.uncertainty.kind"], specs, strict=True):
+        if not loss_takes_mask(get_estimator_class(spec.kind)):
+            raise RecipeError(
+                f"{where}, and {key} = {spec.kind} cannot train on padded slices: "
+                f"use reconstruction or rnd, {lower}."
+            )
 
 
 def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):

@@ -179,8 +179,9 @@ def test_a_run_dir_made_before_refit_uncertainty_resumes_with_always(tmp_path):
     release_run_dir(run_dir)
     saved = (run_dir / "config.yaml").read_text()
     (run_dir / "config.yaml").write_text(saved.replace("refit_uncertainty: auto\n", ""))
-    with pytest.raises(RunDirConflict, match="refit_uncertainty: 'always' -> 'auto'"):
+    with pytest.raises(RunDirConflict, match="refit_uncertainty: 'always' -> 'auto'") as err:
         prepare_run_dir(old)
+    assert "resume it as it was made with refit_uncertainty=always" in str(err.value)
     resumed = load_recipe(
         RECIPES / "gym" / "online_smoke.yaml", [*base, "refit_uncertainty=always"]
     )

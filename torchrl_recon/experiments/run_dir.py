@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import re
 import socket
 import sys
 from collections.abc import Mapping, Sequence
@@ -29,6 +30,7 @@ _START_KEYS = ("started_utc", "git", "argv", "hostname")
 """What ``meta.json`` keeps of each earlier start of a resumed run."""
 _LOCKS: dict[str, FileLock] = {}
 _ABSENT = object()
+_PLAIN_VALUE = re.compile(r"[\w.:/+-]+")  # an override value Hydra reads without quotes
 
 
 class RunDirConflict(RuntimeError):
@@ -129,16 +131,39 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     if not (run_dir / "config.yaml").exists():
         return new
-    diffs = config_differences(OmegaConf.to_container(read_config(run_dir)), new)
+    old = OmegaConf.to_container(read_config(run_dir))
+    diffs = config_differences(old, new)
     if diffs:
         shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
         raise RunDirConflict(
             f"{run_dir} already holds a run with a different configuration:\n  {shown}\n"
             "Resuming it with this config would mix results. Use another output_dir, or "
-            "delete the directory to start over. (Only progress, stop_after and logger may "
-            "change between a run and its resumption.)"
+            "delete the directory to start over"
+            + resume_overrides(old, [d.split(": ", 1)[0] for d in diffs])
+            + ". (Only progress, stop_after and logger may change between a run and its "
+            "resumption.)"
         )
     return new
+
+
+def resume_overrides(old: Mapping[str, Any], keys: Sequence[str]) -> str:
+    """``", or resume it as it was made with key=value ..."`` for the ``keys`` (flattened) whose
+    old values are plain scalars, in Hydra's override syntax; empty when none is.
+
+    Examples:
+        >>> resume_overrides({"warmup": "random", "seed": 0, "env": {"kwargs": {}}},
+        ...     ["warmup", "env.kwargs", "seed"])
+        ', or resume it as it was made with warmup=random seed=0'
+    """
+    flat, found = _flatten(dict(old)), []
+    for key in keys:
+        value = flat.get(key, [])
+        if isinstance(value, bool) or value is None:
+            found.append(f"{key}={'null' if value is None else str(value).lower()}")
+        elif isinstance(value, (str, int, float)):
+            text = str(value)
+            found.append(f"{key}={text if _PLAIN_VALUE.fullmatch(text) else repr(text)}")
+    return ", or resume it as it was made with " + " ".join(found) if found else ""
 
 
 def prepare_run_dir(

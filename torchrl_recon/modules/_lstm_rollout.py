@@ -298,7 +298,7 @@ def rollout_inplace(
     ``[features, R]``, so each matmul is ``W @ X`` with the R candidates as its long side. The
     output head (N state columns) and the dense layer read as ``X @ W`` had a short side of
     N + 1 or dense columns, which the CPU's GEMM runs at a fraction of its rate; feature-major
-    the same products take about a quarter of the time and a CEM call about 13 % less (see
+    the same products take about a quarter of the time and a CEM call about 11 % less (see
     ``docs/benchmarks.md``). The four gates are row blocks of one ``[4·hidden, R]`` buffer
     reused every step (a large per-call slab of all steps' gates cost page faults between
     planner iterations), filled by three matmuls with rows reordered to ``[i, f, o | g]``.

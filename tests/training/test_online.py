@@ -224,3 +224,25 @@ def test_a_refit_with_refit_old_steps_trains_on_the_new_steps_and_a_sample(monke
     assert seen["val"] == torch.unique(val[TRAJ_KEY]).tolist()  # drawn from all data
     with pytest.raises(ValueError, match="needs new_steps"):
         fit_models(world, None, data, schedule, seed=3, warm=True)
+
+
+def test_a_refit_without_refit_uncertainty_leaves_the_estimator_as_it_was():
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=8)
+    data = collect_random(env, frames=48, seed=0)
+    schedule = FitSchedule(
+        steps=2,
+        refit_steps=2,
+        eval_every=1,
+        slice_len=6,
+        num_slices=2,
+        val_fraction=0.34,
+        refit_uncertainty=False,
+    )
+    world, estimator = LSTMWorldModel(3, 1, window=4), ReconstructionUncertainty(3, 1, window=4)
+    assert set(fit_models(world, estimator, data, schedule, seed=0, warm=False)) == {
+        "world_model",
+        "uncertainty",
+    }  # the first fit fits both
+    before = {k: v.clone() for k, v in estimator.state_dict().items()}
+    assert set(fit_models(world, estimator, data, schedule, seed=1, warm=True)) == {"world_model"}
+    assert all(torch.equal(v, estimator.state_dict()[k]) for k, v in before.items())

@@ -265,9 +265,11 @@ def check_padding(cfg: DictConfig) -> None:
             f"{where}, which needs training.window_sampling = trajectory (got "
             f"{t.window_sampling}): set it, {lower}."
         )
-    specs = cfg.get("estimators") or [cfg.models.uncertainty]
-    keys = [f"estimators[{i}].kind" for i in range(len(specs))] if "estimators" in cfg else []
-    for key, spec in zip(keys or ["models.uncertainty.kind"], specs, strict=True):
+    if "estimators" in cfg:  # a calibrate recipe fits each of its estimators
+        named = [(f"estimators[{i}].kind", spec) for i, spec in enumerate(cfg.estimators)]
+    else:
+        named = [("models.uncertainty.kind", cfg.models.uncertainty)]
+    for key, spec in named:
         if not loss_takes_mask(get_estimator_class(spec.kind)):
             raise RecipeError(
                 f"{where}, and {key} = {spec.kind} cannot train on padded slices: "

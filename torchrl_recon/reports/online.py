@@ -19,14 +19,13 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Per iteration, the mean return over seeds (each seed's mean over its episodes), and the
     random policy's and the last half's mean ± sample std over seeds."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    seeds = [r.get("seed") for r in runs]
     count = min(len(r["iterations"]) for r in runs)
     per_iteration = [
         mean_std([_mean(r["iterations"][i]["returns"]) for r in runs], finite=True)
         for i in range(count)
     ]
     return {
-        "seeds": seeds,
+        "seeds": [r.get("seed") for r in runs],
         "random": mean_std([r["random"]["mean_return"] for r in runs], finite=True),
         "last_half": mean_std([r["mean_return_last_half"] for r in runs], finite=True),
         "iterations": [{"mean": m, "std": s} for m, s in per_iteration],

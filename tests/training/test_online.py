@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -177,6 +178,16 @@ def test_a_world_model_of_members_is_fitted_and_planned_with():
     assert model_error(world, data, SCHEDULE.slice_len) == pytest.approx(sum(errors) / 3)
 
 
+TINY_FIT = FitSchedule(steps=2, refit_steps=2, eval_every=1, slice_len=6, num_slices=2)
+
+
+def _eight_step_episodes(frames: int):
+    """``frames`` random Pendulum-v1 steps in episodes of 8 (trajectory ids 0, 1, ...)."""
+    return collect_random(
+        make_env("Pendulum-v1", seed=0, max_episode_steps=8), frames=frames, seed=0
+    )
+
+
 def test_recent_and_sampled_keeps_the_new_trajectories_and_draws_whole_old_ones():
     ids = torch.arange(96) // 8  # 10 old trajectories of 8 steps (ids 0..9), 2 new (10, 11)
     data = TensorDict({TRAJ_KEY: ids, "t": torch.arange(96)}, [96])
@@ -195,17 +206,8 @@ def test_recent_and_sampled_keeps_the_new_trajectories_and_draws_whole_old_ones(
 
 
 def test_a_refit_with_refit_old_steps_trains_on_the_new_steps_and_a_sample(monkeypatch):
-    env = make_env("Pendulum-v1", seed=0, max_episode_steps=8)
-    data = collect_random(env, frames=96, seed=0)  # trajectories 0..11, the last two new
-    schedule = FitSchedule(
-        steps=2,
-        refit_steps=2,
-        eval_every=1,
-        slice_len=6,
-        num_slices=2,
-        val_fraction=0.2,
-        refit_old_steps=8,
-    )
+    data = _eight_step_episodes(96)  # trajectories 0..11, the last two new
+    schedule = replace(TINY_FIT, val_fraction=0.2, refit_old_steps=8)
     world = LSTMWorldModel(3, 1, window=4)
     fit_models(world, None, data, schedule, seed=0, warm=False)
     seen = {}
@@ -227,17 +229,8 @@ def test_a_refit_with_refit_old_steps_trains_on_the_new_steps_and_a_sample(monke
 
 
 def test_a_refit_without_refit_uncertainty_leaves_the_estimator_as_it_was():
-    env = make_env("Pendulum-v1", seed=0, max_episode_steps=8)
-    data = collect_random(env, frames=48, seed=0)
-    schedule = FitSchedule(
-        steps=2,
-        refit_steps=2,
-        eval_every=1,
-        slice_len=6,
-        num_slices=2,
-        val_fraction=0.34,
-        refit_uncertainty=False,
-    )
+    data = _eight_step_episodes(48)
+    schedule = replace(TINY_FIT, val_fraction=0.34, refit_uncertainty=False)
     world, estimator = LSTMWorldModel(3, 1, window=4), ReconstructionUncertainty(3, 1, window=4)
     assert set(fit_models(world, estimator, data, schedule, seed=0, warm=False)) == {
         "world_model",

@@ -11,7 +11,7 @@ import inspect
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -181,56 +181,43 @@ class ValidationConfig:
     policy: DataPolicy = DataPolicy.random
 
 
-def _band_ratio() -> Any:
-    """An exploration band's ``ratio`` field: Σu ≥ ratio × the mean over candidates."""
-    return checked(
+@dataclass
+class SeekBand:
+    """Σu sought by an exploring plan: candidates with Σu ≥ ``ratio`` × the mean over
+    candidates (and ≤ ``cap`` × the mean when set); ``beta = -1`` maximises Σu among them
+    (paper eq. 4), ``beta = 0`` takes any of them (the paper's "sample until")."""
+
+    ratio: float = checked(
         1.2, lambda v: None if v > 1 else "above 1 (the threshold is ratio × the mean Σu)"
     )
+    cap: float | None = None
+    beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
+    KEY: ClassVar[str] = ""  # the recipe section, for the message naming ratio
 
-
-def _band_beta() -> Any:
-    """An exploration band's ``beta`` field: -1 maximises Σu in the band, 0 takes any of it."""
-    return checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
-
-
-def _cap_errors(cap: float | None, ratio: float, ratio_key: str) -> Iterator[tuple[str, str]]:
-    """An exploration band's ``cap``: null or above its ``ratio`` (named ``ratio_key``)."""
-    if cap is not None and finite(cap, ratio) and not cap > ratio:
-        yield "cap", f" must be null or above {ratio_key} = {ratio}, got {cap!r}"
+    def more_errors(self) -> Iterator[tuple[str, str]]:
+        """``cap`` null or above ``ratio``."""
+        if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
+            yield "cap", f" must be null or above {self.KEY}.ratio = {self.ratio}, got {self.cap!r}"
 
 
 @dataclass
-class GuidedConfig:
-    """Uncertainty-guided exploration (paper §2.4): keep candidates with Σu ≥ ``ratio`` × mean
-    (and ≤ ``cap`` × mean when set); ``beta = -1`` maximises Σu among them (eq. 4), ``beta =
-    0`` takes any of them (the paper's "sample until")."""
+class GuidedConfig(SeekBand):
+    """Uncertainty-guided exploration (paper §2.4): ``steps`` steps planned with ``planner`` for
+    Σu in the band, the models refitted every ``refit_every_episodes`` episodes."""
 
+    KEY: ClassVar[str] = "guided"
     steps: int = count(15000)
-    ratio: float = _band_ratio()
-    cap: float | None = None
-    beta: float = _band_beta()
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     refit_every_episodes: int = count(50)
 
-    def more_errors(self) -> Iterator[tuple[str, str]]:
-        """``cap`` above ``ratio``."""
-        yield from _cap_errors(self.cap, self.ratio, "guided.ratio")
-
 
 @dataclass
-class OnlineExplorationConfig:
+class OnlineExplorationConfig(SeekBand):
     """The online loop's first ``iterations`` rounds played by an ``ExplorationPolicy`` with the
-    recipe's ``planner``: Σu in [``ratio``, ``cap``] × the mean over candidates, ``beta = -1``
-    maximising it (as ``guided``); 0 rounds: control from the first."""
+    recipe's ``planner`` for Σu in the band; 0 rounds: control from the first."""
 
+    KEY: ClassVar[str] = "exploration"
     iterations: int = count(0, 0)
-    ratio: float = _band_ratio()
-    cap: float | None = None
-    beta: float = _band_beta()
-
-    def more_errors(self) -> Iterator[tuple[str, str]]:
-        """``cap`` above ``ratio``."""
-        yield from _cap_errors(self.cap, self.ratio, "exploration.ratio")
 
 
 @dataclass

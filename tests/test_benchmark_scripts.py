@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import functools
+import io
 import re
-import subprocess
+import runpy
 import sys
+from contextlib import redirect_stdout
 from pathlib import Path
+from unittest import mock
 
 import pytest
 
@@ -17,15 +20,14 @@ BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 
 @functools.cache
 def _run(script: str, *args: str) -> str:
-    """A script's stdout at one thread (each script and argument list runs once per session)."""
-    return subprocess.run(
-        [sys.executable, script, *args, "--threads", "1"],
-        cwd=BENCHMARKS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=True,
-    ).stdout
+    """A script's stdout at one thread, run as ``__main__`` in this process (a subprocess would
+    import torch again for each; each script and argument list runs once per session)."""
+    argv, out = [str(BENCHMARKS / script), *args, "--threads", "1"], io.StringIO()
+    path = [str(BENCHMARKS), *sys.path]  # the scripts import their _common module
+    with mock.patch.object(sys, "argv", argv), mock.patch.object(sys, "path", path):
+        with redirect_stdout(out):
+            runpy.run_path(argv[0], run_name="__main__")
+    return out.getvalue()
 
 
 SPEED_UP = r"speed-up vs [^:]+: ([0-9.]+)x"

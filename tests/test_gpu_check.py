@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import functools
+import io
 import re
 import subprocess
-import sys
+from contextlib import redirect_stdout
 from pathlib import Path
 
 import pytest
@@ -24,9 +25,13 @@ def _load():
     return load_script(SCRIPT)
 
 
-def _check(out: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(SCRIPT), "--out", str(out), *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+def _check(out: Path, *args: str) -> subprocess.CompletedProcess:
+    """The check's ``main`` in this process (its steps are subprocesses of their own), its exit
+    code and printed lines as a finished process's."""
+    argv, printed = ["--out", str(out), *args], io.StringIO()
+    with redirect_stdout(printed):
+        code = _load().main(argv)
+    return subprocess.CompletedProcess(argv, code, printed.getvalue(), "")
 
 
 def _sections(report: str) -> dict[str, str]:
@@ -92,7 +97,7 @@ def test_without_cuda_the_tests_run_and_the_gpu_steps_skip(tmp_path):
 @pytest.mark.slow
 def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     """The whole check end to end on the CPU (tiny benchmarks, the smoke recipes)."""
-    proc = _check(tmp_path, "--device", "cpu", "--tiny", "--budget-s", "1500", timeout=1800)
+    proc = _check(tmp_path, "--device", "cpu", "--tiny", "--budget-s", "1500")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     report = (tmp_path / "gpu_check.md").read_text()
     assert set(_sections(report).values()) == {"passed"}, report

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
-import os
 import subprocess
-import sys
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
+
+from torchrl_recon.cli import main
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 SMOKE = [
@@ -22,9 +24,14 @@ SMOKE = [
 
 
 def _run(kind: str, recipe: Path, *overrides: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "torchrl_recon.cli", kind, str(recipe), *overrides]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}  # one thread, as the suite
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    """``torchrl-recon kind recipe overrides`` run by the command line's ``main`` in this
+    process (a subprocess would import torch again for each run; ``test_cli_errors`` runs the
+    installed entry point itself), its exit code and printed output as a finished process's."""
+    argv = [kind, str(recipe), *overrides]
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = main(argv)
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 
 def _finite_numbers(obj) -> bool:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import sys
-from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import torch
@@ -58,7 +58,6 @@ def timing(
     u), per horizon, interleaved; on a CUDA device each call is timed until the device is done."""
     t, window = cfg.timing, cfg.models.window
     device = module_device(world)
-    score = torch.no_grad()(lambda est, x: est.score_sequence(x))
     seqs = cut_sequences(data, window + 1).to(device)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
     features = torch.cat([data["observation"], data["action"]], -1).to(device)
@@ -72,12 +71,12 @@ def timing(
             t.candidates, window - 1 + horizon, features.shape[-1], generator=generator
         ).to(device)
         plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
-        fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
+        fns = {"cem_without_u": partial(plain.plan, *ctx)}
         for name, est in estimators.items():
             model = PlanningModel(world, cost, uncertainty=est)
             planner = CEMPlanner(model, Objective(beta=0.1), horizon=horizon, **cem)
-            fns[f"{name}/score"] = lambda e=est, x=x: score(e, x)
-            fns[f"{name}/cem"] = lambda p=planner: p.plan(*ctx)
+            fns[f"{name}/score"] = partial(torch.no_grad()(est.score_sequence), x)
+            fns[f"{name}/cem"] = partial(planner.plan, *ctx)
         times = interleaved_median_ms(fns, t.repeats, device=device)
         out[f"H{horizon}"] = {"cem_without_u_ms": times["cem_without_u"]} | {
             name: {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}

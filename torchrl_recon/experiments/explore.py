@@ -41,11 +41,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    data_errors,
-    planner_errors,
-)
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED

@@ -28,11 +28,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    data_errors,
-    planner_errors,
-)
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.reports.stats import mean_std

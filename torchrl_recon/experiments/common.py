@@ -58,14 +58,13 @@ def build_env(
     """The recipe's env (on the CPU) with episodes of ``episode_steps``: a ``SerialEnv`` batch
     for ``num_envs > 1`` or a list of seeds (:func:`~torchrl_recon.envs.make_env`); with a
     ``policy``, its primer appended and its data cast to its device (``DeviceCastTransform``)."""
-    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
     env = make_env(
         cfg.env.id or cfg.env.name,
         seed=seed,
         num_envs=num_envs,
         parallel=False,  # worker processes cost more than they save here (docs/benchmarks.md)
         max_episode_steps=episode_steps,
-        **kwargs,
+        **OmegaConf.to_container(cfg.env.kwargs, resolve=True),
     )
     if policy is not None:
         if policy.device.type != "cpu":

@@ -9,8 +9,9 @@ each in its own run directory under ``outcomes/``, through the context's ``run_c
 
 from __future__ import annotations
 
+import itertools
 import sys
-from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import torch
@@ -57,31 +58,30 @@ def timing(
     u), per horizon, interleaved; on a CUDA device each call is timed until the device is done."""
     t, window = cfg.timing, cfg.models.window
     device = module_device(world)
-    score = torch.no_grad()(lambda est, x: est.score_sequence(x))
     seqs = cut_sequences(data, window + 1).to(device)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
     features = torch.cat([data["observation"], data["action"]], -1).to(device)
     loc, spread = features.mean(0), features.std(0)
     cost = cost_fn(cfg)
+    cem = dict(num_candidates=t.candidates, iterations=t.iterations, num_elites=t.num_elites)
     out: dict[str, Any] = {"threads": torch.get_num_threads(), "candidates": t.candidates}
     for horizon in t.horizons:
         generator = torch.Generator().manual_seed(horizon)
         x = loc + spread * torch.randn(
             t.candidates, window - 1 + horizon, features.shape[-1], generator=generator
         ).to(device)
-        cem = dict(num_candidates=t.candidates, iterations=t.iterations, num_elites=t.num_elites)
         plain = CEMPlanner(PlanningModel(world, cost), Objective(), horizon=horizon, **cem)
-        fns: dict[str, Callable[[], object]] = {"cem_without_u": lambda p=plain: p.plan(*ctx)}
+        fns = {"cem_without_u": partial(plain.plan, *ctx)}
         for name, est in estimators.items():
             model = PlanningModel(world, cost, uncertainty=est)
             planner = CEMPlanner(model, Objective(beta=0.1), horizon=horizon, **cem)
-            fns[f"{name}/score"] = lambda e=est, x=x: score(e, x)
-            fns[f"{name}/cem"] = lambda p=planner: p.plan(*ctx)
+            fns[f"{name}/score"] = partial(torch.no_grad()(est.score_sequence), x)
+            fns[f"{name}/cem"] = partial(planner.plan, *ctx)
         times = interleaved_median_ms(fns, t.repeats, device=device)
-        row: dict[str, Any] = {"cem_without_u_ms": times["cem_without_u"]}
-        for name in estimators:
-            row[name] = {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}
-        out[f"H{horizon}"] = row
+        out[f"H{horizon}"] = {"cem_without_u_ms": times["cem_without_u"]} | {
+            name: {"score_ms": times[f"{name}/score"], "cem_ms": times[f"{name}/cem"]}
+            for name in estimators
+        }
     return out
 
 
@@ -131,8 +131,7 @@ def evaluation_stage(
     cfg, ev, window = ctx.cfg, ctx.cfg.evaluation, ctx.cfg.models.window
 
     def run() -> dict:
-        seed = ctx.stage_seed("evaluation")
-        length = window + ev.horizon
+        seed, length = ctx.stage_seed("evaluation"), window + ev.horizon
         env = build_env(cfg, seed=seed, episode_steps=length)
         try:
             trajectories = validation_trajectories(
@@ -180,13 +179,10 @@ def outcome_stages(ctx: RunContext) -> dict[str, dict[str, Any]]:
         sub.models.uncertainty.kwargs = OmegaConf.to_container(spec.kwargs, resolve=True)
         return {"result": ctx.run_child(sub)}
 
-    outcomes: dict[str, dict[str, Any]] = {}
-    for spec in cfg.estimators:
-        outcomes[spec.name] = {}
-        for kind in kinds:
-            name = f"outcome_{spec.name}_{kind}"
-            record = ctx.stages.run(name, lambda s=spec, k=kind: outcome(s, k))
-            outcomes[spec.name][kind] = record["result"]
+    outcomes: dict[str, dict[str, Any]] = {spec.name: {} for spec in cfg.estimators}
+    for spec, kind in itertools.product(cfg.estimators, kinds):
+        record = ctx.stages.run(f"outcome_{spec.name}_{kind}", lambda s=spec, k=kind: outcome(s, k))
+        outcomes[spec.name][kind] = record["result"]
     return outcomes
 
 
@@ -211,10 +207,9 @@ def run(ctx: RunContext) -> dict[str, Any]:
     table = {}
     for spec in cfg.estimators:
         row = table[spec.name] = dict(evaluation["estimators"][spec.name])
-        row["kind"] = spec.kind
-        row["config"] = OmegaConf.to_container(spec, resolve=True)
-        row["fit_val_loss"] = fits[spec.name]["val_loss"]
-        row["fit_wall_time_s"] = fits[spec.name]["wall_time_s"]
+        row |= {"kind": spec.kind, "config": OmegaConf.to_container(spec, resolve=True)}
+        fit = fits[spec.name]
+        row |= {"fit_val_loss": fit["val_loss"], "fit_wall_time_s": fit["wall_time_s"]}
         for h in cfg.timing.horizons:
             mine, ref = times[f"H{h}"][spec.name], times[f"H{h}"][reference]
             row[f"score_ms_H{h}"], row[f"cem_ms_H{h}"] = mine["score_ms"], mine["cem_ms"]
@@ -245,7 +240,7 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
     for i, spec in enumerate(cfg.estimators):
         estimator_errors(errors, f"estimators[{i}]", spec)
     data_errors(errors, "random_episode_steps", "random_steps")
-    for kind in ("explore", "control"):
+    for kind in OUTCOME_KINDS:
         recipe, key = cfg.outcomes[f"{kind}_recipe"], f"outcomes.{kind}_recipe"
         if recipe is None or recipes is None:
             continue

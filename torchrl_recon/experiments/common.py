@@ -58,14 +58,13 @@ def build_env(
     """The recipe's env (on the CPU) with episodes of ``episode_steps``: a ``SerialEnv`` batch
     for ``num_envs > 1`` or a list of seeds (:func:`~torchrl_recon.envs.make_env`); with a
     ``policy``, its primer appended and its data cast to its device (``DeviceCastTransform``)."""
-    kwargs = OmegaConf.to_container(cfg.env.kwargs, resolve=True)
     env = make_env(
         cfg.env.id or cfg.env.name,
         seed=seed,
         num_envs=num_envs,
         parallel=False,  # worker processes cost more than they save here (docs/benchmarks.md)
         max_episode_steps=episode_steps,
-        **kwargs,
+        **OmegaConf.to_container(cfg.env.kwargs, resolve=True),
     )
     if policy is not None:
         if policy.device.type != "cpu":
@@ -137,12 +136,10 @@ def random_data_stage(
 
 
 def warmup_mode(cfg: DictConfig, data: TensorDictBase) -> str:
-    """The recipe's ``warmup`` (control and online kinds); ``auto`` is ``plan`` when most
-    episodes of the random ``data`` are shorter than ``training.slice_len`` steps (an env whose
-    episodes end early, e.g. InvertedPendulum: the fits padded them, starting each at rest as
-    ``plan`` plans it, and a random warm-up would end most MPC episodes before their first
-    plan), else ``random`` (the paper's). Most, not all: one random episode that lasted longer
-    (InvertedPendulum's reach 20-26 steps now and then) does not make the warm-up random.
+    """The recipe's ``warmup`` (control and online kinds), ``auto`` resolved on the random
+    ``data`` as :class:`~torchrl_recon.experiments.config.ControlConfig` says (a random warm-up
+    would end most MPC episodes before their first plan). Most, not all: one random episode that
+    lasted longer (InvertedPendulum's reach 20-26 steps now and then) keeps ``plan``.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -208,11 +205,10 @@ def dims(data: TensorDictBase) -> tuple[int, int]:
 
 
 def check_random_data(cfg: DictConfig, data: TensorDictBase, key: str = "random_steps") -> None:
-    """Refuse random ``data`` (``key`` steps) that hold fewer than two episodes a fit can use,
-    each ended or of ``training.slice_len`` steps (a piece cut short by the step budget is
-    not one): a fit holds whole episodes out to validate. Where episodes may end early
-    (``env.termination``), this replaces the recipe check ``key >= env.episode_steps +
-    training.slice_len``, which holds two such episodes on envs that never end one.
+    """Refuse random ``data`` (``key`` steps) without two episodes a fit can use, each ended or
+    of ``training.slice_len`` steps: a fit holds whole episodes out to validate. Where episodes
+    may end early (``env.termination``), it replaces the recipe check ``key >=
+    env.episode_steps + training.slice_len``.
 
     Raises:
         RecipeError: naming ``key``, before any fit.
@@ -227,25 +223,21 @@ def check_random_data(cfg: DictConfig, data: TensorDictBase, key: str = "random_
         Traceback (most recent call last):
         torchrl_recon.errors.RecipeError: 'random_steps' = 5 gave 1 episode that ended or held...
     """
-    t, steps = cfg.training, cfg[key]
+    t = cfg.training
     count = long_trajectories(data, t.slice_len, ended=True)
     if count < 2:
-        enough = cfg.env.episode_steps + t.slice_len
         raise RecipeError(
-            f"'{key}' = {steps} gave {count} episode{'' if count == 1 else 's'} that ended or "
+            f"'{key}' = {cfg[key]} gave {count} episode{'' if count == 1 else 's'} that ended or "
             f"held training.slice_len = {t.slice_len} steps; a fit holds whole episodes out to "
-            "validate, so it needs two: "
-            f"raise {key} (env.episode_steps + training.slice_len = {enough} always gives two) "
-            "in a new output_dir."
+            f"validate, so it needs two: raise {key} (env.episode_steps + training.slice_len = "
+            f"{cfg.env.episode_steps + t.slice_len} always gives two) in a new output_dir."
         )
 
 
 def check_padding(cfg: DictConfig) -> None:
-    """Refuse what padding short episodes cannot train (called when a split of the data has no
-    trajectory of ``training.slice_len`` steps, e.g. InvertedPendulum's random episodes of 3-8
-    steps, so its slices are padded and masked): ``training.window_sampling = step``, or an
-    estimator whose loss takes no mask (``models.uncertainty.kind``, or each of a calibrate
-    recipe's ``estimators``), before the first fit.
+    """Refuse what padded slices (:func:`split_buffers`) cannot train, before the first fit:
+    ``training.window_sampling = step``, or an estimator whose loss takes no mask
+    (``models.uncertainty.kind``, or each of a calibrate recipe's ``estimators``).
 
     Raises:
         RecipeError: naming the key to change.
@@ -304,9 +296,8 @@ def fit_module(
     fit_normalization: bool = True,
 ) -> float:
     """Fit the world model or an estimator on ``data``; returns the best validation loss."""
-    t = ctx.cfg.training
+    t, world = ctx.cfg.training, isinstance(module, LSTMWorldModel)
     rb, val_rb = split_buffers(ctx.cfg, data, seed)
-    world = isinstance(module, LSTMWorldModel)
     kwargs = fit_kwargs(ctx, t.world_model if world else t.uncertainty, prefix)
     kwargs |= {"mode": t.world_model_mode} if world else {}
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})

@@ -41,11 +41,7 @@ from torchrl_recon.experiments.recipe_checks import (
     duplicate_errors,
     planner_errors,
 )
-from torchrl_recon.planners import (
-    PlanningModel,
-    cost_to_u_ratio,
-    window_uncertainty,
-)
+from torchrl_recon.planners import PlanningModel, cost_to_u_ratio, window_uncertainty
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.reports.stats import episode_mean_std, mean_std
 
@@ -55,9 +51,8 @@ STAGES = ("random_data", "models", "setting_{setting}", "random_policy")
 
 @dataclass
 class Controller:
-    """What every setting's episodes share: the planning model, the re-planning threshold, the
-    β unit, the state scale of the reported MSE and the warm-up mode (``random``, ``zeros`` or
-    ``plan``)."""
+    """What every setting's episodes share (``scale``: the state scale of the reported MSE;
+    ``warmup``: the resolved warm-up, ``random``, ``zeros`` or ``plan``)."""
 
     model: PlanningModel
     threshold: float
@@ -67,11 +62,12 @@ class Controller:
 
 
 def play_episodes(
-    ctx: RunContext, seeds: list[int], policy: MPCPolicy | None = None
+    ctx: RunContext, name: str, batch: range, policy: MPCPolicy | None = None
 ) -> list[TensorDictBase]:
-    """One episode per seed, side by side (the torch RNG seeded with the first seed), cut at
-    each one's first done; ``policy`` None takes uniform random actions. Envs that ended wait
-    (TorchRL partial steps) until every env is done or ``env.episode_steps`` have run."""
+    """Episodes ``batch`` side by side, ``e`` seeded with ``stage_seed("<name>_<e>")`` (the torch
+    RNG with the first), cut at each one's first done; ``policy`` None takes uniform random
+    actions. Ended envs wait (TorchRL partial steps) until all are done or ``env.episode_steps``."""
+    seeds = [ctx.stage_seed(f"{name}_{e}") for e in batch]
     steps, batched = ctx.cfg.env.episode_steps, len(seeds) > 1
     env = build_env(
         ctx.cfg, seed=seeds if batched else seeds[0], episode_steps=steps, policy=policy
@@ -85,15 +81,12 @@ def play_episodes(
 def episode_batch(
     ctx: RunContext, setting: DictConfig, planner, controller: Controller, batch: range
 ) -> list[TensorDictBase]:
-    """The MPC episodes ``batch`` of ``setting``, played side by side, episode ``e`` seeded with
-    ``stage_seed("setting_<name>_<e>")``."""
+    """The MPC episodes ``batch`` of ``setting`` (:func:`play_episodes` of ``setting_<name>``)."""
     mode, steps = controller.warmup, None  # plan: from the first step
     if mode != "plan":
         steps = max(ctx.cfg.warmup_random_steps, controller.model.context_length)
     policy = mpc_policy(ctx.cfg, planner, controller.threshold, warmup_steps=steps, warmup=mode)
-    return play_episodes(
-        ctx, [ctx.stage_seed(f"setting_{setting.name}_{e}") for e in batch], policy
-    )
+    return play_episodes(ctx, f"setting_{setting.name}", batch, policy)
 
 
 def batch_part(
@@ -145,10 +138,8 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
         mean, std = episode_mean_std(episodes)
         record = {"episodes": episodes, "mean": mean, "std": std}
         record["trajectory_example"] = parts[0]["trajectory_example"] if parts else None
-        # an episode without a planned step has a NaN predicted cost
-        record["ended_in_warmup"] = sum(
-            e.get("predicted_cost") != e.get("predicted_cost") for e in episodes
-        )
+        costs = [e.get("predicted_cost") for e in episodes]  # NaN: the episode planned no step
+        record["ended_in_warmup"] = sum(c != c for c in costs)
         if setting.band is not None:  # the across-seed trend test orders the settings by it
             record["band"] = {k: setting.band[k] for k in ("low", "high", "kind")}
         return record | ({"beta_effective": beta} if setting.beta_relative else {})
@@ -162,11 +153,10 @@ def random_policy_stage(ctx: RunContext) -> dict:
     cfg = ctx.cfg
 
     def run() -> dict:
-        seeds = [ctx.stage_seed(f"random_policy_{e}") for e in range(cfg.episodes)]
         returns = [
             float(td["next", "reward"].double().sum())
             for batch in batches(cfg.episodes, cfg.num_envs)
-            for td in play_episodes(ctx, [seeds[e] for e in batch])
+            for td in play_episodes(ctx, "random_policy", batch)
         ]
         mean, std = mean_std(returns)
         return {"env_returns": returns, "mean": {"env_return": mean}, "std": {"env_return": std}}
@@ -192,11 +182,10 @@ def run(ctx: RunContext) -> dict:
     controller = Controller(model, threshold, beta_unit, scale, warmup_mode(cfg, data))
     results, example = {}, None
     for setting in cfg.settings:
-        record = setting_stage(ctx, setting, controller)
+        record = results[setting.name] = setting_stage(ctx, setting, controller)
         first = record.pop("trajectory_example", None)  # kept once, for the first setting
         example = example or first
         record.pop("wall_time_s", None)
-        results[setting.name] = record
     return {
         **ctx.results_header(),
         "replan_threshold": threshold,

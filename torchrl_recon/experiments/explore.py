@@ -3,15 +3,12 @@ its recipe check and its ``EXPERIMENT``.
 
 ``validation`` → ``initial_random`` → ``initial_models`` → ``guided_data_<r>`` (with
 ``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings
-fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable. The
-validation set comes first: an env whose random episodes end before ``models.window +
-validation.steps`` steps is refused before any fit.
+fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import sys
 
 import torch
@@ -44,11 +41,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    data_errors,
-    planner_errors,
-)
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
@@ -56,9 +49,8 @@ from torchrl_recon.reports.explore import ARMS
 from torchrl_recon.reports.stats import mean_std
 from torchrl_recon.training import fit_population
 
-_NEXT = ("observation", "reward", "done", "terminated", "truncated")
-DATA_KEYS = ("observation", "action", "is_init", "step_count", *(("next", k) for k in _NEXT))
-DATA_KEYS += (("collector", "traj_ids"),)
+_NEXT = tuple(("next", k) for k in ("observation", "reward", "done", "terminated", "truncated"))
+DATA_KEYS = ("observation", "action", "is_init", "step_count", *_NEXT, ("collector", "traj_ids"))
 """What a dataset keeps of a collection (the policies' planning state is not data)."""
 MSE_UNITS = (
     "mean over validation trajectories, predicted steps and state dims of the squared error of open-loop "
@@ -176,16 +168,14 @@ def retrain_stage(
         for seed in seeds:
             torch.manual_seed(seed)
             initial.append(build_world_model(cfg, *dims(arms["random"])).to(ctx.device))
-        members, buffers, val_buffers = [], [], []
-        for arm in ARMS:  # the last arm takes the initial networks, the others copies
-            rb, val_rb = split_buffers(cfg, arms[arm], ctx.stage_seed("retrain_split"))
-            members += [w if arm == ARMS[-1] else copy.deepcopy(w) for w in initial]
-            buffers, val_buffers = buffers + [rb] * n, val_buffers + [val_rb] * n
+        splits = [split_buffers(cfg, arms[arm], ctx.stage_seed("retrain_split")) for arm in ARMS]
+        # each arm's retrainings: the last arm takes the initial networks, the others copies
+        members = [w if arm == ARMS[-1] else copy.deepcopy(w) for arm in ARMS for w in initial]
         fits = fit_population(
             members,
-            buffers,
+            [rb for rb, _ in splits for _ in retrainings],
             seeds=seeds * len(ARMS),
-            val_buffers=val_buffers,
+            val_buffers=[val_rb for _, val_rb in splits for _ in retrainings],
             mode=cfg.training.world_model_mode,
             shared_sampling=True,
             **fit_kwargs(ctx, cfg.training.world_model, f"{name}/"),
@@ -206,20 +196,18 @@ def retrain_stage(
 def run(ctx: RunContext) -> dict:
     """Run (or resume) one repeat of the exploration experiment; return its results."""
     cfg, guided = ctx.cfg, ctx.cfg.guided
-    validation = validation_stage(ctx)  # first: an env that ends it early is refused at once
+    validation = validation_stage(ctx)  # first: an env that ends it early is refused before any fit
     initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
     scale = state_scale(initial)
     world, estimator = models_stage(ctx, initial, "initial_models")
     # guided exploration in rounds, both networks refitted on all data after each but the last
-    per_round = cfg.env.episode_steps * guided.refit_every_episodes
-    rounds = math.ceil(guided.steps / per_round)
+    rounds = batches(guided.steps, cfg.env.episode_steps * guided.refit_every_episodes)
     parts, plans, feasible = [], 0, 0
-    for r in range(rounds):
-        frames = min(per_round, guided.steps - r * per_round)
-        record, data = guided_round_stage(ctx, world, estimator, r, rounds, frames)
+    for r, steps in enumerate(rounds):
+        record, data = guided_round_stage(ctx, world, estimator, r, len(rounds), len(steps))
         plans, feasible = plans + record["plans"], feasible + record["feasible_plans"]
         parts.append(data)
-        if r < rounds - 1:
+        if r < len(rounds) - 1:
             grown = concat_trajectories(initial, *parts)
             modules = {"world_model": world, "uncertainty": estimator}
             fit_stage(ctx, f"guided_refit_{r}", grown, modules, fit_normalization=False)
@@ -240,22 +228,19 @@ def run(ctx: RunContext) -> dict:
     for arm, values in mse.items():
         mean, std = mean_std(values, dtype=torch.float32)  # as recorded since the first runs
         summary[arm] = {"mse": values, "mean": mean, "std": std}
-    statistic = p_value = float("nan")
+    test = {"name": "Welch t-test, active vs random, across retrainings"}
+    test |= {"statistic": float("nan"), "p_value": float("nan")}
     if cfg.retrainings > 1:
         from scipy import stats  # here: importing scipy.stats costs every command ~0.5 s
 
-        test = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
-        statistic, p_value = float(test.statistic), float(test.pvalue)
+        welch = stats.ttest_ind(mse["active"], mse["random"], equal_var=False)
+        test |= {"statistic": float(welch.statistic), "p_value": float(welch.pvalue)}
     return {
         **ctx.results_header(),
         "mse_units": MSE_UNITS,
         "arms": summary,
         "ratio": summary["active"]["mean"] / summary["random"]["mean"],
-        "test": {
-            "name": "Welch t-test, active vs random, across retrainings",
-            "statistic": statistic,
-            "p_value": p_value,
-        },
+        "test": test,
         "data": {
             "initial_steps": initial.numel(),
             "random_arm_steps": random_arm.numel(),

@@ -28,11 +28,7 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    data_errors,
-    planner_errors,
-)
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.reports.stats import mean_std
@@ -53,10 +49,9 @@ STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 def play_stage(
     ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, warmup: str
 ) -> dict:
-    """Stage ``play_<n>``: ``steps_per_iteration`` MPC steps with the current models (stored as
-    ``buffers/play_<n>``, re-planning threshold from all ``data`` so far), or exploring steps in
-    the first ``exploration.iterations`` rounds, each episode started by ``warmup`` (resolved:
-    ``random``, ``zeros`` or ``plan``); the record holds
+    """Stage ``play_<n>``: ``steps_per_iteration`` steps of MPC (re-planning threshold from all
+    ``data`` so far) or, in the rounds that explore, exploration, with the current models and
+    the resolved ``warmup``, stored as ``buffers/play_<n>``; the record holds
     :func:`~torchrl_recon.training.online.new_steps_metrics`, the seconds spent planning and in
     the env, and which ``policy`` played."""
     cfg, name = ctx.cfg, f"play_{n}"
@@ -72,8 +67,7 @@ def play_stage(
                 length = cfg.training.slice_len
                 u = window_uncertainty(data, model.uncertainty, sequence_length=length)
                 threshold = replan_threshold(cfg, u)
-            objective = Objective(alpha=cfg.alpha, beta=cfg.beta)
-            planner = build_planner(cfg.planner, model, objective)
+            planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
             mpc = mpc_policy(cfg, planner, threshold, warmup=warmup)
         seed = ctx.stage_seed(name)
         env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
@@ -110,13 +104,12 @@ def reads_uncertainty(cfg: DictConfig, n: int) -> bool:
 def refit_stage(
     ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, new_steps: int
 ) -> dict:
-    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting both networks from
-    their current weights on all data so far, or (``refit_old_steps``) on the ``new_steps``
-    last steps plus a sample of the older ones; the estimator when a later plan reads it
-    (:func:`reads_uncertainty`) or ``refit_uncertainty`` is ``always``."""
+    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting the networks warm on
+    ``data`` (the ``new_steps`` last are this round's) as :class:`OnlineConfig` says; the
+    estimator too when a later plan reads it (:func:`reads_uncertainty`) or always."""
     cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
     sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
-    sizes |= {"refit_steps": cfg.refit_steps, "refit_old_steps": cfg.refit_old_steps}
+    sizes |= {k: cfg[k] for k in ("refit_steps", "refit_old_steps")}
     refit_u = cfg.refit_uncertainty == "always" or reads_uncertainty(cfg, n + 1)
     schedule = FitSchedule(
         **t.world_model, mode=str(t.world_model_mode), refit_uncertainty=refit_u, **sizes

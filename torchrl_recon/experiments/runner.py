@@ -28,8 +28,7 @@ from torchrl_recon.reports import format_table, get_report, save_figures
 def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
     """Run a child experiment (calibrate's outcomes) made by ``argv``; its headline numbers."""
     results = run(cfg, argv=argv)
-    outcome = get_report(cfg.experiment).outcome
-    if outcome is None:
+    if (outcome := get_report(cfg.experiment).outcome) is None:
         raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
     return None if results is None else outcome(results)
 

@@ -54,7 +54,7 @@ def main() -> None:
     ]
     cfg = load_recipe(RECIPES / args.env / "control.yaml", overrides)
     with tempfile.TemporaryDirectory() as run_dir:
-        ctx = RunContext.create(cfg, Path(run_dir))
+        ctx = RunContext(cfg, Path(run_dir))
         data = control.random_data_stage(ctx, "random_data", frames=4 * 250, episode_steps=250)
         world, estimator = explore.models_stage(ctx, data, "models")
         model = planning_model(cfg, world, estimator)

@@ -13,6 +13,7 @@ import tempfile
 import threading
 import traceback
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from unittest import mock
 
@@ -53,7 +54,6 @@ Details: docs/experiments.md"""
 _RUN_HELP = """Runs RECIPE through Hydra: overrides are key=value (e.g. seed=3 guided.ratio=1.5,
 +key=value to add one); -m sweeps comma-separated values with Hydra's multirun; Hydra flags
 such as `--cfg job` pass through. Re-running the same command resumes a stopped run."""
-_RECIPES_HELP = "recipes (by name, from any folder; or a path to your own):"
 _ABOUT = "TorchRL reproduction of Di Palo & Valpola: the paper's experiments, and their summaries."
 _SUMMARIZE_HELP = """Find results.json below each DIR, aggregate them per experiment kind and
 environment, and print the tables."""
@@ -145,8 +145,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
     (``here``) its device before Hydra starts anything; return the overrides for Hydra. Raises
     FileNotFoundError, RecipeError or RunDirConflict naming the file, key or directory."""
     base = compose.compose_recipe(recipe, with_hydra=True)
-    found = base.get("experiment")
-    if found != kind:
+    if (found := base.get("experiment")) != kind:
         raise RecipeError(
             f"{recipe}: its experiment is {found!r}: run it with `torchrl-recon {found} {recipe}`."
             if found in EXPERIMENTS
@@ -174,9 +173,8 @@ def run_recipe(
     *,
     debug: bool = False,
 ) -> int:
-    """Run a recipe (a path or a shipped name) through ``hydra.main`` (``sys.argv`` set for the
-    call); return the exit code (0, 2 a user error, 130 interrupted, 1 a bug; a multirun's worst
-    job's: a failed job does not stop the others). ``debug`` shows tracebacks."""
+    """Run a recipe (a path or a shipped name) through ``hydra.main`` (``debug``: tracebacks);
+    return :func:`main`'s exit code (a multirun's worst job's: a failed job stops no other)."""
     command = ["torchrl-recon", kind, str(recipe), *overrides] + ["--multirun"] * multirun
     flags, plain = _split_overrides(overrides)
     with mock.patch.dict(os.environ, {_DEBUG_ENV: "1" if debug or _debug() else "0"}):
@@ -224,13 +222,12 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
         True
     """
     out = []
-    for path in sorted(RECIPES_DIR.glob("*/*.yaml")):
-        found = next((k for k in EXPERIMENTS if path.stem.startswith(k)), None)
-        if found is not None and kind in (None, found):
+    for found in [k for k in EXPERIMENTS if kind in (None, k)]:
+        for path in sorted(RECIPES_DIR.glob(f"*/{found}*.yaml")):
             lines = path.read_text().splitlines()
             about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
             out.append((found, path.relative_to(RECIPES_DIR).with_suffix("").as_posix(), about))
-    return sorted(out, key=lambda r: list(EXPERIMENTS).index(r[0]))
+    return out
 
 
 def _experiment(args: argparse.Namespace) -> int:
@@ -246,8 +243,7 @@ def _summarize(args: argparse.Namespace) -> int:
     except ValueError as e:
         return report(e, EXIT_USER)
     for found, results in summaries:
-        kind, count = found["experiment"], len(results)
-        print(f"{count} {kind} result file(s)\n{format_table(found)}\n")
+        print(f"{len(results)} {found['experiment']} result file(s)\n{format_table(found)}\n")
         if args.out is not None:
             saved = save_summary(found, results, args.out)
             print(f"summary: {saved[0]}" + "".join(f"\nfigure: {f}" for f in saved[1:]))
@@ -270,26 +266,23 @@ def build_parser() -> argparse.ArgumentParser:
     for p, default in ((parser, False), (common, argparse.SUPPRESS)):
         p.add_argument("--debug", action="store_true", default=default, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add = partial(sub.add_parser, parents=[common])
     for kind, text in EXPERIMENTS.items():
         names = "".join(f"\n  {name}" for _, name, _ in shipped_recipes(kind))
-        description, epilog = f"{text}. {_RUN_HELP}", f"{_RECIPES_HELP}{names}"
-        p = sub.add_parser(
-            kind, parents=[common], help=text, description=description, epilog=epilog, **raw
-        )
+        epilog = f"recipes (by name, from any folder; or a path to your own):{names}"
+        p = add(kind, help=text, description=f"{text}. {_RUN_HELP}", epilog=epilog, **raw)
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
-        overrides_help = "key=value overrides of the recipe (Hydra syntax)"
-        p.add_argument(
-            "overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=overrides_help
-        )
+        about = "key=value overrides of the recipe (Hydra syntax)"
+        p.add_argument("overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=about)
         p.add_argument("-m", "--multirun", action="store_true", help="run a Hydra multirun sweep")
         p.set_defaults(func=_experiment)
     about = "aggregate results.json files across seeds (Table 1 statistics, control means)"
-    p = sub.add_parser("summarize", parents=[common], help=about, description=_SUMMARIZE_HELP)
+    p = add("summarize", help=about, description=_SUMMARIZE_HELP)
     p.add_argument("dirs", nargs="+", metavar="DIR")
     p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
     p.set_defaults(func=_summarize)
     about = "list the shipped recipes (kind, name, what it runs)"
-    p = sub.add_parser("recipes", parents=[common], help=about)
+    p = add("recipes", help=about)
     p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
     p.set_defaults(func=_recipes)
     return parser

@@ -37,7 +37,7 @@ CONTROL = [
 def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control.Controller]:
     """A control run's context and controller (its random data and models stages done)."""
     cfg = load_recipe(RECIPES / "control_smoke.yaml", [*CONTROL, *overrides])
-    ctx = RunContext.create(cfg, run_dir)
+    ctx = RunContext(cfg, run_dir)
     data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
     world, estimator = explore.models_stage(ctx, data, "models")
     length = max(cfg.models.window, cfg.training.slice_len)  # as control.run
@@ -132,7 +132,7 @@ def test_batched_exploration_data_is_valid(tmp_path):
             "guided.planner.kwargs.num_candidates=8",
         ],
     )
-    ctx = RunContext.create(cfg, tmp_path)
+    ctx = RunContext(cfg, tmp_path)
     initial = explore.random_steps_stage(ctx, "initial_random", 60)
     assert initial.numel() == 60
     assert len(initial.get(TRAJ_KEY).unique()) == 6  # 3 envs × 2 episodes, told apart

@@ -30,7 +30,7 @@ TINY = [
 
 def _ctx(tmp_path: Path, kind: str, *overrides: str) -> RunContext:
     cfg = load_recipe(RECIPES / f"{kind}_smoke.yaml", [*TINY, *overrides])
-    return RunContext.create(cfg, tmp_path)
+    return RunContext(cfg, tmp_path)
 
 
 def test_explore_stages_one_by_one(tmp_path):

@@ -20,12 +20,12 @@ from torchrl_recon.planners import cost_to_u_ratio
 
 def run_explore(cfg, run_dir, logger):
     """One explore run in ``run_dir`` without the runner (no results.json, no figures)."""
-    return explore.run(RunContext.create(cfg, run_dir, logger))
+    return explore.run(RunContext(cfg, run_dir, logger))
 
 
 def run_control(cfg, run_dir, logger):
     """One control run in ``run_dir`` without the runner."""
-    return control.run(RunContext.create(cfg, run_dir, logger))
+    return control.run(RunContext(cfg, run_dir, logger))
 
 
 TRAINING = {

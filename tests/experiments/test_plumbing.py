@@ -18,7 +18,7 @@ from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.evaluation.mpc import METRICS
 from torchrl_recon.experiments import runner
 from torchrl_recon.experiments.config import ControlSetting, EstimatorSpec, PlannerConfig
-from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
+from torchrl_recon.experiments.loggers import make_logger
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.experiments.run_dir import (
@@ -524,7 +524,7 @@ def test_csv_logger_logs_hparams_and_scalars(tmp_path):
     cfg = _smoke(tmp_path)
     logger = make_logger(cfg, tmp_path)
     logger.log_scalar("x", 1.5, step=0)
-    shutdown_logger(logger)
+    logger.shutdown()
     root = tmp_path / "explore_drone_seed0"
     assert (root / "scalars" / "x.csv").read_text().strip() == "0,1.5"
     hparams = next((root / "texts").glob("hparams*")).read_text()

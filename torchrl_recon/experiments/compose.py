@@ -126,13 +126,10 @@ def sweep_jobs(
         >>> sweep_jobs(base, ["seed=0,1", "threads=1"])
         [['threads=1', 'seed=0'], ['threads=1', 'seed=1']]
     """
-    params = (
-        dict(base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
-    )
     given = list(zip(overrides, _parse(overrides), strict=True))
-    for _, o in given:
-        params.pop(o.key_or_group, None)
-    texts = [f"{key}={value}" for key, value in params.items()]
+    params = (base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
+    keys = {o.key_or_group for _, o in given}  # the command line's win over the recipe's
+    texts = [f"{key}={value}" for key, value in params.items() if key not in keys]
     recipe = list(zip(texts, _parse(texts), strict=True))
     fixed = [text for text, o in given + recipe if not _is_sweep(o)]
     sweeps = {text.split("=", 1)[0]: o for text, o in recipe + given if _is_sweep(o)}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -29,42 +29,35 @@ ChildRunner = Callable[[DictConfig], "Mapping[str, Any] | None"]
 @dataclass
 class RunContext:
     """The run an experiment's stages work for, built once by the runner: the validated recipe
-    ``cfg``, the ``run_dir``, its resumable ``stages``, a TorchRL ``logger`` (or None), the
-    ``device`` of networks, planning and fitting, ``run_child`` (runs another experiment's
-    config, e.g. calibrate's outcomes) and the ``recipes`` a child run is made from.
+    ``cfg``, the ``run_dir``, a TorchRL ``logger`` (or None), ``run_child`` (runs another
+    experiment's config, e.g. calibrate's outcomes), the ``recipes`` a child run is made from;
+    from ``cfg``, its resumable ``stages`` (stopping after ``cfg.stop_after``) and the ``device``
+    of networks, planning and fitting.
 
     Examples:
         >>> import tempfile
         >>> from omegaconf import OmegaConf
         >>> from torchrl_recon.experiments.config import ExploreConfig
         >>> cfg = OmegaConf.structured(ExploreConfig(output_dir="out", seed=3))
-        >>> ctx = RunContext.create(cfg, Path(tempfile.mkdtemp()))
+        >>> ctx = RunContext(cfg, Path(tempfile.mkdtemp()))
         >>> ctx.seed, ctx.device.type
         (3, 'cpu')
     """
 
     cfg: DictConfig
     run_dir: Path
-    stages: Stages
-    logger: Logger | None
-    device: torch.device
+    logger: Logger | None = None
     run_child: ChildRunner | None = None
     recipes: RecipeLoader | None = None
+    stages: Stages = field(init=False)
+    device: torch.device = field(init=False)
 
-    @classmethod
-    def create(
-        cls,
-        cfg: DictConfig,
-        run_dir: Path,
-        logger: Logger | None = None,
-        run_child: ChildRunner | None = None,
-        recipes: RecipeLoader | None = None,
-    ) -> RunContext:
-        """The context of ``cfg`` run in ``run_dir`` (its stages stop after ``cfg.stop_after``)."""
-        stages = Stages(run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=logger)
-        return cls(
-            cfg, Path(run_dir), stages, logger, resolve_device(cfg.device), run_child, recipes
+    def __post_init__(self) -> None:
+        cfg, self.run_dir = self.cfg, Path(self.run_dir)
+        self.stages = Stages(
+            self.run_dir, seed=cfg.seed, stop_after=cfg.stop_after, logger=self.logger
         )
+        self.device = resolve_device(cfg.device)
 
     @property
     def seed(self) -> int:

@@ -1,6 +1,5 @@
-"""What an experiment kind is: one :class:`ExperimentType` holds everything the CLI, the
-runner and the recipe checks need to know to run it (how its results are shown is its
-:class:`~torchrl_recon.reports.Report`)."""
+"""What an experiment kind is: everything the CLI, the runner and the recipe checks need to run
+it (how its results are shown is its :class:`~torchrl_recon.reports.Report`)."""
 
 from __future__ import annotations
 
@@ -50,8 +49,8 @@ class ExperimentType:
         return cls(**{**found, "stages": module.STAGES, **given})
 
     def stage_list(self, cfg: DictConfig | None) -> list[str]:
-        """The stage names of ``cfg``'s run; a template with a field the recipe leaves open is
-        shown as ``guided_data_<n>``.
+        """The stage names of ``cfg``'s run; a template's field the recipe leaves open is shown
+        as ``<field>`` (``guided_data_<n>``).
 
         Examples:
             >>> from torchrl_recon.experiments.registry import get_type
@@ -60,22 +59,14 @@ class ExperimentType:
         """
         values, names = self.stage_values(cfg) if cfg is not None else {}, []
         for template in self.stages:
-            keys = _FIELD.findall(template)
-            if not all(k in values for k in keys):
-                names.append(_FIELD.sub(r"<\1>", template))
-                continue
+            keys = [k for k in _FIELD.findall(template) if k in values]
+            shown = _FIELD.sub(lambda m: m[0] if m[1] in values else f"<{m[1]}>", template)
             for combo in itertools.product(*(values[k] for k in keys)):
-                names.append(template.format(**dict(zip(keys, combo, strict=True))))
+                names.append(shown.format(**dict(zip(keys, combo, strict=True))))
         return names
 
     def is_stage(self, cfg: DictConfig | None, name: str) -> bool:
-        """Whether ``name`` is a stage of ``cfg``'s run (what ``stop_after`` may name)."""
-        values = self.stage_values(cfg) if cfg is not None else {}
-
-        def field(match: re.Match[str]) -> str:  # a template's {key} as a pattern
-            if (key := match[1]) not in values:
-                return r"\d+" if key == "n" else ".+"
-            return "(" + "|".join(re.escape(str(v)) for v in values[key]) + ")"
-
-        escaped = [re.escape(t) for t in self.stages]  # {key} is escaped as \{key\}
-        return any(re.fullmatch(re.sub(r"\\\{(\w+)\\\}", field, t), name) for t in escaped)
+        """Whether ``name`` is a stage of ``cfg``'s run (what ``stop_after`` may name): one of
+        :meth:`stage_list`'s, with a number for ``<n>`` and any value for another ``<field>``."""
+        shown = [re.escape(s).replace("<n>", r"\d+") for s in self.stage_list(cfg)]
+        return any(re.fullmatch(re.sub(r"<\w+>", ".+", s), name) for s in shown)

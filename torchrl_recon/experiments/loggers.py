@@ -31,9 +31,3 @@ def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | No
     if logger is not None:
         logger.log_hparams({k: "None" if v is None else v for k, v in flat_config(cfg).items()})
     return logger
-
-
-def shutdown_logger(logger: Logger | None) -> None:
-    """Flush and close ``logger`` (finishes the wandb run); nothing for None."""
-    if logger is not None:
-        logger.shutdown()

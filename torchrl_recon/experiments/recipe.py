@@ -59,9 +59,8 @@ def _merge_checked(schema: type, data: Any, *, prefix: str, source: str) -> Dict
             known = [f.name for f in dataclasses.fields(t)] if dataclasses.is_dataclass(t) else []
             hint = f" Known keys here: {', '.join(known)}." if known else ""
             raise RecipeError(f"{source}: unknown key '{key}' (not a field{where}).{hint}") from e
-        choice = _BAD_CHOICE.fullmatch(line)
-        if isinstance(e, ValidationError) and choice:  # an Enum field: name its choices
-            value, choices = choice.groups()
+        if isinstance(e, ValidationError) and (choice := _BAD_CHOICE.fullmatch(line)):
+            value, choices = choice.groups()  # an Enum field: name its choices
             raise RecipeError(
                 f"{source}: '{key}' must be one of {choices.split(', ')}, got {value!r}"
             ) from e
@@ -95,9 +94,8 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
         )
     kind = EXPERIMENT_TYPES[experiment]
     key, item_schema = kind.list_field or ("", None)
-    if data.get(key) is None:
+    if (items := data.get(key)) is None:
         data.pop(key, None)  # the schema's default
-    items = data.get(key)
     for i, item in enumerate(items if isinstance(items, list) else []):
         if isinstance(item, dict):  # OmegaConf's errors inside a list do not name the index
             _merge_checked(item_schema, item, prefix=f"{key}[{i}].", source=source)
@@ -112,11 +110,9 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
             f"{source}: cannot resolve an interpolation at '{getattr(e, 'full_key', '?')}': "
             + str(e).strip().partition("\n")[0]
         ) from e
-    missing = sorted(OmegaConf.missing_keys(merged))
-    if missing:
+    if missing := sorted(OmegaConf.missing_keys(merged)):
         raise RecipeError(f"{source}: no value given for {', '.join(repr(k) for k in missing)}.")
-    errors = recipe_errors(merged, kind, RecipeLoader(resolve_recipe_path, load_recipe))
-    if errors:
+    if errors := recipe_errors(merged, kind, RecipeLoader(resolve_recipe_path, load_recipe)):
         raise RecipeError(f"{source}: " + "; ".join(errors))
     return merged
 

@@ -1,9 +1,6 @@
-"""The checks of a merged recipe that span several keys or need the env or a registry, run by
-:func:`recipe_errors` after the schema's own (:func:`~.field_checks.schema_errors`): the env
-(:func:`torchrl_recon.envs.entry_errors`), the planner and estimator blocks (class, keywords, a
-build on a tiny model), data sizes against ``training.slice_len``, unique names and
-``stop_after``, and the parts each kind's own ``check`` (in its module) is made of. One message
-per problem, naming the key and the value."""
+"""The checks of a merged recipe that span several keys or need the env or a registry, after the
+schema's own (:func:`~.field_checks.schema_errors`), and the parts each kind's ``check`` (in its
+module) is made of; one message per problem, naming the key and the value."""
 
 from __future__ import annotations
 
@@ -217,10 +214,8 @@ def data_errors(errors: RecipeErrors, episode_key: str, frames_key: str | None =
     and, with ``frames_key`` steps in all, two trajectories (one is held out to validate a fit)."""
     cfg = errors.cfg
     slice_len, episode = cfg.training.slice_len, OmegaConf.select(cfg, episode_key)
-    why = "(a training slice never crosses an episode)"
-    errors.need(
-        episode_key, episode >= slice_len, f"at least training.slice_len = {slice_len} {why}"
-    )
+    why = f"at least training.slice_len = {slice_len} (a training slice never crosses an episode)"
+    errors.need(episode_key, episode >= slice_len, why)
     if frames_key is not None:
         errors.need(
             frames_key,

@@ -64,14 +64,13 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     """
     keep = [{k: v for k, v in dict(c).items() if k not in RESUME_IGNORED_KEYS} for c in (old, new)]
     a, b = map(_flatten, keep)
-    absent = object()
     diffs = []
     for key in sorted(set(a) | set(b)):
-        before, after = a.get(key, absent), b.get(key, absent)
-        if before is absent and after in (None, KEYS_ADDED_SINCE.get(key, absent)):
+        before, after = a.get(key, _ABSENT), b.get(key, _ABSENT)
+        if before is _ABSENT and after in (None, KEYS_ADDED_SINCE.get(key, _ABSENT)):
             continue
-        if before is absent or after is absent or before != after:
-            shown = ["(absent)" if v is absent else repr(v) for v in (before, after)]
+        if before is _ABSENT or after is _ABSENT or before != after:
+            shown = ["(absent)" if v is _ABSENT else repr(v) for v in (before, after)]
             diffs.append(f"{key}: {shown[0]} -> {shown[1]}")
     return diffs
 
@@ -102,15 +101,12 @@ def portable_argv(argv: Sequence[str]) -> list[str]:
         >>> portable_argv(["torchrl-recon", "explore", "x.yaml", "output_dir=/scratch/run/seed3"])
         ['torchrl-recon', 'explore', 'x.yaml', 'output_dir=seed3']
     """
-    out = []
-    for item in map(str, argv):
-        key, eq, value = item.rpartition("=") if "=" in item else ("", "", item)
-        out.append(f"{key}{eq}{portable_path(value)}" if value.startswith("/") else item)
-    return out
+    split = (str(item).rpartition("=") for item in argv)  # ("", "", item) without a "="
+    return [f"{k}{eq}{portable_path(v) if v.startswith('/') else v}" for k, eq, v in split]
 
 
-def _write(path: Path, text: str) -> None:
-    write_atomically(path, lambda tmp: tmp.write_text(text))
+def _write(path: Path, text: str) -> Path:
+    return write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
 def _utc_now() -> str:
@@ -119,8 +115,7 @@ def _utc_now() -> str:
 
 def release_run_dir(run_dir: str | os.PathLike[str]) -> None:
     """Release the lock taken by :func:`prepare_run_dir` (also released when the process exits)."""
-    lock = _LOCKS.pop(str(Path(run_dir).resolve()), None)
-    if lock is not None:
+    if (lock := _LOCKS.pop(str(Path(run_dir).resolve()), None)) is not None:
         lock.release(force=True)
 
 
@@ -132,8 +127,7 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     if not (run_dir / "config.yaml").exists():
         return new
     old = OmegaConf.to_container(read_config(run_dir))
-    diffs = config_differences(old, new)
-    if diffs:
+    if diffs := config_differences(old, new):
         shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
         raise RunDirConflict(
             f"{run_dir} already holds a run with a different configuration:\n  {shown}\n"
@@ -169,12 +163,9 @@ def resume_overrides(old: Mapping[str, Any], keys: Sequence[str]) -> str:
 def prepare_run_dir(
     cfg: DictConfig, argv: Sequence[str] | None = None, extra_meta: Mapping[str, Any] | None = None
 ) -> Path:
-    """Lock and create ``cfg.output_dir``, write ``config.yaml`` and ``meta.json``; return its path.
-
-    A directory with a ``config.yaml`` is a run to resume (:func:`check_run_dir`); its earlier
-    starts stay in ``meta.json`` under ``previous``. :class:`RunDirConflict` when another
-    process runs in it.
-    """
+    """Lock and create ``cfg.output_dir``, write ``config.yaml`` and ``meta.json`` (a resumed
+    run's earlier starts under ``previous``); return its path. :class:`RunDirConflict` when
+    another process runs in it or (:func:`check_run_dir`) it holds another configuration."""
     run_dir = Path(cfg.output_dir).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     if str(run_dir) not in _LOCKS:  # an flock: a second process on the directory is refused
@@ -239,15 +230,13 @@ def _json_default(obj: Any) -> Any:
 
 
 def write_results(run_dir: str | os.PathLike[str], results: Mapping[str, Any]) -> Path:
-    """Write ``results.json``: ``results`` plus ``meta`` (``meta.json``, with the finish time).
-
-    Non-finite floats are written as JSON ``NaN`` / ``Infinity`` (Python's ``json`` reads them).
-    """
+    """Write ``results.json``: ``results`` plus ``meta`` (``meta.json``, with the finish time);
+    non-finite floats as JSON ``NaN`` / ``Infinity`` (Python's ``json`` reads them)."""
     run_dir = Path(run_dir)
     meta = read_meta(run_dir) if (run_dir / "meta.json").exists() else {}
     meta["finished_utc"] = _utc_now()
     text = json.dumps({**results, "meta": meta}, indent=1, default=_json_default)
-    return write_atomically(run_dir / "results.json", lambda tmp: tmp.write_text(text))
+    return _write(run_dir / "results.json", text)
 
 
 def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
@@ -270,8 +259,7 @@ def read_config(run_dir: str | os.PathLike[str]) -> DictConfig:
     if not isinstance(saved, DictConfig):
         raise DamagedFileError(f"{path} holds a YAML list, not a mapping; {remedy}")
     saved = upgrade_legacy_config(saved)  # planner blocks written flat, before `kwargs`
-    kind = EXPERIMENT_TYPES.get(saved.get("experiment"))
-    if kind is None:
+    if (kind := EXPERIMENT_TYPES.get(saved.get("experiment"))) is None:
         return saved
     schema = OmegaConf.structured(kind.schema)
     for key, value in KEYS_ADDED_SINCE.items():  # as the run was made, where the key is the kind's

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import describe_device, resolve_device
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
-from torchrl_recon.experiments.loggers import make_logger, shutdown_logger
+from torchrl_recon.experiments.loggers import make_logger
 from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
@@ -27,8 +28,7 @@ from torchrl_recon.reports import format_table, get_report, save_figures
 def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
     """Run a child experiment (calibrate's outcomes) made by ``argv``; its headline numbers."""
     results = run(cfg, argv=argv)
-    outcome = get_report(cfg.experiment).outcome
-    if outcome is None:
+    if (outcome := get_report(cfg.experiment).outcome) is None:
         raise ValueError(f"experiment {cfg.experiment!r} cannot run as a child: it has no outcome.")
     return None if results is None else outcome(results)
 
@@ -64,11 +64,8 @@ def run(
     argv: Sequence[str] | None = None,
     extra_meta: Mapping[str, Any] | None = None,
 ) -> dict[str, Any] | None:
-    """Validate ``cfg``, check and prepare its run directory, run the experiment, store results.
-
-    Returns the results, or None when it stopped after ``cfg.stop_after`` (re-running the same
-    command resumes).
-    """
+    """Validate ``cfg``, check and prepare its run directory, run the experiment, store the
+    results; return them, or None when it stopped after ``cfg.stop_after`` (re-running resumes)."""
     cfg = validate(cfg)
     try:
         device = resolve_device(cfg.device)
@@ -78,15 +75,17 @@ def run(
     extra_meta = {**(extra_meta or {}), "device": describe_device(device)}
     extra_meta["malloc_keeps_freed_memory"] = keep_freed_memory()
     verify_run_dir(Path(cfg.output_dir).expanduser())  # a damaged resume: refused before writing
-    run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
-    tag = f"[{cfg.experiment}]"
-    print(f"{tag} {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
-    logger = None
-    try:
+    with ExitStack() as cleanup:  # the logger shut down, then the run directory released
+        run_dir = prepare_run_dir(cfg, argv=argv, extra_meta=extra_meta)
+        cleanup.callback(release_run_dir, run_dir)
+        tag = f"[{cfg.experiment}]"
+        print(f"{tag} {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
         kind = get_type(cfg.experiment)
         logger = make_logger(cfg, run_dir)
+        if logger is not None:
+            cleanup.callback(logger.shutdown)
         recipes = RecipeLoader(resolve_recipe_path, load_recipe)
-        ctx = RunContext.create(cfg, run_dir, logger, partial(_run_child, argv=argv), recipes)
+        ctx = RunContext(cfg, run_dir, logger, partial(_run_child, argv=argv), recipes)
         try:
             results = kind.run(ctx)
         except StopRequested as stop:
@@ -109,8 +108,3 @@ def run(
         print(f"results: {results_path}")
         print("".join(f"figure: {path}\n" for path in figures), end="", flush=True)
         return results
-    finally:
-        try:
-            shutdown_logger(logger)
-        finally:
-            release_run_dir(run_dir)

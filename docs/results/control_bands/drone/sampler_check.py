@@ -58,7 +58,7 @@ def main() -> None:
     raw.stop_after = None
     if args.window_sampling is not None:
         raw.training.window_sampling = args.window_sampling
-    ctx = RunContext.create(validate(raw), args.run_dir, None)
+    ctx = RunContext(validate(raw), args.run_dir, None)
     data = ctx.stages.load_data("random_data")
     train = data.clone()
     if args.chunk > 0:

@@ -56,7 +56,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as run_dir:
         ctx = RunContext(cfg, Path(run_dir))
         data = control.random_data_stage(ctx, "random_data", frames=4 * 250, episode_steps=250)
-        world, estimator = explore.models_stage(ctx, data, "models")
+        world, estimator, _ = explore.models_stage(ctx, data, "models")
         model = planning_model(cfg, world, estimator)
         controller = control.Controller(model, 1.0, 1.0, control.state_scale(data))
         print(

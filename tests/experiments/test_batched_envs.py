@@ -39,7 +39,7 @@ def _control(run_dir: Path, *overrides: str) -> tuple[RunContext, control.Contro
     cfg = load_recipe(RECIPES / "control_smoke.yaml", [*CONTROL, *overrides])
     ctx = RunContext(cfg, run_dir)
     data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = explore.models_stage(ctx, data, "models")
+    world, estimator, _ = explore.models_stage(ctx, data, "models")
     length = max(cfg.models.window, cfg.training.slice_len)  # as control.run
     u = window_uncertainty(data, estimator, sequence_length=length)
     model = planning_model(cfg, world, estimator)
@@ -133,7 +133,7 @@ def test_batched_exploration_data_is_valid(tmp_path):
         ],
     )
     ctx = RunContext(cfg, tmp_path)
-    initial = explore.random_steps_stage(ctx, "initial_random", 60)
+    initial = explore.random_data_stage(ctx, "initial_random", frames=60, keys=explore.DATA_KEYS)
     assert initial.numel() == 60
     assert len(initial.get(TRAJ_KEY).unique()) == 6  # 3 envs × 2 episodes, told apart
     _assert_contiguous_trajectories(initial)
@@ -147,7 +147,7 @@ def test_batched_exploration_data_is_valid(tmp_path):
     assert validation.shape == (5, 7)
     assert (validation["step_count"].squeeze(-1) == torch.arange(7)).all()
 
-    world, estimator = explore.models_stage(ctx, initial, "initial_models")
+    world, estimator, _ = explore.models_stage(ctx, initial, "initial_models")
     record, data = explore.guided_round_stage(ctx, world, estimator, 0, 1, 40)
     assert data.numel() == record["steps"] == 40
     _assert_contiguous_trajectories(data)

@@ -44,9 +44,9 @@ def test_explore_stages_one_by_one(tmp_path):
         "guided.planner.kwargs.horizon=3",
         "guided.planner.kwargs.num_candidates=8",
     )
-    initial = explore.random_steps_stage(ctx, "initial_random", 30)
+    initial = explore.random_data_stage(ctx, "initial_random", frames=30, keys=explore.DATA_KEYS)
     assert initial.numel() == 30 and ctx.stages.done("initial_random")
-    world, estimator = explore.models_stage(ctx, initial, "initial_models")
+    world, estimator, _ = explore.models_stage(ctx, initial, "initial_models")
     assert (tmp_path / "checkpoints" / "initial_models.pt").is_file()
     validation = explore.validation_stage(ctx)
     assert validation.shape == (2, 3 + 4)
@@ -73,7 +73,7 @@ def test_control_stages_one_by_one(tmp_path):
         "episodes=1",
     )
     data = control.random_data_stage(ctx, "random_data", frames=24, episode_steps=12)
-    world, estimator = explore.models_stage(ctx, data, "models")
+    world, estimator, _ = explore.models_stage(ctx, data, "models")
     u = window_uncertainty(data, estimator, sequence_length=ctx.cfg.training.slice_len)
     threshold = control.replan_threshold(ctx.cfg, u)
     assert threshold > 0 and u.device.type == "cpu"

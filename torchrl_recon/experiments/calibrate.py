@@ -212,9 +212,8 @@ def run(ctx: RunContext) -> dict[str, Any]:
         row |= {"fit_val_loss": fit["val_loss"], "fit_wall_time_s": fit["wall_time_s"]}
         for h in cfg.timing.horizons:
             mine, ref = times[f"H{h}"][spec.name], times[f"H{h}"][reference]
-            row[f"score_ms_H{h}"], row[f"cem_ms_H{h}"] = mine["score_ms"], mine["cem_ms"]
-            row[f"score_ratio_H{h}"] = mine["score_ms"] / ref["score_ms"]
-            row[f"cem_ratio_H{h}"] = mine["cem_ms"] / ref["cem_ms"]
+            row |= {f"{m}_ms_H{h}": mine[f"{m}_ms"] for m in ("score", "cem")}
+            row |= {f"{m}_ratio_H{h}": mine[f"{m}_ms"] / ref[f"{m}_ms"] for m in ("score", "cem")}
         row["outcomes"] = found = outcomes[spec.name]
         if found.get("explore"):
             row["explore_ratio"] = found["explore"]["ratio"]

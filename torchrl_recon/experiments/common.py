@@ -51,19 +51,19 @@ def build_env(
     cfg: DictConfig,
     *,
     seed: int | Sequence[int],
-    episode_steps: int,
+    episode_steps: int | None = None,
     policy: MPCPolicy | None = None,
     num_envs: int | None = None,
 ) -> EnvBase:
-    """The recipe's env (on the CPU) with episodes of ``episode_steps``: a ``SerialEnv`` batch
-    for ``num_envs > 1`` or a list of seeds (:func:`~torchrl_recon.envs.make_env`); with a
+    """The recipe's env (CPU) with episodes of ``episode_steps`` (default ``env.episode_steps``):
+    a ``SerialEnv`` batch for ``num_envs > 1`` or a list of seeds (:func:`~.envs.make_env`); with a
     ``policy``, its primer appended and its data cast to its device (``DeviceCastTransform``)."""
     env = make_env(
         cfg.env.id or cfg.env.name,
         seed=seed,
         num_envs=num_envs,
         parallel=False,  # worker processes cost more than they save here (docs/benchmarks.md)
-        max_episode_steps=episode_steps,
+        max_episode_steps=episode_steps or cfg.env.episode_steps,
         **OmegaConf.to_container(cfg.env.kwargs, resolve=True),
     )
     if policy is not None:
@@ -118,7 +118,7 @@ def planning_model(
 
 
 def random_data_stage(
-    ctx: RunContext, name: str, *, frames: int, episode_steps: int, keys: tuple | None = None
+    ctx: RunContext, name: str, *, frames: int, episode_steps: int | None = None, keys: tuple = ()
 ) -> TensorDictBase:
     """Stage ``name``: ``frames`` uniform random steps (``num_envs`` envs as one batch), stored
     as ``buffers/<name>`` (only ``keys``, if given); returns the stored data."""
@@ -128,7 +128,7 @@ def random_data_stage(
         env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps, num_envs=ctx.cfg.num_envs)
         data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
         close_env(env)  # the collector has closed a batched env already
-        ctx.stages.save_data(name, data if keys is None else data.select(*keys))
+        ctx.stages.save_data(name, data.select(*keys) if keys else data)
         return {"steps": data.numel()}
 
     ctx.stages.run(name, run)
@@ -176,27 +176,24 @@ def build_estimator(
 
 
 def build_models(
-    cfg: DictConfig,
-    obs_dim: int,
-    action_dim: int,
-    device: torch.device | None = None,
-    *,
-    members: int | None = None,
+    cfg: DictConfig, obs_dim: int, action_dim: int, device: torch.device | None = None
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """World model (of ``members`` members, or one) and estimator of the recipe's sizes, on
-    ``device`` (default: ``cfg.device``)."""
+    """World model (an ensemble of the recipe's ``world_model_members`` where above 1) and
+    estimator of the recipe's sizes, on ``device`` (default: ``cfg.device``)."""
     m, device = cfg.models, resolve_device(cfg.device) if device is None else device
-    world = build_world_model(cfg, obs_dim, action_dim, members).to(device)
+    r = cfg.get("world_model_members", 1)
+    world = build_world_model(cfg, obs_dim, action_dim, r if r > 1 else None).to(device)
     return world, build_estimator(m.uncertainty, obs_dim, action_dim, m.window).to(device)
 
 
 def models_stage(
     ctx: RunContext, data: TensorDictBase, name: str
-) -> tuple[LSTMWorldModel, UncertaintyEstimator]:
-    """Stage ``name``: the world model and the estimator built and fitted on ``data``."""
+) -> tuple[LSTMWorldModel, UncertaintyEstimator, dict]:
+    """Stage ``name``: the world model and the estimator built and fitted on ``data``; returns
+    them and the stage's record."""
     world, estimator = build_models(ctx.cfg, *dims(data), ctx.device)
-    fit_stage(ctx, name, data, {"world_model": world, "uncertainty": estimator})
-    return world, estimator
+    record = fit_stage(ctx, name, data, {"world_model": world, "uncertainty": estimator})
+    return world, estimator, record
 
 
 def dims(data: TensorDictBase) -> tuple[int, int]:

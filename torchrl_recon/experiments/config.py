@@ -11,7 +11,7 @@ import inspect
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -151,7 +151,7 @@ class BandConfig:
     high: float | None = None
     kind: BandKind = BandKind.quantile
 
-    def more_errors(self) -> Iterator[tuple[str, str]]:
+    def more_errors(self, key: str) -> Iterator[tuple[str, str]]:
         """The band the objective would build (its limits against its kind)."""
         from torchrl_recon.planners.objective import UncertaintyBand
 
@@ -192,12 +192,11 @@ class SeekBand:
     )
     cap: float | None = None
     beta: float = checked(0.0, lambda v: None if v <= 0 else "<= 0 (exploration seeks uncertainty)")
-    KEY: ClassVar[str] = ""  # the recipe section, for the message naming ratio
 
-    def more_errors(self) -> Iterator[tuple[str, str]]:
-        """``cap`` null or above ``ratio``."""
+    def more_errors(self, key: str) -> Iterator[tuple[str, str]]:
+        """``cap`` null or above ``ratio`` (``key``: this section's)."""
         if self.cap is not None and finite(self.cap, self.ratio) and not self.cap > self.ratio:
-            yield "cap", f" must be null or above {self.KEY}.ratio = {self.ratio}, got {self.cap!r}"
+            yield "cap", f" must be null or above {key}.ratio = {self.ratio}, got {self.cap!r}"
 
 
 @dataclass
@@ -205,7 +204,6 @@ class GuidedConfig(SeekBand):
     """Uncertainty-guided exploration (paper §2.4): ``steps`` steps planned with ``planner`` for
     Σu in the band, the models refitted every ``refit_every_episodes`` episodes."""
 
-    KEY: ClassVar[str] = "guided"
     steps: int = count(15000)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     refit_every_episodes: int = count(50)
@@ -216,7 +214,6 @@ class OnlineExplorationConfig(SeekBand):
     """The online loop's first ``iterations`` rounds played by an ``ExplorationPolicy`` with the
     recipe's ``planner`` for Σu in the band; 0 rounds: control from the first."""
 
-    KEY: ClassVar[str] = "exploration"
     iterations: int = count(0, 0)
 
 

@@ -69,9 +69,7 @@ def play_episodes(
     actions. Ended envs wait (TorchRL partial steps) until all are done or ``env.episode_steps``."""
     seeds = [ctx.stage_seed(f"{name}_{e}") for e in batch]
     steps, batched = ctx.cfg.env.episode_steps, len(seeds) > 1
-    env = build_env(
-        ctx.cfg, seed=seeds if batched else seeds[0], episode_steps=steps, policy=policy
-    )
+    env = build_env(ctx.cfg, seed=seeds if batched else seeds[0], policy=policy)
     torch.manual_seed(seeds[0])
     td = env.rollout(steps, policy, break_when_all_done=batched).cpu()  # else: any done
     close_env(env)
@@ -172,7 +170,7 @@ def run(ctx: RunContext) -> dict:
     frames, steps = cfg.random_episodes * cfg.random_episode_steps, cfg.random_episode_steps
     data = random_data_stage(ctx, "random_data", frames=frames, episode_steps=steps)
     scale = state_scale(data)
-    world, estimator = models_stage(ctx, data, "models")
+    world, estimator, _ = models_stage(ctx, data, "models")
     length = max(cfg.models.window, cfg.training.slice_len)
     per_window_u = window_uncertainty(data, estimator, sequence_length=length)
     threshold = replan_threshold(cfg, per_window_u)

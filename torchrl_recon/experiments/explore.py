@@ -62,12 +62,6 @@ STAGES += ("random_arm", "retrain_{n}")
 """Stage name templates, in run order (``{n}`` a round or a group of retrainings)."""
 
 
-def random_steps_stage(ctx: RunContext, name: str, frames: int) -> TensorDictBase:
-    """``frames`` random steps in the env's episodes, keeping :data:`DATA_KEYS`."""
-    steps = ctx.cfg.env.episode_steps
-    return random_data_stage(ctx, name, frames=frames, episode_steps=steps, keys=DATA_KEYS)
-
-
 def validation_stage(ctx: RunContext) -> TensorDictBase:
     """Held-out trajectories ``[trajectories, window + validation.steps]``, ``num_envs`` at a time.
 
@@ -131,8 +125,8 @@ def guided_round_stage(
         model = planning_model(cfg, world, estimator)  # the env's action bounds
         objective = exploration_objective(ratio=guided.ratio, cap=guided.cap, beta=guided.beta)
         policy = ExplorationPolicy(build_planner(guided.planner, model, objective))
-        seed, steps = ctx.stage_seed(name), cfg.env.episode_steps
-        env = build_env(cfg, seed=seed, episode_steps=steps, policy=policy, num_envs=cfg.num_envs)
+        seed = ctx.stage_seed(name)
+        env = build_env(cfg, seed=seed, policy=policy, num_envs=cfg.num_envs)
         desc = f"guided exploration {r + 1}/{rounds}"
         data = collect(env, policy, frames=frames, seed=seed, progress=cfg.progress, desc=desc)
         close_env(env)  # the collector has closed a batched env already
@@ -197,9 +191,11 @@ def run(ctx: RunContext) -> dict:
     """Run (or resume) one repeat of the exploration experiment; return its results."""
     cfg, guided = ctx.cfg, ctx.cfg.guided
     validation = validation_stage(ctx)  # first: an env that ends it early is refused before any fit
-    initial = random_steps_stage(ctx, "initial_random", cfg.initial_random_steps)
+    initial = random_data_stage(
+        ctx, "initial_random", frames=cfg.initial_random_steps, keys=DATA_KEYS
+    )
     scale = state_scale(initial)
-    world, estimator = models_stage(ctx, initial, "initial_models")
+    world, estimator, _ = models_stage(ctx, initial, "initial_models")
     # guided exploration in rounds, both networks refitted on all data after each but the last
     rounds = batches(guided.steps, cfg.env.episode_steps * guided.refit_every_episodes)
     parts, plans, feasible = [], 0, 0
@@ -211,7 +207,7 @@ def run(ctx: RunContext) -> dict:
             grown = concat_trajectories(initial, *parts)
             modules = {"world_model": world, "uncertainty": estimator}
             fit_stage(ctx, f"guided_refit_{r}", grown, modules, fit_normalization=False)
-    random_arm = random_steps_stage(ctx, "random_arm", cfg.random_steps)
+    random_arm = random_data_stage(ctx, "random_arm", frames=cfg.random_steps, keys=DATA_KEYS)
     arms = {
         "random": concat_trajectories(initial, random_arm),
         "active": concat_trajectories(initial, *parts),

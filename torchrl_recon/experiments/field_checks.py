@@ -1,6 +1,6 @@
 """Value checks declared next to the schema field they guard (``count(1)``, ``positive(3e-3)``,
 ``checked(0.1, in_open_unit)``; every float finite unless its field says otherwise; a
-dataclass's ``more_errors`` for checks across its fields), and :func:`schema_errors`, the walk
+dataclass's ``more_errors(key)`` for checks across its fields), and :func:`schema_errors`, the walk
 that runs them all on a merged recipe. Choices are ``Enum`` fields, refused by the merge."""
 
 from __future__ import annotations
@@ -27,9 +27,6 @@ class Choice(str, Enum):
     def __repr__(self) -> str:
         return repr(self.value)
 
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
-
 
 def choice(name: str, values: str | list[str], module: str) -> Any:
     """A :class:`Choice` ``Enum`` called ``name`` of ``values`` (a space-separated string).
@@ -47,9 +44,8 @@ def checked(default: Any = dataclasses.MISSING, check: Check | None = None, **kw
     lets its floats be infinite (another check handles them); ``factory`` gives a mutable
     default."""
     metadata = {"check": check, "finite": kw.pop("finite", True)}
-    if "factory" in kw:
-        return dataclasses.field(default_factory=kw.pop("factory"), metadata=metadata)
-    return dataclasses.field(default=default, metadata=metadata)
+    factory = kw.pop("factory", dataclasses.MISSING)
+    return dataclasses.field(default=default, default_factory=factory, metadata=metadata)
 
 
 def at_least(low: float, why: str = "") -> Check:
@@ -105,7 +101,7 @@ def _walk(obj: Any, key: str, errors: list[str]) -> None:
             if expected:
                 errors.append(f"'{sub}' must be {expected}, got {value!r}")
         _walk(value, sub, errors)
-    for sub, text in getattr(obj, "more_errors", list)():
+    for sub, text in getattr(obj, "more_errors", lambda key: ())(key):
         errors.append(f"'{key}.{sub}'{text}" if sub else f"'{key}'{text}")
 
 

@@ -13,12 +13,10 @@ from tensordict import TensorDictBase
 from torchrl_recon.envs import close_env
 from torchrl_recon.experiments.common import (
     build_env,
-    build_models,
     build_planner,
     check_random_data,
     checkpoint_stage,
-    dims,
-    fit_stage,
+    models_stage,
     mpc_policy,
     planning_model,
     random_data_stage,
@@ -70,7 +68,7 @@ def play_stage(
             planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
             mpc = mpc_policy(cfg, planner, threshold, warmup=warmup)
         seed = ctx.stage_seed(name)
-        env = build_env(cfg, seed=seed, episode_steps=cfg.env.episode_steps, policy=mpc)
+        env = build_env(cfg, seed=seed, policy=mpc)
         new, plan_s = play(
             env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
         )
@@ -137,14 +135,10 @@ def refit_stage(
 def run(ctx: RunContext) -> dict:
     """Run (or resume) the online experiment; return its results."""
     cfg = ctx.cfg
-    data = random_data_stage(
-        ctx, "random_data", frames=cfg.random_steps, episode_steps=cfg.env.episode_steps
-    )
+    data = random_data_stage(ctx, "random_data", frames=cfg.random_steps)
     check_random_data(cfg, data)  # two episodes to split, before any fit
     warmup = warmup_mode(cfg, data)  # from the random data only, once
-    members = cfg.world_model_members if cfg.world_model_members > 1 else None
-    world, estimator = build_models(cfg, *dims(data), ctx.device, members=members)
-    first = fit_stage(ctx, "models", data, {"world_model": world, "uncertainty": estimator})
+    world, estimator, first = models_stage(ctx, data, "models")
     model = planning_model(cfg, world, estimator)
     iterations = []
     for n in range(1, cfg.iterations + 1):

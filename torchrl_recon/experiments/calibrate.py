@@ -1,11 +1,6 @@
-"""The calibrate experiment (its stages, recipe check and ``EXPERIMENT``): uncertainty
-estimators side by side on calibration, out-of-distribution detection, cost, and the outcome of
-the two experiments with each.
-
-``random_data`` → ``world_model`` → ``fit_<estimator>`` for each → ``evaluation`` →
-``timing`` → ``outcome_<estimator>_{explore,control}`` (the two experiments at a reduced scale,
-each in its own run directory under ``outcomes/``, through the context's ``run_child``).
-"""
+"""The calibrate experiment (its resumable :data:`STAGES`, recipe check and ``EXPERIMENT``):
+uncertainty estimators side by side on calibration, out-of-distribution detection, cost, and
+the outcome of the two experiments with each (:func:`outcome_stages`)."""
 
 from __future__ import annotations
 
@@ -56,8 +51,7 @@ def timing(
 ) -> dict[str, Any]:
     """Stage ``timing``: scoring K × H windows and one CEM call per estimator (and CEM without
     u), per horizon, interleaved; on a CUDA device each call is timed until the device is done."""
-    t, window = cfg.timing, cfg.models.window
-    device = module_device(world)
+    t, window, device = cfg.timing, cfg.models.window, module_device(world)
     seqs = cut_sequences(data, window + 1).to(device)
     ctx = (seqs["observation"][0, :window], seqs["action"][0, :window], seqs["observation"][0, -1])
     features = torch.cat([data["observation"], data["action"]], -1).to(device)
@@ -90,12 +84,11 @@ def fit_stages(
 ) -> tuple[LSTMWorldModel, dict[str, UncertaintyEstimator], dict[str, dict]]:
     """Stages ``world_model`` and ``fit_<name>``: the world model and each estimator fitted on
     ``data``; returns them (in eval mode) and their stage records."""
-    cfg = ctx.cfg
-    world = build_world_model(cfg, *dims(data)).to(ctx.device)
+    world = build_world_model(ctx.cfg, *dims(data)).to(ctx.device)
     fits = {"world_model": fit_stage(ctx, "world_model", data, {"world_model": world})}
     estimators: dict[str, UncertaintyEstimator] = {}
-    for spec in cfg.estimators:
-        est = build_estimator(spec, *dims(data), cfg.models.window).to(ctx.device)
+    for spec in ctx.cfg.estimators:
+        est = build_estimator(spec, *dims(data), ctx.cfg.models.window).to(ctx.device)
         name = f"fit_{spec.name}"
         fits[spec.name] = fit_stage(ctx, name, data, {name: est})
         estimators[spec.name] = est.eval()

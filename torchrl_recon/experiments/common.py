@@ -189,8 +189,7 @@ def build_models(
 def models_stage(
     ctx: RunContext, data: TensorDictBase, name: str
 ) -> tuple[LSTMWorldModel, UncertaintyEstimator, dict]:
-    """Stage ``name``: the world model and the estimator built and fitted on ``data``; returns
-    them and the stage's record."""
+    """Stage ``name``: the world model and the estimator fitted on ``data``, and its record."""
     world, estimator = build_models(ctx.cfg, *dims(data), ctx.device)
     record = fit_stage(ctx, name, data, {"world_model": world, "uncertainty": estimator})
     return world, estimator, record

@@ -1,9 +1,6 @@
-"""The uncertainty-aware control experiment (the paper's §3.1 and Fig. 3): its stages, its
-recipe check and its ``EXPERIMENT``.
-
-``random_data`` → ``models`` → ``setting_<name>`` for each setting (one part record per batch
-of ``num_envs`` episodes) → ``random_policy``; each stage is resumable.
-"""
+"""The uncertainty-aware control experiment (the paper's §3.1 and Fig. 3): its resumable
+:data:`STAGES` (a setting's, one part record per batch of ``num_envs`` episodes), its recipe
+check and its ``EXPERIMENT``."""
 
 from __future__ import annotations
 
@@ -148,12 +145,11 @@ def setting_stage(ctx: RunContext, setting: DictConfig, controller: Controller) 
 def random_policy_stage(ctx: RunContext) -> dict:
     """Stage ``random_policy``: the env returns of ``episodes`` episodes of uniform random
     actions, of the settings' length, ``num_envs`` at a time."""
-    cfg = ctx.cfg
 
     def run() -> dict:
         returns = [
             float(td["next", "reward"].double().sum())
-            for batch in batches(cfg.episodes, cfg.num_envs)
+            for batch in batches(ctx.cfg.episodes, ctx.cfg.num_envs)
             for td in play_episodes(ctx, "random_policy", batch)
         ]
         mean, std = mean_std(returns)

@@ -1,10 +1,5 @@
-"""The exploration experiment (the paper's §3.2 and Table 1), one repeat per seed: its stages,
-its recipe check and its ``EXPERIMENT``.
-
-``validation`` → ``initial_random`` → ``initial_models`` → ``guided_data_<r>`` (with
-``guided_refit_<r>`` between rounds) → ``random_arm`` → ``retrain_<g>`` (both arms' retrainings
-fitted as one population, in groups of ``retrainings_per_fit``); each stage is resumable.
-"""
+"""The exploration experiment (the paper's §3.2 and Table 1), one repeat per seed: its resumable
+:data:`STAGES`, its recipe check and its ``EXPERIMENT``."""
 
 from __future__ import annotations
 
@@ -59,7 +54,8 @@ MSE_UNITS = (
 )
 STAGES = ("validation", "initial_random", "initial_models", "guided_data_{n}", "guided_refit_{n}")
 STAGES += ("random_arm", "retrain_{n}")
-"""Stage name templates, in run order (``{n}`` a round or a group of retrainings)."""
+"""Stage name templates, in run order (``{n}`` a round or a group of ``retrainings_per_fit``
+retrainings, fitted as one population); ``guided_refit_<r>`` runs between rounds."""
 
 
 def validation_stage(ctx: RunContext) -> TensorDictBase:

@@ -49,9 +49,8 @@ def play_stage(
 ) -> dict:
     """Stage ``play_<n>``: ``steps_per_iteration`` steps of MPC (re-planning threshold from all
     ``data`` so far) or, in the rounds that explore, exploration, with the current models and
-    the resolved ``warmup``, stored as ``buffers/play_<n>``; the record holds
-    :func:`~torchrl_recon.training.online.new_steps_metrics`, the seconds spent planning and in
-    the env, and which ``policy`` played."""
+    the resolved ``warmup``, stored as ``buffers/play_<n>``; its record: :func:`new_steps_metrics`,
+    the seconds spent planning and in the env, and which ``policy`` played."""
     cfg, name = ctx.cfg, f"play_{n}"
 
     def run() -> dict:

@@ -281,8 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dirs", nargs="+", metavar="DIR")
     p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
     p.set_defaults(func=_summarize)
-    about = "list the shipped recipes (kind, name, what it runs)"
-    p = add("recipes", help=about)
+    p = add("recipes", help="list the shipped recipes (kind, name, what it runs)")
     p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
     p.set_defaults(func=_recipes)
     return parser

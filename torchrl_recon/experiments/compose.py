@@ -118,15 +118,16 @@ def sweep_jobs(
     base: DictConfig, overrides: Sequence[str], *, recipe_params: bool = True
 ) -> list[list[str]]:
     """Each job's overrides: the product of the sweeps, as Hydra's basic sweeper makes them, of
-    the command line and (``recipe_params``) of ``hydra.sweeper.params``, the command line's
-    first; ``glob(...)`` and other sweeps that need the config are left to Hydra's jobs.
+    the command line (made :func:`with_additions`) and (``recipe_params``) of
+    ``hydra.sweeper.params``, the command line's first; ``glob(...)`` and other sweeps that need
+    the config are left to Hydra's jobs.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", with_hydra=True)
         >>> sweep_jobs(base, ["seed=0,1", "threads=1"])
         [['threads=1', 'seed=0'], ['threads=1', 'seed=1']]
     """
-    given = list(zip(overrides, _parse(overrides), strict=True))
+    given = list(zip(with_additions(base, overrides), _parse(overrides), strict=True))
     params = (base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
     keys = {o.key_or_group for _, o in given}  # the command line's win over the recipe's
     texts = [f"{key}={value}" for key, value in params.items() if key not in keys]

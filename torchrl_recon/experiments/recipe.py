@@ -13,12 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from torchrl_recon.errors import RecipeError
-from torchrl_recon.experiments.compose import (
-    RECIPES_DIR,
-    compose_recipe,
-    sweep_jobs,
-    with_additions,
-)
+from torchrl_recon.experiments.compose import RECIPES_DIR, compose_recipe, sweep_jobs
 from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.recipe_checks import recipe_errors
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -37,7 +32,7 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
     """
     path = Path(path)
     base = compose_recipe(path, with_hydra=True)
-    jobs = sweep_jobs(base, with_additions(base, overrides), recipe_params=False)
+    jobs = sweep_jobs(base, overrides, recipe_params=False)
     if len(jobs) != 1:
         raise RecipeError(
             f"{path}: the overrides {list(overrides)} sweep several values; sweeps need the "

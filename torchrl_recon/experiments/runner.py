@@ -99,12 +99,10 @@ def run(
             )
             return None
         results_path = write_results(run_dir, results)
-        figures = save_figures(results, run_dir)
+        figures = [f"figure: {path}" for path in save_figures(results, run_dir)]
         if logger is not None:  # the headline numbers, as scalars under results/
             for name, value in get_report(cfg.experiment).headline(results).items():
                 if isinstance(value, (int, float)):
                     logger.log_scalar(f"results/{name}", float(value), step=0)
-        print(format_table(results))
-        print(f"results: {results_path}")
-        print("".join(f"figure: {path}\n" for path in figures), end="", flush=True)
+        print(format_table(results), f"results: {results_path}", *figures, sep="\n", flush=True)
         return results

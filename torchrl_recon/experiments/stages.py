@@ -114,12 +114,11 @@ class Stages:
     def run(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Run ``fn`` (seeded with :func:`stage_seed`) unless ``name`` is done (then checked by
         :meth:`verify`); return its record, which lists the files written since the last stage."""
-        if self.done(name):
-            self._pending.clear()  # paths named for this stage belong to its earlier run
-            record = self.verify(name)
-            self._restore_rng(name)
-        else:
-            try:
+        try:  # a done stage's paths named now belong to its earlier run: dropped, as a new one's
+            if self.done(name):
+                record = self.verify(name)
+                self._restore_rng(name)
+            else:
                 torch.manual_seed(stage_seed(self.seed, name))
                 start = time.perf_counter()
                 record = fn() or {}
@@ -136,11 +135,11 @@ class Stages:
                 }
                 text = json.dumps(with_hash({**record, FILES_KEY: files}), indent=1)
                 write_atomically(self._marker(name), lambda tmp: tmp.write_text(text))
-            finally:
-                self._pending.clear()
-            self._verified.add(name)
-            if self.logger is not None:
-                self.logger.log_scalar(f"wall_time/{name}", record["wall_time_s"], step=0)
+                self._verified.add(name)
+                if self.logger is not None:
+                    self.logger.log_scalar(f"wall_time/{name}", record["wall_time_s"], step=0)
+        finally:
+            self._pending.clear()
         self.wall_time_s[name] = record["wall_time_s"]
         if self.stop_after == name:
             raise StopRequested(name)
@@ -198,22 +197,18 @@ class Stages:
     def load_data(self, name: str) -> TensorDictBase:
         """Transitions saved by :meth:`save_data`, read as data once the stage that wrote them is
         checked (:meth:`verify`); :class:`DamagedFileError` for any difference."""
-        prefix, owner = f"buffers/{name}/", None
+        prefix = f"buffers/{name}/"
+        what = f"delete {self.run_dir / prefix} and the record of the stage that wrote it."
         markers = sorted(self.run_dir.glob("stages/*.json"), key=lambda p: (p.stem != name, p.stem))
         for marker in markers:  # the stage of the same name first: it usually wrote the data
             record = read_record(marker, required=(), remedy=self._remedy(marker.stem))
             if any(rel.startswith(prefix) for rel in record.get(FILES_KEY) or {}):
-                owner = marker.stem
-                self.verify(owner)
+                self.verify(marker.stem)
+                what = self._remedy(marker.stem)
                 break
         try:
             data = load_buffer_data(self.run_dir / prefix)
         except DamagedFileError as err:
-            what = (
-                self._remedy(owner)
-                if owner
-                else f"delete {self.run_dir / prefix} and the record of the stage that wrote it."
-            )
             raise DamagedFileError(f"{err} To recover: {what}") from None
         if len(data) == 0:
             raise ValueError(f"The replay buffer at {self.run_dir / prefix} is empty.")

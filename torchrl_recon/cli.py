@@ -26,7 +26,6 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.errors import DamagedFileError, RecipeError
 from torchrl_recon.experiments import compose
-from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
@@ -223,10 +222,10 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
     """
     out = []
     for found in [k for k in EXPERIMENTS if kind in (None, k)]:
-        for path in sorted(RECIPES_DIR.glob(f"*/{found}*.yaml")):
+        for path in sorted(compose.RECIPES_DIR.glob(f"*/{found}*.yaml")):
             lines = path.read_text().splitlines()
             about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
-            out.append((found, path.relative_to(RECIPES_DIR).with_suffix("").as_posix(), about))
+            out.append((found, f"{path.parent.name}/{path.stem}", about))
     return out
 
 
@@ -290,13 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
-    debug = {_DEBUG_ENV: "1"} if getattr(args, "debug", False) else {}
     # SIGTERM interrupts as Ctrl-C does (unless it is ignored or handled)
     sigterm = threading.current_thread() is threading.main_thread()
     sigterm = sigterm and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     if sigterm:
         signal.signal(signal.SIGTERM, signal.default_int_handler)
-    with mock.patch.dict(os.environ, debug):
+    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1"} if args.debug else {}):
         try:
             torch.set_num_threads(min(2, torch.get_num_threads()))
             return args.func(args)

@@ -31,8 +31,7 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
         ('outputs/smoke/explore/drone/seed3', 1.2)
     """
     path = Path(path)
-    base = compose_recipe(path, with_hydra=True)
-    jobs = sweep_jobs(base, overrides, recipe_params=False)
+    jobs = sweep_jobs(compose_recipe(path, with_hydra=True), overrides, recipe_params=False)
     if len(jobs) != 1:
         raise RecipeError(
             f"{path}: the overrides {list(overrides)} sweep several values; sweeps need the "
@@ -79,9 +78,7 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(dict(cfg))
-    data = OmegaConf.to_container(cfg, resolve=False)
-    data.pop("hydra", None)
-    data.pop("defaults", None)
+    data = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in ("hydra", "defaults")}
     experiment = data.get("experiment")
     if experiment not in EXPERIMENT_TYPES:
         raise RecipeError(

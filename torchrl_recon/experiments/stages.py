@@ -82,9 +82,6 @@ class Stages:
     def _remedy(self, name: str) -> str:
         return f"delete {self._marker(name)} to compute stage '{name}' again."
 
-    def _add_pending(self, path: Path) -> None:
-        self._pending[path.relative_to(self.run_dir).as_posix()] = path
-
     def done(self, name: str) -> bool:
         """Whether ``name`` finished in this or an earlier run."""
         return self._marker(name).exists()
@@ -101,15 +98,14 @@ class Stages:
 
     def _restore_rng(self, name: str) -> None:
         path = self.run_dir / "stages" / f"{name}.rng.pt"
-        if not path.exists():  # absent in runs made before it was kept
-            return
-        try:
-            torch.set_rng_state(torch.load(path, map_location="cpu", weights_only=True))
-        except Exception as err:  # a torch RNG state is one uint8 tensor; anything else is damage
-            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
-            raise DamagedFileError(
-                f"{path} is not a torch RNG state ({reason}); {self._remedy(name)}"
-            ) from None
+        if path.exists():  # absent in runs made before it was kept
+            try:
+                torch.set_rng_state(torch.load(path, map_location="cpu", weights_only=True))
+            except Exception as err:  # a torch RNG state is one uint8 tensor; else it is damaged
+                reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+                raise DamagedFileError(
+                    f"{path} is not a torch RNG state ({reason}); {self._remedy(name)}"
+                ) from None
 
     def run(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Run ``fn`` (seeded with :func:`stage_seed`) unless ``name`` is done (then checked by
@@ -127,9 +123,8 @@ class Stages:
                         f"Stage {name!r} returned the reserved key {FILES_KEY!r} or {HASH_KEY!r}."
                     )
                 record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
-                rng_state = torch.get_rng_state()  # saved before the record: a done stage has both
-                rng_file = self.path("stages", f"{name}.rng.pt")
-                write_atomically(rng_file, lambda tmp: torch.save(rng_state, tmp))
+                rng_file = self.path("stages", f"{name}.rng.pt")  # first: a done stage has both
+                write_atomically(rng_file, lambda tmp: torch.save(torch.get_rng_state(), tmp))
                 files = {
                     rel: file_entry(p) for rel, p in sorted(self._pending.items()) if p.is_file()
                 }
@@ -192,7 +187,7 @@ class Stages:
         buffer.extend(data.cpu())  # on disk device-free, whatever device the data came from
         save_buffer(buffer, folder)
         for path in sorted(p for p in folder.rglob("*") if p.is_file()):
-            self._add_pending(path)
+            self.path(path.relative_to(self.run_dir).as_posix())
 
     def load_data(self, name: str) -> TensorDictBase:
         """Transitions saved by :meth:`save_data`, read as data once the stage that wrote them is
@@ -219,7 +214,7 @@ class Stages:
         stage finishes, is listed in its record and checked when a resumed run skips it."""
         out = self.run_dir.joinpath(*parts)
         out.parent.mkdir(parents=True, exist_ok=True)
-        self._add_pending(out)
+        self._pending[out.relative_to(self.run_dir).as_posix()] = out
         return out
 
 

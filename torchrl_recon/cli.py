@@ -33,7 +33,6 @@ from torchrl_recon.experiments.runner import interrupted_message, run
 from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
 from torchrl_recon.reports.tables import render
 
-EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}  # command: help line
 _ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
 _STATUS_ENV = "TORCHRL_RECON_STATUS"  # each job appends its exit code to this file
 _DEBUG_ENV = "TORCHRL_RECON_DEBUG"  # --debug: "1" or "0"; unset, HYDRA_FULL_ERROR decides
@@ -147,7 +146,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
     if (found := base.get("experiment")) != kind:
         raise RecipeError(
             f"{recipe}: its experiment is {found!r}: run it with `torchrl-recon {found} {recipe}`."
-            if found in EXPERIMENTS
+            if found in EXPERIMENT_TYPES
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
     completed = compose.with_additions(base, overrides)
@@ -221,7 +220,7 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
         True
     """
     out = []
-    for found in [k for k in EXPERIMENTS if kind in (None, k)]:
+    for found in [k for k in EXPERIMENT_TYPES if kind in (None, k)]:
         for path in sorted(compose.RECIPES_DIR.glob(f"*/{found}*.yaml")):
             lines = path.read_text().splitlines()
             about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
@@ -257,7 +256,7 @@ def _recipes(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The command line's parser: one command per experiment kind, ``summarize``, ``recipes``."""
     raw = {"formatter_class": argparse.RawDescriptionHelpFormatter}
-    kinds = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    kinds = "\n".join(f"  {k:<9} {t.help}" for k, t in EXPERIMENT_TYPES.items())
     epilog = f"experiments (paper §3):\n{kinds}\n\n{_EXAMPLES}"
     parser = argparse.ArgumentParser("torchrl-recon", description=_ABOUT, epilog=epilog, **raw)
     common = argparse.ArgumentParser(add_help=False)
@@ -266,10 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--debug", action="store_true", default=default, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add = partial(sub.add_parser, parents=[common])
-    for kind, text in EXPERIMENTS.items():
+    for kind, t in EXPERIMENT_TYPES.items():
         names = "".join(f"\n  {name}" for _, name, _ in shipped_recipes(kind))
         epilog = f"recipes (by name, from any folder; or a path to your own):{names}"
-        p = add(kind, help=text, description=f"{text}. {_RUN_HELP}", epilog=epilog, **raw)
+        p = add(kind, help=t.help, description=f"{t.help}. {_RUN_HELP}", epilog=epilog, **raw)
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
         about = "key=value overrides of the recipe (Hydra syntax)"
         p.add_argument("overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=about)
@@ -281,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
     p.set_defaults(func=_summarize)
     p = add("recipes", help="list the shipped recipes (kind, name, what it runs)")
-    p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
+    p.add_argument("kind", nargs="?", choices=list(EXPERIMENT_TYPES), help="only this kind's")
     p.set_defaults(func=_recipes)
     return parser
 

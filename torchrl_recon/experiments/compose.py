@@ -24,6 +24,7 @@ RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 """The recipes shipped in the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``)."""
 SEARCH_PATH = f"hydra.searchpath=[file://{RECIPES_DIR}]"  # the override that adds RECIPES_DIR
 MAX_SWEEP_JOBS = 10_000
+_ABSENT = object()
 
 # The recipes' and the CLI's resolvers, registered by every import (a launcher's workers too).
 for _name, _resolver in {
@@ -105,9 +106,6 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
                 text = f"++{text}"
         out.append(text)
     return out
-
-
-_ABSENT = object()
 
 
 def _is_sweep(o: Any) -> bool:

@@ -76,15 +76,13 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
         ...     print(e)
         explore_smoke.yaml: 'guided.ratio' must be a finite number, got nan
     """
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(dict(cfg))
+    cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
     data = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in ("hydra", "defaults")}
     experiment = data.get("experiment")
-    if experiment not in EXPERIMENT_TYPES:
+    if (kind := EXPERIMENT_TYPES.get(experiment)) is None:
         raise RecipeError(
             f"{source}: 'experiment' must be one of {sorted(EXPERIMENT_TYPES)}, got {experiment!r}."
         )
-    kind = EXPERIMENT_TYPES[experiment]
     key, item_schema = kind.list_field or ("", None)
     if (items := data.get(key)) is None:
         data.pop(key, None)  # the schema's default

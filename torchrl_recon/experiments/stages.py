@@ -101,7 +101,7 @@ class Stages:
         if path.exists():  # absent in runs made before it was kept
             try:
                 torch.set_rng_state(torch.load(path, map_location="cpu", weights_only=True))
-            except Exception as err:  # a torch RNG state is one uint8 tensor; else it is damaged
+            except Exception as err:  # a torch RNG state is one uint8 tensor; anything else: damage
                 reason = str(err).splitlines()[0] if str(err) else type(err).__name__
                 raise DamagedFileError(
                     f"{path} is not a torch RNG state ({reason}); {self._remedy(name)}"
@@ -110,7 +110,7 @@ class Stages:
     def run(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Run ``fn`` (seeded with :func:`stage_seed`) unless ``name`` is done (then checked by
         :meth:`verify`); return its record, which lists the files written since the last stage."""
-        try:  # a done stage's paths named now belong to its earlier run: dropped, as a new one's
+        try:  # pending paths end with the stage (a done stage's belong to its earlier run)
             if self.done(name):
                 record = self.verify(name)
                 self._restore_rng(name)
@@ -123,7 +123,7 @@ class Stages:
                         f"Stage {name!r} returned the reserved key {FILES_KEY!r} or {HASH_KEY!r}."
                     )
                 record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
-                rng_file = self.path("stages", f"{name}.rng.pt")  # first: a done stage has both
+                rng_file = self.path("stages", f"{name}.rng.pt")  # before the record: done has both
                 write_atomically(rng_file, lambda tmp: torch.save(torch.get_rng_state(), tmp))
                 files = {
                     rel: file_entry(p) for rel, p in sorted(self._pending.items()) if p.is_file()

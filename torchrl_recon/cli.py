@@ -26,7 +26,6 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.errors import DamagedFileError, RecipeError
 from torchrl_recon.experiments import compose
-from torchrl_recon.experiments.compose import RECIPES_DIR
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
@@ -34,7 +33,6 @@ from torchrl_recon.experiments.runner import interrupted_message, run
 from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
 from torchrl_recon.reports.tables import render
 
-EXPERIMENTS = {name: t.help for name, t in EXPERIMENT_TYPES.items()}  # command: help line
 _ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
 _STATUS_ENV = "TORCHRL_RECON_STATUS"  # each job appends its exit code to this file
 _DEBUG_ENV = "TORCHRL_RECON_DEBUG"  # --debug: "1" or "0"; unset, HYDRA_FULL_ERROR decides
@@ -148,7 +146,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
     if (found := base.get("experiment")) != kind:
         raise RecipeError(
             f"{recipe}: its experiment is {found!r}: run it with `torchrl-recon {found} {recipe}`."
-            if found in EXPERIMENTS
+            if found in EXPERIMENT_TYPES
             else f"{recipe}: 'experiment' must be {kind!r}, got {found!r}."
         )
     completed = compose.with_additions(base, overrides)
@@ -222,11 +220,11 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
         True
     """
     out = []
-    for found in [k for k in EXPERIMENTS if kind in (None, k)]:
-        for path in sorted(RECIPES_DIR.glob(f"*/{found}*.yaml")):
+    for found in [k for k in EXPERIMENT_TYPES if kind in (None, k)]:
+        for path in sorted(compose.RECIPES_DIR.glob(f"*/{found}*.yaml")):
             lines = path.read_text().splitlines()
             about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
-            out.append((found, path.relative_to(RECIPES_DIR).with_suffix("").as_posix(), about))
+            out.append((found, f"{path.parent.name}/{path.stem}", about))
     return out
 
 
@@ -258,7 +256,7 @@ def _recipes(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The command line's parser: one command per experiment kind, ``summarize``, ``recipes``."""
     raw = {"formatter_class": argparse.RawDescriptionHelpFormatter}
-    kinds = "\n".join(f"  {k:<9} {v}" for k, v in EXPERIMENTS.items())
+    kinds = "\n".join(f"  {k:<9} {t.help}" for k, t in EXPERIMENT_TYPES.items())
     epilog = f"experiments (paper §3):\n{kinds}\n\n{_EXAMPLES}"
     parser = argparse.ArgumentParser("torchrl-recon", description=_ABOUT, epilog=epilog, **raw)
     common = argparse.ArgumentParser(add_help=False)
@@ -267,10 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--debug", action="store_true", default=default, help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add = partial(sub.add_parser, parents=[common])
-    for kind, text in EXPERIMENTS.items():
+    for kind, t in EXPERIMENT_TYPES.items():
         names = "".join(f"\n  {name}" for _, name, _ in shipped_recipes(kind))
         epilog = f"recipes (by name, from any folder; or a path to your own):{names}"
-        p = add(kind, help=text, description=f"{text}. {_RUN_HELP}", epilog=epilog, **raw)
+        p = add(kind, help=t.help, description=f"{t.help}. {_RUN_HELP}", epilog=epilog, **raw)
         p.add_argument("recipe", metavar="RECIPE", help="a recipe YAML file or a shipped name")
         about = "key=value overrides of the recipe (Hydra syntax)"
         p.add_argument("overrides", nargs=argparse.REMAINDER, metavar="OVERRIDE", help=about)
@@ -281,9 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dirs", nargs="+", metavar="DIR")
     p.add_argument("--out", help="also write summary_<kind>.json and figures to this directory")
     p.set_defaults(func=_summarize)
-    about = "list the shipped recipes (kind, name, what it runs)"
-    p = add("recipes", help=about)
-    p.add_argument("kind", nargs="?", choices=list(EXPERIMENTS), help="only this kind's")
+    p = add("recipes", help="list the shipped recipes (kind, name, what it runs)")
+    p.add_argument("kind", nargs="?", choices=list(EXPERIMENT_TYPES), help="only this kind's")
     p.set_defaults(func=_recipes)
     return parser
 
@@ -291,13 +288,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
-    debug = {_DEBUG_ENV: "1"} if getattr(args, "debug", False) else {}
     # SIGTERM interrupts as Ctrl-C does (unless it is ignored or handled)
     sigterm = threading.current_thread() is threading.main_thread()
     sigterm = sigterm and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     if sigterm:
         signal.signal(signal.SIGTERM, signal.default_int_handler)
-    with mock.patch.dict(os.environ, debug):
+    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1"} if args.debug else {}):
         try:
             torch.set_num_threads(min(2, torch.get_num_threads()))
             return args.func(args)

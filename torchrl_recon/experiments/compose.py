@@ -24,6 +24,7 @@ RECIPES_DIR = Path(__file__).resolve().parents[1] / "recipes"
 """The recipes shipped in the package (``<env>/<kind>.yaml``; the checkout's ``recipes/``)."""
 SEARCH_PATH = f"hydra.searchpath=[file://{RECIPES_DIR}]"  # the override that adds RECIPES_DIR
 MAX_SWEEP_JOBS = 10_000
+_ABSENT = object()
 
 # The recipes' and the CLI's resolvers, registered by every import (a launcher's workers too).
 for _name, _resolver in {
@@ -107,9 +108,6 @@ def with_additions(base: DictConfig, overrides: Sequence[str]) -> list[str]:
     return out
 
 
-_ABSENT = object()
-
-
 def _is_sweep(o: Any) -> bool:
     return o.is_sweep_override() and not o.is_hydra_override()
 
@@ -118,15 +116,16 @@ def sweep_jobs(
     base: DictConfig, overrides: Sequence[str], *, recipe_params: bool = True
 ) -> list[list[str]]:
     """Each job's overrides: the product of the sweeps, as Hydra's basic sweeper makes them, of
-    the command line and (``recipe_params``) of ``hydra.sweeper.params``, the command line's
-    first; ``glob(...)`` and other sweeps that need the config are left to Hydra's jobs.
+    the command line (made :func:`with_additions`) and (``recipe_params``) of
+    ``hydra.sweeper.params``, the command line's first; ``glob(...)`` and other sweeps that need
+    the config are left to Hydra's jobs.
 
     Examples:
         >>> base = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", with_hydra=True)
         >>> sweep_jobs(base, ["seed=0,1", "threads=1"])
         [['threads=1', 'seed=0'], ['threads=1', 'seed=1']]
     """
-    given = list(zip(overrides, _parse(overrides), strict=True))
+    given = list(zip(with_additions(base, overrides), _parse(overrides), strict=True))
     params = (base.hydra.sweeper.get("params") or {}) if recipe_params and "hydra" in base else {}
     keys = {o.key_or_group for _, o in given}  # the command line's win over the recipe's
     texts = [f"{key}={value}" for key, value in params.items() if key not in keys]

@@ -22,17 +22,13 @@ class RecipeLoader(NamedTuple):
     load: Callable[[Path, Sequence[str]], DictConfig]
 
 
-ChildRunner = Callable[[DictConfig], "Mapping[str, Any] | None"]
-"""Runs a child experiment's config; returns its headline numbers (None when it stopped)."""
-
-
 @dataclass
 class RunContext:
     """The run an experiment's stages work for, built once by the runner: the validated recipe
     ``cfg``, the ``run_dir``, a TorchRL ``logger`` (or None), ``run_child`` (runs another
-    experiment's config, e.g. calibrate's outcomes), the ``recipes`` a child run is made from;
-    from ``cfg``, its resumable ``stages`` (stopping after ``cfg.stop_after``) and the ``device``
-    of networks, planning and fitting.
+    experiment's config, e.g. calibrate's outcomes; returns its headline numbers, None when it
+    stopped), the ``recipes`` a child run is made from; from ``cfg``, its resumable ``stages``
+    (stopping after ``cfg.stop_after``) and the ``device`` of networks, planning and fitting.
 
     Examples:
         >>> import tempfile
@@ -47,7 +43,7 @@ class RunContext:
     cfg: DictConfig
     run_dir: Path
     logger: Logger | None = None
-    run_child: ChildRunner | None = None
+    run_child: Callable[[DictConfig], Mapping[str, Any] | None] | None = None
     recipes: RecipeLoader | None = None
     stages: Stages = field(init=False)
     device: torch.device = field(init=False)

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import os
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger, get_logger
 
-from torchrl_recon.experiments.run_dir import flat_config
+from torchrl_recon.experiments.run_dir import flatten
 
 
 def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | None:
@@ -29,5 +29,6 @@ def make_logger(cfg: DictConfig, run_dir: str | os.PathLike[str]) -> Logger | No
     name, backend = f"{kind}_{env}_seed{cfg.seed}", "" if backend == "none" else backend
     logger = get_logger(backend, str(run_dir), name, wandb_kwargs=wandb_kwargs)
     if logger is not None:
-        logger.log_hparams({k: "None" if v is None else v for k, v in flat_config(cfg).items()})
+        hparams = flatten(OmegaConf.to_container(cfg, resolve=True))
+        logger.log_hparams({k: "None" if v is None else v for k, v in hparams.items()})
     return logger

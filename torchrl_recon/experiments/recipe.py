@@ -13,12 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from torchrl_recon.errors import RecipeError
-from torchrl_recon.experiments.compose import (
-    RECIPES_DIR,
-    compose_recipe,
-    sweep_jobs,
-    with_additions,
-)
+from torchrl_recon.experiments.compose import RECIPES_DIR, compose_recipe, sweep_jobs
 from torchrl_recon.experiments.context import RecipeLoader
 from torchrl_recon.experiments.recipe_checks import recipe_errors
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -36,8 +31,7 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
         ('outputs/smoke/explore/drone/seed3', 1.2)
     """
     path = Path(path)
-    base = compose_recipe(path, with_hydra=True)
-    jobs = sweep_jobs(base, with_additions(base, overrides), recipe_params=False)
+    jobs = sweep_jobs(compose_recipe(path, with_hydra=True), overrides, recipe_params=False)
     if len(jobs) != 1:
         raise RecipeError(
             f"{path}: the overrides {list(overrides)} sweep several values; sweeps need the "
@@ -82,17 +76,13 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
         ...     print(e)
         explore_smoke.yaml: 'guided.ratio' must be a finite number, got nan
     """
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(dict(cfg))
-    data = OmegaConf.to_container(cfg, resolve=False)
-    data.pop("hydra", None)
-    data.pop("defaults", None)
+    cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(dict(cfg))
+    data = {k: v for k, v in OmegaConf.to_container(cfg).items() if k not in ("hydra", "defaults")}
     experiment = data.get("experiment")
-    if experiment not in EXPERIMENT_TYPES:
+    if (kind := EXPERIMENT_TYPES.get(experiment)) is None:
         raise RecipeError(
             f"{source}: 'experiment' must be one of {sorted(EXPERIMENT_TYPES)}, got {experiment!r}."
         )
-    kind = EXPERIMENT_TYPES[experiment]
     key, item_schema = kind.list_field or ("", None)
     if (items := data.get(key)) is None:
         data.pop(key, None)  # the schema's default

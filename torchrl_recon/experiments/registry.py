@@ -8,10 +8,7 @@ from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments import calibrate, control, explore, online
 from torchrl_recon.experiments.experiment_type import ExperimentType
 
-EXPERIMENT_TYPES: dict[str, ExperimentType] = {
-    t.name: t
-    for t in (explore.EXPERIMENT, control.EXPERIMENT, calibrate.EXPERIMENT, online.EXPERIMENT)
-}
+EXPERIMENT_TYPES = {m.EXPERIMENT.name: m.EXPERIMENT for m in (explore, control, calibrate, online)}
 """Every experiment kind by name, in the order the CLI lists them."""
 
 

@@ -37,19 +37,14 @@ class RunDirConflict(RuntimeError):
     """The run directory holds a run made with a different configuration, or is in use."""
 
 
-def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
     """Flatten nested dicts / lists into ``{"a.b.0.c": value}`` (empty ones kept as values)."""
     if not isinstance(obj, (Mapping, list, tuple)) or (not obj and prefix):
         return {prefix: obj}
     out: dict[str, Any] = {}
     for k, v in obj.items() if isinstance(obj, Mapping) else enumerate(obj):
-        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
     return out
-
-
-def flat_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as a flat ``{"guided.planner.kind": "shooting", ...}`` dict."""
-    return _flatten(OmegaConf.to_container(cfg, resolve=True))
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
@@ -63,7 +58,7 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
         ['seed: 0 -> 1']
     """
     keep = [{k: v for k, v in dict(c).items() if k not in RESUME_IGNORED_KEYS} for c in (old, new)]
-    a, b = map(_flatten, keep)
+    a, b = map(flatten, keep)
     diffs = []
     for key in sorted(set(a) | set(b)):
         before, after = a.get(key, _ABSENT), b.get(key, _ABSENT)
@@ -149,7 +144,7 @@ def resume_overrides(old: Mapping[str, Any], keys: Sequence[str]) -> str:
         ...     ["warmup", "env.kwargs", "seed"])
         ', or resume it as it was made with warmup=random seed=0'
     """
-    flat, found = _flatten(dict(old)), []
+    flat, found = flatten(dict(old)), []
     for key in keys:
         value = flat.get(key, [])
         if isinstance(value, bool) or value is None:

@@ -60,9 +60,7 @@ def interrupted_message(run_dir: str | os.PathLike[str] | None) -> str:
 
 
 def run(
-    cfg: DictConfig,
-    argv: Sequence[str] | None = None,
-    extra_meta: Mapping[str, Any] | None = None,
+    cfg: DictConfig, argv: Sequence[str] | None = None, extra_meta: Mapping[str, Any] | None = None
 ) -> dict[str, Any] | None:
     """Validate ``cfg``, check and prepare its run directory, run the experiment, store the
     results; return them, or None when it stopped after ``cfg.stop_after`` (re-running resumes)."""
@@ -80,14 +78,13 @@ def run(
         cleanup.callback(release_run_dir, run_dir)
         tag = f"[{cfg.experiment}]"
         print(f"{tag} {cfg.env.name} seed {cfg.seed}: run directory {run_dir}", flush=True)
-        kind = get_type(cfg.experiment)
         logger = make_logger(cfg, run_dir)
         if logger is not None:
             cleanup.callback(logger.shutdown)
         recipes = RecipeLoader(resolve_recipe_path, load_recipe)
         ctx = RunContext(cfg, run_dir, logger, partial(_run_child, argv=argv), recipes)
         try:
-            results = kind.run(ctx)
+            results = get_type(cfg.experiment).run(ctx)
         except StopRequested as stop:
             stage = stop.args[0] if stop.args else cfg.stop_after
             print(
@@ -99,12 +96,10 @@ def run(
             )
             return None
         results_path = write_results(run_dir, results)
-        figures = save_figures(results, run_dir)
+        figures = [f"figure: {path}" for path in save_figures(results, run_dir)]
         if logger is not None:  # the headline numbers, as scalars under results/
             for name, value in get_report(cfg.experiment).headline(results).items():
                 if isinstance(value, (int, float)):
                     logger.log_scalar(f"results/{name}", float(value), step=0)
-        print(format_table(results))
-        print(f"results: {results_path}")
-        print("".join(f"figure: {path}\n" for path in figures), end="", flush=True)
+        print(format_table(results), f"results: {results_path}", *figures, sep="\n", flush=True)
         return results

@@ -82,9 +82,6 @@ class Stages:
     def _remedy(self, name: str) -> str:
         return f"delete {self._marker(name)} to compute stage '{name}' again."
 
-    def _add_pending(self, path: Path) -> None:
-        self._pending[path.relative_to(self.run_dir).as_posix()] = path
-
     def done(self, name: str) -> bool:
         """Whether ``name`` finished in this or an earlier run."""
         return self._marker(name).exists()
@@ -101,25 +98,23 @@ class Stages:
 
     def _restore_rng(self, name: str) -> None:
         path = self.run_dir / "stages" / f"{name}.rng.pt"
-        if not path.exists():  # absent in runs made before it was kept
-            return
-        try:
-            torch.set_rng_state(torch.load(path, map_location="cpu", weights_only=True))
-        except Exception as err:  # a torch RNG state is one uint8 tensor; anything else is damage
-            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
-            raise DamagedFileError(
-                f"{path} is not a torch RNG state ({reason}); {self._remedy(name)}"
-            ) from None
+        if path.exists():  # absent in runs made before it was kept
+            try:
+                torch.set_rng_state(torch.load(path, map_location="cpu", weights_only=True))
+            except Exception as err:  # a torch RNG state is one uint8 tensor; anything else: damage
+                reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+                raise DamagedFileError(
+                    f"{path} is not a torch RNG state ({reason}); {self._remedy(name)}"
+                ) from None
 
     def run(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Run ``fn`` (seeded with :func:`stage_seed`) unless ``name`` is done (then checked by
         :meth:`verify`); return its record, which lists the files written since the last stage."""
-        if self.done(name):
-            self._pending.clear()  # paths named for this stage belong to its earlier run
-            record = self.verify(name)
-            self._restore_rng(name)
-        else:
-            try:
+        try:  # pending paths end with the stage (a done stage's belong to its earlier run)
+            if self.done(name):
+                record = self.verify(name)
+                self._restore_rng(name)
+            else:
                 torch.manual_seed(stage_seed(self.seed, name))
                 start = time.perf_counter()
                 record = fn() or {}
@@ -128,19 +123,18 @@ class Stages:
                         f"Stage {name!r} returned the reserved key {FILES_KEY!r} or {HASH_KEY!r}."
                     )
                 record["wall_time_s"] = time.perf_counter() - start + self._earlier_s.pop(name, 0.0)
-                rng_state = torch.get_rng_state()  # saved before the record: a done stage has both
-                rng_file = self.path("stages", f"{name}.rng.pt")
-                write_atomically(rng_file, lambda tmp: torch.save(rng_state, tmp))
+                rng_file = self.path("stages", f"{name}.rng.pt")  # before the record: done has both
+                write_atomically(rng_file, lambda tmp: torch.save(torch.get_rng_state(), tmp))
                 files = {
                     rel: file_entry(p) for rel, p in sorted(self._pending.items()) if p.is_file()
                 }
                 text = json.dumps(with_hash({**record, FILES_KEY: files}), indent=1)
                 write_atomically(self._marker(name), lambda tmp: tmp.write_text(text))
-            finally:
-                self._pending.clear()
-            self._verified.add(name)
-            if self.logger is not None:
-                self.logger.log_scalar(f"wall_time/{name}", record["wall_time_s"], step=0)
+                self._verified.add(name)
+                if self.logger is not None:
+                    self.logger.log_scalar(f"wall_time/{name}", record["wall_time_s"], step=0)
+        finally:
+            self._pending.clear()
         self.wall_time_s[name] = record["wall_time_s"]
         if self.stop_after == name:
             raise StopRequested(name)
@@ -193,27 +187,23 @@ class Stages:
         buffer.extend(data.cpu())  # on disk device-free, whatever device the data came from
         save_buffer(buffer, folder)
         for path in sorted(p for p in folder.rglob("*") if p.is_file()):
-            self._add_pending(path)
+            self.path(path.relative_to(self.run_dir).as_posix())
 
     def load_data(self, name: str) -> TensorDictBase:
         """Transitions saved by :meth:`save_data`, read as data once the stage that wrote them is
         checked (:meth:`verify`); :class:`DamagedFileError` for any difference."""
-        prefix, owner = f"buffers/{name}/", None
+        prefix = f"buffers/{name}/"
+        what = f"delete {self.run_dir / prefix} and the record of the stage that wrote it."
         markers = sorted(self.run_dir.glob("stages/*.json"), key=lambda p: (p.stem != name, p.stem))
         for marker in markers:  # the stage of the same name first: it usually wrote the data
             record = read_record(marker, required=(), remedy=self._remedy(marker.stem))
             if any(rel.startswith(prefix) for rel in record.get(FILES_KEY) or {}):
-                owner = marker.stem
-                self.verify(owner)
+                self.verify(marker.stem)
+                what = self._remedy(marker.stem)
                 break
         try:
             data = load_buffer_data(self.run_dir / prefix)
         except DamagedFileError as err:
-            what = (
-                self._remedy(owner)
-                if owner
-                else f"delete {self.run_dir / prefix} and the record of the stage that wrote it."
-            )
             raise DamagedFileError(f"{err} To recover: {what}") from None
         if len(data) == 0:
             raise ValueError(f"The replay buffer at {self.run_dir / prefix} is empty.")
@@ -224,7 +214,7 @@ class Stages:
         stage finishes, is listed in its record and checked when a resumed run skips it."""
         out = self.run_dir.joinpath(*parts)
         out.parent.mkdir(parents=True, exist_ok=True)
-        self._add_pending(out)
+        self._pending[out.relative_to(self.run_dir).as_posix()] = out
         return out
 
 

@@ -478,6 +478,23 @@ def test_changed_config_is_refused_but_logger_progress_stop_after_may_change(tmp
     assert OmegaConf.load(resumed / "config.yaml").stop_after == "validation"
 
 
+def test_a_config_yaml_torn_at_a_line_end_is_refused_naming_it(tmp_path):
+    """A torn ``config.yaml`` that still parses (cut after a whole line) reads as another
+    configuration: refused before anything is written, the message naming the file."""
+    run_dir = prepare_run_dir(_smoke(tmp_path))
+    release_run_dir(run_dir)
+    config = run_dir / "config.yaml"
+    lines = config.read_text().splitlines(keepends=True)
+    config.write_text("".join(lines[: len(lines) // 2]))
+    torn = config.read_bytes()
+    with pytest.raises(RunDirConflict) as err:
+        prepare_run_dir(_smoke(tmp_path))
+    first = str(err.value).splitlines()[0]
+    assert first.endswith("a different configuration (its config.yaml):"), first
+    assert "restore config.yaml if it was damaged" in str(err.value)
+    assert config.read_bytes() == torn
+
+
 def test_resume_accepts_a_run_made_before_a_schema_key_existed(tmp_path):
     run_dir = prepare_run_dir(_smoke(tmp_path))
     release_run_dir(run_dir)

@@ -125,9 +125,10 @@ def check_run_dir(cfg: DictConfig) -> dict[str, Any]:
     if diffs := config_differences(old, new):
         shown = "\n  ".join(diffs[:20]) + ("\n  ..." if len(diffs) > 20 else "")
         raise RunDirConflict(
-            f"{run_dir} already holds a run with a different configuration:\n  {shown}\n"
-            "Resuming it with this config would mix results. Use another output_dir, or "
-            "delete the directory to start over"
+            f"{run_dir} already holds a run with a different configuration (its config.yaml):"
+            f"\n  {shown}\nResuming it with this config would mix results. Use another "
+            "output_dir, restore config.yaml if it was damaged, or delete the directory to "
+            "start over"
             + resume_overrides(old, [d.split(": ", 1)[0] for d in diffs])
             + ". (Only progress, stop_after and logger may change between a run and its "
             "resumption.)"

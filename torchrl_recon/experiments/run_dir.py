@@ -22,8 +22,11 @@ from torchrl_recon.provenance import git_info, package_versions
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
-KEYS_ADDED_SINCE: dict[str, Any] = {"training.window_sampling": "trajectory", "warmup": "auto"}
-KEYS_ADDED_SINCE["refit_uncertainty"] = "always"  # online runs before it refitted the estimator
+KEYS_ADDED_SINCE: dict[str, Any] = {
+    "training.window_sampling": "trajectory",
+    "warmup": "auto",
+    "refit_uncertainty": "always",  # online runs before it refitted the estimator every time
+}
 """Keys added to the schema since, with the value an older run directory without them ran at
 (:func:`read_config` reads them so; a new default other than that is a difference)."""
 _START_KEYS = ("started_utc", "git", "argv", "hostname")

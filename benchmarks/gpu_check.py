@@ -6,6 +6,7 @@ Run (``make gpu-check`` does the first)::
     python benchmarks/gpu_check.py --out outputs/gpu_check
     python benchmarks/gpu_check.py --out /tmp/check --dry-run           # wiring only, no GPU needed
     python benchmarks/gpu_check.py --out /tmp/check --device cpu --tiny # every step, tiny, on the CPU
+    python benchmarks/gpu_check.py --out /tmp/check --steps 1 10 11     # only these steps
 
 Steps, in this order (each a subprocess with its own time limit; all of them together within
 ``--budget-s``, 450 s by default, so the whole check stays under 8 minutes: a step whose turn
@@ -92,14 +93,14 @@ BENCHMARK_STEPS = [
         "planners vs TorchRL's CEMPlanner (eager and torch.compile)",
         "planner_speed.py",
         150,
-        ["--horizons", "30", "200", "--repeats", "5", "--compile"],
+        ["--horizons", "30", "--repeats", "5", "--compile"],  # H=200: episode batching
         ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
     ),
     benchmark(
         "population fits",
         "training_speed.py",
         120,
-        ["--members", "1", "10", "20"],
+        ["--members", "1", "20", "--steps", "10"],
         ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
         + ["--steps", "1", "--repeats", "1", "--members", "1", "3"],
     ),
@@ -388,6 +389,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tiny", action="store_true", help="the benchmarks at tiny sizes")
     parser.add_argument("--dry-run", action="store_true", help="check the wiring, run nothing")
     parser.add_argument("--budget-s", type=float, default=BUDGET_S, help="the whole check's time")
+    parser.add_argument(
+        "--steps", type=int, nargs="+", help="run only these steps (numbers as in the report)"
+    )
     args = parser.parse_args(argv)
     if not re.fullmatch(r"cpu|cuda(:\d+)?", args.device):
         parser.error(f"--device must be cpu, cuda or cuda:N, got {args.device!r}")
@@ -405,7 +409,9 @@ def main(argv: list[str] | None = None) -> int:
     for i, step in enumerate(steps, 1):
         log = out / "logs" / f"{i:02d}_{re.sub(r'[^a-z0-9]+', '_', step.name.lower())[:40]}.log"
         left = args.budget_s - (time.perf_counter() - start)
-        if args.dry_run:
+        if args.steps and i not in args.steps:
+            step.status = "not selected (--steps)"
+        elif args.dry_run:
             dry_run(step, log)
         elif step.needs_cuda and gpu_missing:
             step.status = "skipped: no CUDA device"

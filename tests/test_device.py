@@ -24,6 +24,7 @@ from collections.abc import Callable
 import pytest
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import DeviceCastTransform
 from torchrl.envs.utils import step_mdp
 
 from torchrl_recon.data import make_sequence_buffer
@@ -71,6 +72,9 @@ logging.getLogger("torchrl").setLevel(logging.WARNING)
 
 N, M, T = 12, 4, 3  # Drone sizes, a short window
 KINDS = sorted(ESTIMATORS)
+RANDOM_ON_DEVICE = ("mc_dropout", "ensemble", "world_model_ensemble")
+"""Estimators whose masks or bootstrap draws come from the device's generator: on CUDA only
+the outputs' devices are checked (CPU and CUDA generators give different numbers)."""
 NEEDS_CUDA = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is False)"
 )
@@ -258,8 +262,7 @@ def test_estimator_score_and_loss(device, kind):
         windows = est.score_windows(torch.cat([obs, action], -1)[:, :T].detach())
         return no_grad, score, obs.grad, loss, _grads(est), td, windows
 
-    # MC dropout masks and the ensemble's bootstrap draw from the device's generator.
-    check(build, run, device, compare=kind not in ("mc_dropout", "ensemble"))
+    check(build, run, device, compare=kind not in RANDOM_ON_DEVICE)
 
 
 @pytest.mark.parametrize("loss_kind", ["multi_step", "one_step", *KINDS])
@@ -279,7 +282,7 @@ def test_losses_backward(device, loss_kind):
         sum(out.values()).backward()
         return out, _grads(loss_module)
 
-    check(build, run, device, compare=loss_kind not in ("mc_dropout", "ensemble"))
+    check(build, run, device, compare=loss_kind not in RANDOM_ON_DEVICE)
 
 
 @pytest.mark.parametrize("env", ["industrial_benchmark", "drone", "minitaur"])
@@ -458,12 +461,30 @@ def test_policy_in_a_collector_with_env_on_cpu_and_policy_on_cuda():
     pol = _policies()["mpc"]().to("cuda")
     env = make_env("drone", seed=0).append_transform(pol.make_tensordict_primer())
     collector = Collector(
-        env, pol, frames_per_batch=8, total_frames=8, env_device="cpu", policy_device="cuda"
+        env,
+        pol,
+        frames_per_batch=8,
+        total_frames=8,
+        env_device="cpu",
+        policy_device="cuda",
+        storing_device="cpu",  # TorchRL stores on neither when the two differ
     )
     batch = next(iter(collector))
     collector.shutdown()
     assert batch["mpc_replanned"].squeeze(-1).tolist()[:4] == [False] * 3 + [True]
     assert torch.isfinite(batch["action"]).all()
+
+
+@NEEDS_CUDA
+def test_policy_on_cuda_through_a_device_cast_of_a_cpu_env():
+    """The experiments' composition: a CPU env, its data cast to the GPU, the primer after it."""
+    pol = _policies()["mpc"]().to("cuda")
+    env = make_env("drone", seed=0)
+    env.append_transform(DeviceCastTransform("cuda", env.device))
+    env.append_transform(pol.make_tensordict_primer())
+    td = env.rollout(5, pol)
+    assert td["mpc_replanned"].squeeze(-1).tolist()[:4] == [False] * 3 + [True]
+    assert {v.device.type for v in td.values(True, True)} == {"cuda"}
 
 
 # ---------------------------------------------------------------- training

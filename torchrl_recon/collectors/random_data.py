@@ -122,6 +122,7 @@ def collect(
             frames_per_batch=frames_per_batch,
             total_frames=total,
             split_trajs=False,
+            storing_device=env.device,  # else none when a GPU policy's device differs from it
         )
         batches, ended = [], 0
         with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:

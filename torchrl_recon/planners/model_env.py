@@ -176,6 +176,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
                 "is_init": torch.zeros(*batch, 1, dtype=torch.bool, device=observation.device),
             },
             batch,
+            device=observation.device,  # TorchRL's planners allocate on the tensordict's device
         )
         if self.termination_fn is not None:
             td.set(ENDED, torch.zeros(*batch, 1, dtype=torch.bool, device=observation.device))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import torch
-from tensordict import NestedKey
+from tensordict import NestedKey, TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs import EnvBase, TensorDictPrimer, Transform
 
@@ -101,6 +101,16 @@ class PlannerStatePrimer(TensorDictPrimer):
         self._planner_bounds = _cpu_bounds(action_low, action_high)
         self._planner_action_key = action_key
         self._planner_owner = owner
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        # A reset's source tensordict stays where the base env made it (a DeviceCastTransform
+        # before this primer casts only the reset's output): read it on the specs' device.
+        device = self.primers.device
+        if device is not None and tensordict is not None and tensordict.device != device:
+            tensordict = tensordict.to(device)
+        return super()._reset(tensordict, tensordict_reset)
 
     def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)

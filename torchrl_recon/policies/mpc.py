@@ -90,8 +90,9 @@ class MPCPolicy(TensorDictModuleBase):
 
     It computes on the planning model's device (move the planner with ``.to(device)``) and
     writes its outputs on the device of the observation it was given. With a collector, keep
-    the env on the CPU and pass ``env_device="cpu"``, ``policy_device=<the model's device>``;
-    the primer's specs are on the model's device.
+    the env on the CPU and pass ``env_device="cpu"``, ``policy_device=<the model's device>`` and
+    ``storing_device="cpu"``; the primer's specs are on the model's device until it is appended
+    to an env, then on the env's.
 
     Args:
         planner: the planner (its model's ``obs_dim``/``action_dim`` and horizon are used).

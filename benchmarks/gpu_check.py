@@ -405,6 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     steps = build_steps(args.device, args.tiny, out)
     mode = "dry run" if args.dry_run else ("tiny" if args.tiny else "full")
+    report, header = out / "gpu_check.md", machine_lines(args.device)
     start = time.perf_counter()
     for i, step in enumerate(steps, 1):
         log = out / "logs" / f"{i:02d}_{re.sub(r'[^a-z0-9]+', '_', step.name.lower())[:40]}.log"
@@ -420,9 +421,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             run_step(step, log, left)
         print(f"[{i}/{len(steps)}] {step.name}: {step.status}", flush=True)
-    wall = time.perf_counter() - start
-    report = out / "gpu_check.md"
-    write_report(report, machine_lines(args.device), steps, mode, wall)
+        # written after every step: a check stopped from outside keeps what it measured
+        write_report(report, header, steps, mode, time.perf_counter() - start)
     print(f"report: {report}")
     bad = ("failed", "timed out", "dry run: NOT wired")
     return 1 if any(step.status.startswith(bad) for step in steps) else 0

@@ -79,7 +79,8 @@ def collect(
     without it. One env only.
 
     Episode length is the env's own (see ``make_env(..., max_episode_steps=...)``).
-    Returns flat transitions ``[frames]`` carrying ``("collector", "traj_ids")`` so a
+    Returns flat transitions ``[frames]`` on the CPU (where the replay buffers store them, also
+    when the env casts its data to a GPU policy) carrying ``("collector", "traj_ids")`` so a
     ``SliceSampler`` never crosses an episode. Same ``seed`` → same data.
 
     A batched env of ``B`` envs (``make_env(..., num_envs=B)``) steps them together, about
@@ -122,7 +123,7 @@ def collect(
             frames_per_batch=frames_per_batch,
             total_frames=total,
             split_trajs=False,
-            storing_device=env.device,  # else none when a GPU policy's device differs from it
+            storing_device="cpu",  # the buffers' storage (a GPU policy's env casts to it)
         )
         batches, ended = [], 0
         with tqdm(total=frames, desc=desc, disable=not progress, leave=False) as bar:

@@ -185,13 +185,11 @@ def episode_returns(data: TensorDictBase) -> list[float]:
         [2.0]
     """
     ids = data.get(TRAJ_KEY)
-    reward = data["next", "reward"].reshape(len(data), -1).sum(-1).double().to(ids.device)
-    done = data["next", "done"].reshape(len(data), -1).any(-1).to(ids.device)
+    reward = data["next", "reward"].reshape(len(data), -1).sum(-1).double()
+    done = data["next", "done"].reshape(len(data), -1).any(-1)
     unique, inverse = torch.unique(ids, return_inverse=True)
-    like = dict(device=ids.device)
-    sums = torch.zeros(len(unique), dtype=torch.float64, **like).index_add_(0, inverse, reward)
-    ended = torch.zeros(len(unique), dtype=torch.bool, **like)
-    ended.index_put_((inverse,), done, accumulate=True)
+    sums = reward.new_zeros(len(unique)).index_add_(0, inverse, reward)
+    ended = done.new_zeros(len(unique)).index_put_((inverse,), done, accumulate=True)
     return sums[ended].tolist()
 
 

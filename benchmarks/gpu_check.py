@@ -16,8 +16,9 @@ comes when less than ``MIN_STEP_S`` is left is reported as not run):
    without a GPU);
 2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
    GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
-   run), population fits, episode batching, window scoring, uncertainty overhead, gradient
-   planning and control batching;
+   run), population fits (with ``--compile``: the fits with ``compile=True`` against eager),
+   episode batching, window scoring, uncertainty overhead, gradient planning and control
+   batching;
 3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control`` and
    ``calibrate`` on the Industrial Benchmark smoke recipes;
 4. the CUDA smoke-recipe tests of the other environments (``tests/experiments/test_recipes.py
@@ -97,12 +98,12 @@ BENCHMARK_STEPS = [
         ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
     ),
     benchmark(
-        "population fits",
+        "population fits (eager and torch.compile)",
         "training_speed.py",
-        120,
-        ["--members", "1", "20", "--steps", "10"],
+        150,
+        ["--members", "20", "--steps", "10", "--compile"],  # R = 1 left out for the compiles
         ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
-        + ["--steps", "1", "--repeats", "1", "--members", "1", "3"],
+        + ["--steps", "1", "--repeats", "1", "--members", "3", "--compile"],
     ),
     benchmark(
         "episode batching",

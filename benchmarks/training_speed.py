@@ -17,14 +17,21 @@ teacher-forced warm-up's LSTM steps and the imagined steps' LSTM, dense and head
 forward + backward ≈ 3 × forward, over that rate); each row, one per R and way of fitting,
 ends with ``N.Nx its arithmetic limit`` (its time per step over R × that limit).
 
-Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20]
-Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R.
+``--compile`` adds, for each R, the sequential and the shared population fits with
+``compile=True`` (their training steps under ``torch.compile``), timed round-robin with the eager
+ones after a first, untimed call that compiles (its seconds are printed), and a line
+``torch.compile vs eager, R=..: sequential X.XXx, population X.XXx``.
+
+Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20] [--compile]
+Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R
+(both eager).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import time
 
 import torch
 from _common import (
@@ -75,6 +82,9 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=10)
     parser.add_argument("--slice-len", type=int, default=40)
     parser.add_argument("--windows", type=int, default=32, help="sequences per batch per member")
+    parser.add_argument(
+        "--compile", action="store_true", help="also time the fits with compile=True"
+    )
     args, device = parse_device_args(parser)
     rb = random_buffer(args)
     fit = dict(
@@ -124,34 +134,58 @@ def main() -> None:
         sequential, population = models(count), models(count)
         seeds = list(range(count))
 
-        def run_sequential(ms=sequential, seeds=seeds):
+        def run_sequential(ms=sequential, seeds=seeds, compile=False):
             for model, seed in zip(ms, seeds, strict=True):
-                fit_world_model(model, rb, seed=seed, **fit)
+                fit_world_model(model, rb, seed=seed, compile=compile, **fit)
 
-        def run_population(ms=population, seeds=seeds, shared=False):
-            fit_population(ms, rb, seeds=seeds, shared_sampling=shared, **fit)
+        def run_population(ms=population, seeds=seeds, shared=False, compile=False):
+            fit_population(ms, rb, seeds=seeds, shared_sampling=shared, compile=compile, **fit)
 
-        ms = interleaved_median_ms(
-            {
-                "sequential": run_sequential,
-                "population": run_population,
-                "shared": lambda: run_population(shared=True),
-            },
-            args.repeats,
-            device=device,
-        )
-        seq, pop, shared = (ms[k] / args.steps for k in ("sequential", "population", "shared"))
+        calls = {
+            "sequential": run_sequential,
+            "population": run_population,
+            "shared": lambda: run_population(shared=True),
+        }
+        if args.compile:
+            compiled = {
+                "sequential, torch.compile": lambda: run_sequential(compile=True),
+                "shared, torch.compile": lambda: run_population(shared=True, compile=True),
+            }
+            for name, call in compiled.items():
+                start = time.perf_counter()
+                call()
+                print(
+                    f"R={count:3d}  {name}: first call (compiles) {time.perf_counter() - start:.1f} s"
+                )
+            calls |= compiled
+        ms = {
+            k: v / args.steps
+            for k, v in interleaved_median_ms(calls, args.repeats, device=device).items()
+        }
+        seq, pop, shared = (ms[k] for k in ("sequential", "population", "shared"))
         speed_up[count] = seq / shared
         limit = count * member_limit
-        for name, step, ratio in (
+        rows = [
             ("sequential", seq, ""),
             ("population", pop, f", speed-up {seq / pop:.2f}x"),
             ("population, shared_sampling", shared, f", speed-up {speed_up[count]:.2f}x"),
-        ):
+        ]
+        if args.compile:
+            seq_c, shared_c = ms["sequential, torch.compile"], ms["shared, torch.compile"]
+            rows += [
+                ("sequential, torch.compile", seq_c, ""),
+                ("shared, torch.compile", shared_c, f", speed-up {seq_c / shared_c:.2f}x"),
+            ]
+        for name, step, ratio in rows:
             per_member = f"({step / count:6.2f} per member{ratio})"
             print(
                 f"R={count:3d}  {name:<28}{step:9.2f} ms/step {per_member:<38}"
                 f"limit {limit:7.2f} ms   {limit_text(step, limit)}"
+            )
+        if args.compile:
+            print(
+                f"torch.compile vs eager, R={count}: sequential {seq / seq_c:.2f}x, "
+                f"population {shared / shared_c:.2f}x"
             )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     largest = max(args.members)

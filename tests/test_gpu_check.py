@@ -104,3 +104,4 @@ def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     assert "its arithmetic limit" in report and "speed-up" in report
     assert report.count("results.json: device cpu (") == 4, report
     assert "torch.compile (default) vs eager" in report, report
+    assert "torch.compile vs eager, R=3: sequential" in report, report

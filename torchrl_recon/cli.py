@@ -23,13 +23,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.devices import resolve_device
 from torchrl_recon.errors import DamagedFileError, RecipeError
 from torchrl_recon.experiments import compose
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
-from torchrl_recon.experiments.runner import interrupted_message, run
+from torchrl_recon.experiments.runner import interrupted_message, run, run_device
 from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
 from torchrl_recon.reports.tables import render
 
@@ -140,7 +139,7 @@ def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
     """Check every job of the command (each sweep's, composed by Hydra), its run directory and
-    (``here``) its device before Hydra starts anything; return the overrides for Hydra. Raises
+    (``here``) its device (and compiler, for ``compile``) before Hydra starts anything; return the overrides for Hydra. Raises
     FileNotFoundError, RecipeError or RunDirConflict naming the file, key or directory."""
     base = compose.compose_recipe(recipe, with_hydra=True)
     if (found := base.get("experiment")) != kind:
@@ -156,8 +155,8 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
         checked = validate(compose.compose_recipe(recipe, job), source=source)
         try:
             if here:
-                resolve_device(checked.device)
-        except ValueError as e:
+                run_device(checked)
+        except (ValueError, RuntimeError) as e:
             raise RecipeError(f"{source}: {e}") from e
         check_run_dir(checked)
     return completed

@@ -3,8 +3,11 @@ naming it back from there."""
 
 from __future__ import annotations
 
+import os
 import platform
 import re
+import shutil
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -61,6 +64,27 @@ def resolve_device(spec: str = "auto") -> torch.device:
                 "use device=cpu or device=auto."
             )
     return device
+
+
+def check_compile_support(device: torch.device | str) -> None:
+    """Refuse ``compile=True`` where ``torch.compile`` cannot build its kernels: on the CPU its
+    backend compiles C++ with ``$CXX`` (else ``g++``), which must be on ``PATH``. Nothing to
+    check on CUDA (Triton comes with torch's CUDA wheels) or on Windows (MSVC's ``cl``).
+
+    Raises:
+        RuntimeError: naming the compiler it looked for.
+
+    Examples:
+        >>> check_compile_support("cuda")  # checked on the CPU only
+    """
+    if torch.device(device).type != "cpu" or sys.platform == "win32":
+        return
+    cxx = os.environ.get("CXX") or "g++"
+    if shutil.which(cxx) is None:
+        raise RuntimeError(
+            f"compile=True on the CPU needs a C++ compiler for torch.compile's kernels, and "
+            f"{cxx!r} is not on PATH: install one (or point CXX at it), or set compile false."
+        )
 
 
 def cpu_model() -> str:

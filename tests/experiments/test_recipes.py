@@ -159,3 +159,16 @@ def test_device_cuda_without_a_gpu_is_refused_before_any_work(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith("error: ")
     assert "CUDA device" in proc.stderr and not out.exists()
+
+
+def test_compile_without_a_cpp_compiler_is_refused_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setenv("CXX", "no-such-compiler++")
+    out = tmp_path / "run"
+    recipe = RECIPES / "industrial_benchmark" / "control_smoke.yaml"
+    proc = _run(
+        "control", recipe, f"output_dir={out}", "device=cpu", "training.world_model.compile=true"
+    )
+    assert proc.returncode == 2
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "'no-such-compiler++' is not on PATH" in last
+    assert not out.exists()

@@ -113,10 +113,15 @@ class ModelsConfig:
 
 @dataclass
 class FitConfig:
+    """One fit's keywords (:func:`~torchrl_recon.training.train_loss_module`). ``compile``: its
+    training steps under ``torch.compile`` (the same fit up to float rounding; pays on long
+    fits, see ``docs/benchmarks.md``)."""
+
     steps: int = count(3000)
     lr: float = positive(3e-3)
     eval_every: int = count(100)
     patience: int = count(10)
+    compile: bool = False
 
 
 @dataclass

@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.allocator import keep_freed_memory
-from torchrl_recon.devices import describe_device, resolve_device
+from torchrl_recon.devices import check_compile_support, describe_device, resolve_device
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.loggers import make_logger
@@ -23,6 +23,18 @@ from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
 from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.reports import format_table, get_report, save_figures
+
+FITS = ("world_model", "uncertainty")
+"""A recipe's fit blocks, ``training.<fit>``."""
+
+
+def run_device(cfg: DictConfig) -> torch.device:
+    """The device ``cfg`` runs on, checked on this machine: it exists (``ValueError``), and where
+    a fit asks for ``compile``, torch.compile can build kernels there (``RuntimeError``)."""
+    device = resolve_device(cfg.device)
+    if any(OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS):
+        check_compile_support(device)
+    return device
 
 
 def _run_child(cfg: DictConfig, argv: Sequence[str] | None) -> dict[str, Any] | None:
@@ -66,8 +78,8 @@ def run(
     results; return them, or None when it stopped after ``cfg.stop_after`` (re-running resumes)."""
     cfg = validate(cfg)
     try:
-        device = resolve_device(cfg.device)
-    except ValueError as e:  # a CUDA device this machine lacks: refused before the run directory
+        device = run_device(cfg)
+    except (ValueError, RuntimeError) as e:  # refused before the run directory
         raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
     extra_meta = {**(extra_meta or {}), "device": describe_device(device)}

@@ -30,12 +30,18 @@ def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -
 def check_finite(name: str, x: torch.Tensor) -> None:
     """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad).
 
+    Not checked while ``torch.compile`` traces (a fit's ``compile=True`` training step): a
+    data-dependent branch would cut its graph, and the fit's check of each step's loss stops
+    on the same NaN or inf (``FloatingPointError``).
+
     Examples:
         >>> check_finite("obs", torch.tensor([0.0, float("nan")]))
         Traceback (most recent call last):
         ...
         ValueError: obs contains NaN or inf (first at index [1]); expected finite values.
     """
+    if torch.compiler.is_compiling():
+        return
     if not torch.isfinite(x).all():
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()
         raise ValueError(

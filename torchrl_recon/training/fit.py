@@ -8,6 +8,7 @@ import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -19,6 +20,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
+from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
@@ -42,6 +44,17 @@ class FitResult:
 def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
     out = loss_module(batch)
     return sum(v for k, v in out.items() if k.startswith("loss"))
+
+
+def _training_loss(
+    fn: Callable[..., torch.Tensor], compile: bool, device: torch.device
+) -> Callable[..., torch.Tensor]:
+    """``fn`` for the training steps: itself, or with ``compile`` under ``torch.compile``
+    (static shapes: every batch of a fit has one shape). Validation stays eager."""
+    if not compile:
+        return fn
+    check_compile_support(device)
+    return torch.compile(fn, dynamic=False)
 
 
 @torch.no_grad()
@@ -90,6 +103,7 @@ def train_loss_module(
     progress: bool = True,
     checkpoint_path: str | Path | None = None,
     checkpoint_modules: dict[str, nn.Module] | None = None,
+    compile: bool = False,
 ) -> FitResult:
     """Adam on ``loss_module`` with batches sampled from ``buffer``; early stopping on ``val_buffer``.
 
@@ -101,6 +115,10 @@ def train_loss_module(
     are kept, saved to ``checkpoint_path`` when given, and restored at the end. Training
     stops after ``patience`` evaluations without improvement. A non-finite loss restores
     the best weights and raises ``FloatingPointError`` (the saved checkpoint stays).
+    ``compile=True`` runs each training step's loss (forward and backward) under
+    ``torch.compile``: the same fit up to float rounding, faster per step once compiled, at a
+    compile of seconds to a minute per process and batch shape (figures in
+    ``docs/benchmarks.md``); on the CPU it needs a C++ compiler.
 
     Examples:
         >>> from torchrl_recon.data import make_sequence_buffer
@@ -138,6 +156,7 @@ def train_loss_module(
             progress=progress,
             checkpoint_path=checkpoint_path,
             checkpoint_modules=checkpoint_modules,
+            compile=compile,
         )
 
 
@@ -160,6 +179,7 @@ def _train_loss_module(
     progress: bool,
     checkpoint_path: str | Path | None,
     checkpoint_modules: dict[str, nn.Module] | None,
+    compile: bool,
 ) -> FitResult:
     """The loop of :func:`train_loss_module` (arguments checked)."""
     torch.manual_seed(seed)
@@ -172,6 +192,7 @@ def _train_loss_module(
     )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     device = module_device(loss_module)  # the buffers' storage may stay on the CPU
+    train_loss = _training_loss(partial(_loss_value, loss_module), compile, device)
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
@@ -181,7 +202,7 @@ def _train_loss_module(
     step = 0
     for step in bar:
         try:
-            loss = _loss_value(loss_module, buffer.sample().to(device))
+            loss = train_loss(buffer.sample().to(device))
         except FloatingPointError as err:
             loss_module.load_state_dict(best_state)
             where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""
@@ -513,6 +534,7 @@ def fit_population(
     log_prefix: str | None = None,
     progress: bool = True,
     shared_sampling: bool = False,
+    compile: bool = False,
 ) -> list[FitResult]:
     """Train R models of one kind at once, as R independent fits run as one batch.
 
@@ -533,7 +555,8 @@ def fit_population(
     by the first of their seeds), split into one batch each. Members still see different,
     independently drawn slices, so the fits are statistically those of separate fits, but
     not their exact data order. Sampling a ``SliceSampler`` costs about as much as a member's
-    step, so this is the faster mode for many members on one buffer.
+    step, so this is the faster mode for many members on one buffer. ``compile=True`` runs
+    the members' training loss under ``torch.compile`` (see :func:`train_loss_module`).
 
     Returns:
         One :class:`FitResult` per member.
@@ -613,6 +636,7 @@ def fit_population(
             logger=logger,
             log_prefix=log_prefix,
             progress=progress,
+            compile=compile,
         )
     if count > 1:
         for i, model in enumerate(models):
@@ -640,6 +664,7 @@ def _train_members(
     log_prefix: str,
     progress: bool,
     shared_sampling: bool = False,
+    compile: bool = False,
 ) -> list[FitResult]:
     """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``."""
     stacked = count > 1  # else: one plain model, no member dim
@@ -651,6 +676,7 @@ def _train_members(
         else None
     )
     device = module_device(module)
+    train_losses = _training_loss(losses_of, compile, device)
     fixed_val = [
         [rng.sample(r, val_sources[r], device) for _ in range(val_batches)] for r in range(count)
     ]
@@ -688,7 +714,7 @@ def _train_members(
                 if active[r]:  # a stopped member's batch stays: it is frozen anyway
                     batches[r] = rng.sample(r, buffers[r], device)
         try:
-            losses = losses_of(batches)
+            losses = train_losses(batches)
             finite = torch.isfinite(losses.detach())
             bad = (
                 []

@@ -49,7 +49,9 @@ class FitSchedule:
     it drawn at random until they hold ``refit_old_steps`` steps (:func:`recent_and_sampled`);
     None: on the whole training split. ``refit_uncertainty``: False leaves the estimator as
     the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
-    exploring rounds)."""
+    exploring rounds). ``compile``: the world model's fits under ``torch.compile``
+    (:func:`~torchrl_recon.training.train_loss_module`; compiled once per process, reused by
+    every refit)."""
 
     steps: int = 1000
     refit_steps: int = 300
@@ -62,6 +64,7 @@ class FitSchedule:
     num_slices: int = 32
     val_fraction: float = 0.1
     mode: str = "multi_step"
+    compile: bool = False
 
 
 @dataclass
@@ -139,7 +142,12 @@ def fit_models(
     fit_world = world_model_fit(world_model)
     out = {
         "world_model": fit_world(
-            world_model, buffers[0], mode=s.mode, log_prefix=f"{log_prefix}world_model/", **common
+            world_model,
+            buffers[0],
+            mode=s.mode,
+            compile=s.compile,
+            log_prefix=f"{log_prefix}world_model/",
+            **common,
         ).best_val_loss
     }
     if estimator is not None and (s.refit_uncertainty or not warm):

@@ -1,0 +1,86 @@
+"""Fits with ``compile=True``: their training steps under ``torch.compile``, the same fit up to
+float rounding; refused up front where torch.compile cannot build its kernels."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_recon.data import make_sequence_buffer
+from torchrl_recon.devices import check_compile_support
+from torchrl_recon.modules import LSTMWorldModel
+from torchrl_recon.training import fit_population, fit_world_model
+
+from .test_population_fit import FIT, M, N, _buffer
+
+
+def _has_compiler() -> bool:
+    try:
+        check_compile_support("cpu")
+    except RuntimeError:
+        return False
+    return True
+
+
+needs_compiler = pytest.mark.skipif(
+    not _has_compiler(), reason="torch.compile on the CPU needs a C++ compiler"
+)
+
+
+def _world(seed: int) -> LSTMWorldModel:
+    torch.manual_seed(100 + seed)
+    return LSTMWorldModel(N, M, window=4, hidden_size=8, dense_size=8)
+
+
+def _close(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    return all(
+        torch.allclose(x, y, rtol=1e-4, atol=1e-6)
+        for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True)
+    )
+
+
+@needs_compiler
+def test_a_compiled_fit_is_the_eager_fit_up_to_rounding():
+    rb = _buffer(0)
+    eager, compiled = _world(0), _world(0)
+    a = fit_world_model(eager, rb, seed=1, **FIT)
+    b = fit_world_model(compiled, rb, seed=1, compile=True, **FIT)
+    assert a.steps == b.steps
+    assert b.best_val_loss == pytest.approx(a.best_val_loss, rel=1e-4)
+    assert _close(eager, compiled)
+    assert not _close(_world(0), compiled)  # it trained
+
+
+@needs_compiler
+def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
+    rb = _buffer(0)
+    eager, compiled = [_world(r) for r in range(2)], [_world(r) for r in range(2)]
+    a = fit_population(eager, rb, shared_sampling=True, **FIT)
+    b = fit_population(compiled, rb, shared_sampling=True, compile=True, **FIT)
+    for x, y in zip(a, b, strict=True):
+        assert y.best_val_loss == pytest.approx(x.best_val_loss, rel=1e-4)
+    assert all(_close(x, y) for x, y in zip(eager, compiled, strict=True))
+
+
+@needs_compiler
+def test_a_compiled_fit_still_stops_on_non_finite_data():
+    data = _buffer(0)[:]
+    data["observation"][:] = float("nan")  # eager, the warm-up's input check refuses it
+    rb = make_sequence_buffer(200, slice_len=8, num_slices=4)
+    rb.extend(data)
+    with pytest.raises(FloatingPointError, match=r"member\(s\) \[0, 1\] is not finite"):
+        fit_population(
+            [_world(r) for r in range(2)], rb, fit_normalization=False, compile=True, **FIT
+        )
+
+
+def test_compile_without_a_cpp_compiler_is_refused_before_any_step(monkeypatch):
+    monkeypatch.setenv("CXX", "no-such-compiler++")
+    model, untouched = _world(0), _world(0)
+    with pytest.raises(RuntimeError, match="'no-such-compiler\\+\\+' is not on PATH"):
+        fit_world_model(model, _buffer(0), fit_normalization=False, compile=True, **FIT)
+    assert all(
+        torch.equal(x, y)
+        for x, y in zip(model.state_dict().values(), untouched.state_dict().values(), strict=True)
+    )
+    check_compile_support("cuda")  # nothing to check off the CPU

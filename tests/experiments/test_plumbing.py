@@ -485,7 +485,9 @@ def test_a_config_yaml_torn_at_a_line_end_is_refused_naming_it(tmp_path):
     release_run_dir(run_dir)
     config = run_dir / "config.yaml"
     lines = config.read_text().splitlines(keepends=True)
-    config.write_text("".join(lines[: len(lines) // 2]))
+    # cut before the top-level key at or above the middle: no key is left without its value
+    cut = max(i for i in range(1, len(lines) // 2 + 1) if not lines[i][0].isspace())
+    config.write_text("".join(lines[:cut]))
     torn = config.read_bytes()
     with pytest.raises(RunDirConflict) as err:
         prepare_run_dir(_smoke(tmp_path))

@@ -139,8 +139,9 @@ def _split_overrides(items: Sequence[str]) -> tuple[list[str], list[str]]:
 
 def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = True) -> list[str]:
     """Check every job of the command (each sweep's, composed by Hydra), its run directory and
-    (``here``) its device (and compiler, for ``compile``) before Hydra starts anything; return the overrides for Hydra. Raises
-    FileNotFoundError, RecipeError or RunDirConflict naming the file, key or directory."""
+    (``here``) its device and, for a fit's ``compile``, its compiler before Hydra starts
+    anything; return the overrides for Hydra. Raises FileNotFoundError, RecipeError or
+    RunDirConflict naming the file, key or directory."""
     base = compose.compose_recipe(recipe, with_hydra=True)
     if (found := base.get("experiment")) != kind:
         raise RecipeError(

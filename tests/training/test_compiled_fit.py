@@ -78,9 +78,11 @@ def test_compile_without_a_cpp_compiler_is_refused_before_any_step(monkeypatch):
     monkeypatch.setenv("CXX", "no-such-compiler++")
     model, untouched = _world(0), _world(0)
     with pytest.raises(RuntimeError, match="'no-such-compiler\\+\\+' is not on PATH"):
-        fit_world_model(model, _buffer(0), fit_normalization=False, compile=True, **FIT)
+        fit_world_model(model, _buffer(0), compile=True, **FIT)  # normalisation untouched too
     assert all(
         torch.equal(x, y)
         for x, y in zip(model.state_dict().values(), untouched.state_dict().values(), strict=True)
     )
+    with pytest.raises(RuntimeError, match="not on PATH"):
+        fit_population([model, untouched], _buffer(0), compile=True, **FIT)
     check_compile_support("cuda")  # nothing to check off the CPU

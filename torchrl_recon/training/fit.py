@@ -46,15 +46,17 @@ def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
     return sum(v for k, v in out.items() if k.startswith("loss"))
 
 
-def _training_loss(
-    fn: Callable[..., torch.Tensor], compile: bool, device: torch.device
-) -> Callable[..., torch.Tensor]:
+def _check_compile(compile: bool, module: nn.Module) -> None:
+    """Refuse ``compile=True`` where torch.compile cannot build kernels for ``module``'s device,
+    before the fit changes anything (its normalisation included)."""
+    if compile:
+        check_compile_support(module_device(module))
+
+
+def _training_loss(fn: Callable[..., torch.Tensor], compile: bool) -> Callable[..., torch.Tensor]:
     """``fn`` for the training steps: itself, or with ``compile`` under ``torch.compile``
     (static shapes: every batch of a fit has one shape). Validation stays eager."""
-    if not compile:
-        return fn
-    check_compile_support(device)
-    return torch.compile(fn, dynamic=False)
+    return torch.compile(fn, dynamic=False) if compile else fn
 
 
 @torch.no_grad()
@@ -135,6 +137,7 @@ def train_loss_module(
     """
     for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
         check_int(name, value)
+    _check_compile(compile, loss_module)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
     with _cached_boundaries(buffer, val_buffer):
@@ -192,7 +195,7 @@ def _train_loss_module(
     )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     device = module_device(loss_module)  # the buffers' storage may stay on the CPU
-    train_loss = _training_loss(partial(_loss_value, loss_module), compile, device)
+    train_loss = _training_loss(partial(_loss_value, loss_module), compile)
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
@@ -275,6 +278,7 @@ def fit_world_model(
             f"fit_world_model fits one model; this one has num_members={model.num_members} "
             "(fit members with fit_population(model.split(), ...))."
         )
+    _check_compile(kwargs.get("compile", False), model)
     if fit_normalization:
         data = buffer_contents(buffer)
         model.fit_normalization(data["observation"], data["action"], data["next", "observation"])
@@ -367,6 +371,7 @@ def fit_uncertainty(
         ...                 progress=False).steps
         4
     """
+    _check_compile(kwargs.get("compile", False), estimator)
     if fit_normalization:
         data = buffer_contents(buffer)
         estimator.fit_normalization(data["observation"], data["action"])
@@ -600,6 +605,7 @@ def fit_population(
         raise ValueError(
             f"Every member's buffer must sample one shape (slice_len, batch_size); got {sorted(shapes)}."
         )
+    _check_compile(compile, models[0])
     world = isinstance(models[0], LSTMWorldModel)
     if fit_normalization:
         for model, buffer in zip(models, buffers, strict=True):
@@ -676,7 +682,7 @@ def _train_members(
         else None
     )
     device = module_device(module)
-    train_losses = _training_loss(losses_of, compile, device)
+    train_losses = _training_loss(losses_of, compile)
     fixed_val = [
         [rng.sample(r, val_sources[r], device) for _ in range(val_batches)] for r in range(count)
     ]

@@ -607,6 +607,30 @@ def test_populations(device, members):
                 assert value.device.type == device, f"{path} is on {value.device}"
 
 
+@NEEDS_CUDA
+def test_compiled_fits_on_cuda_match_eager():
+    """``compile=True`` on CUDA (Triton kernels): the same fits as eager on the GPU, up to float
+    rounding, one model and a population of two (the gpu-check times them)."""
+    fit = dict(steps=4, eval_every=2, val_batches=1, progress=False, fit_normalization=False)
+    results = {}
+    for compile in (False, True):
+        one = _world_model().to("cuda")
+        members = [_world_model().to("cuda") for _ in range(2)]
+        single = fit_world_model(one, _buffer(), seed=0, compile=compile, **fit)
+        population = fit_population(
+            members, _buffer(), shared_sampling=True, compile=compile, **fit
+        )
+        results[compile] = (single, population, one, members)
+    (s0, p0, one0, m0), (s1, p1, one1, m1) = results[False], results[True]
+    assert s1.best_val_loss == pytest.approx(s0.best_val_loss, rel=RTOL)
+    for a, b in zip(p0, p1, strict=True):
+        assert b.best_val_loss == pytest.approx(a.best_val_loss, rel=RTOL)
+    for a, b in zip([one0, *m0], [one1, *m1], strict=True):
+        for (key, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+            assert y.device.type == "cuda", key
+            torch.testing.assert_close(y, x, rtol=RTOL, atol=ATOL)
+
+
 # ---------------------------------------------------------------- evaluation
 
 

@@ -14,7 +14,7 @@ from torchrl_recon.envs.registry import (
     register_env,
     register_envs,
 )
-from torchrl_recon.envs.threads import close_env, keep_num_threads
+from torchrl_recon.envs.threads import close_env, closing_env, keep_num_threads
 
 __all__ = [
     "ENVS",
@@ -23,6 +23,7 @@ __all__ = [
     "get_entry",
     "gym_entry",
     "close_env",
+    "closing_env",
     "entry_errors",
     "import_cost",
     "keep_num_threads",

@@ -46,3 +46,23 @@ def close_env(env: EnvBase) -> None:
     """
     with keep_num_threads():
         env.close(raise_if_closed=False)
+
+
+@contextmanager
+def closing_env(env: EnvBase) -> Iterator[EnvBase]:
+    """``with closing_env(make_env(...)) as env:``: :func:`close_env` on the way out, also when
+    the block raises or is interrupted (a batched env's workers do not outlive a failed stage).
+
+    Examples:
+        >>> from torchrl_recon.envs import make_env
+        >>> try:
+        ...     with closing_env(make_env("drone", seed=0)) as env:
+        ...         raise KeyboardInterrupt
+        ... except KeyboardInterrupt:
+        ...     env.is_closed
+        True
+    """
+    try:
+        yield env
+    finally:
+        close_env(env)

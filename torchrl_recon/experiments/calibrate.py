@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.collectors import EpisodesTooShort, collect_random, validation_trajectories
 from torchrl_recon.data import cut_sequences, long_trajectories
-from torchrl_recon.envs import close_env
+from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import calibration_metrics
 from torchrl_recon.experiments.common import (
@@ -125,19 +125,17 @@ def evaluation_stage(
 
     def run() -> dict:
         seed, length = ctx.stage_seed("evaluation"), window + ev.horizon
-        env = build_env(cfg, seed=seed, episode_steps=length)
-        try:
-            trajectories = validation_trajectories(
-                env, count=ev.trajectories, length=length, seed=seed, policy=ev.policy
-            )
-        except EpisodesTooShort as err:
-            close_env(env)
-            found = f"only {err.done} of {err.attempts} attempts lasted {length} steps"
-            found += f" (median {err.median}, longest {err.longest})"
-            raise short_episodes_error(cfg, found) from None
-        held_out = collect_random(env, frames=ev.ood_windows * window, seed=seed + 1)
-        high = env.action_spec.high.to(torch.float32)
-        close_env(env)
+        with closing_env(build_env(cfg, seed=seed, episode_steps=length)) as env:
+            try:
+                trajectories = validation_trajectories(
+                    env, count=ev.trajectories, length=length, seed=seed, policy=ev.policy
+                )
+            except EpisodesTooShort as err:
+                found = f"only {err.done} of {err.attempts} attempts lasted {length} steps"
+                found += f" (median {err.median}, longest {err.longest})"
+                raise short_episodes_error(cfg, found) from None
+            held_out = collect_random(env, frames=ev.ood_windows * window, seed=seed + 1)
+            high = env.action_spec.high.to(torch.float32)
         windows = cut_sequences(held_out, window)
         kw = dict(window=window, scale=scale, state_shift=ev.ood_state_shift, action_high=high)
         out = {}

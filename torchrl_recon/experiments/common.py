@@ -19,7 +19,7 @@ from torchrl_recon.data import (
     split_by_trajectory,
 )
 from torchrl_recon.devices import resolve_device
-from torchrl_recon.envs import close_env, get_entry, make_env
+from torchrl_recon.envs import closing_env, get_entry, make_env
 from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RunContext
@@ -108,13 +108,10 @@ def planning_model(
     of its env (built and closed without stepping)."""
     path = cfg.env.get("termination")
     termination = None if path is None else import_cost(path, what="termination")
-    env = build_env(cfg, seed=0, episode_steps=1)
-    try:
+    with closing_env(build_env(cfg, seed=0, episode_steps=1)) as env:
         return PlanningModel.from_env(
             world, cost_fn(cfg), env, uncertainty=uncertainty, termination_fn=termination
         )
-    finally:
-        close_env(env)
 
 
 def random_data_stage(
@@ -126,8 +123,8 @@ def random_data_stage(
     def run() -> dict:
         seed = ctx.stage_seed(name)
         env = build_env(ctx.cfg, seed=seed, episode_steps=episode_steps, num_envs=ctx.cfg.num_envs)
-        data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
-        close_env(env)  # the collector has closed a batched env already
+        with closing_env(env):  # the collector has closed a batched env already
+            data = collect_random(env, frames=frames, seed=seed, progress=ctx.cfg.progress)
         ctx.stages.save_data(name, data.select(*keys) if keys else data)
         return {"steps": data.numel()}
 

@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from torchrl_recon.collectors import first_episodes
-from torchrl_recon.envs import close_env
+from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.evaluation import episode_metrics, planned_trajectory
 from torchrl_recon.experiments.common import (
@@ -66,10 +66,9 @@ def play_episodes(
     actions. Ended envs wait (TorchRL partial steps) until all are done or ``env.episode_steps``."""
     seeds = [ctx.stage_seed(f"{name}_{e}") for e in batch]
     steps, batched = ctx.cfg.env.episode_steps, len(seeds) > 1
-    env = build_env(ctx.cfg, seed=seeds if batched else seeds[0], policy=policy)
-    torch.manual_seed(seeds[0])
-    td = env.rollout(steps, policy, break_when_all_done=batched).cpu()  # else: any done
-    close_env(env)
+    with closing_env(build_env(ctx.cfg, seed=seeds if batched else seeds[0], policy=policy)) as env:
+        torch.manual_seed(seeds[0])
+        td = env.rollout(steps, policy, break_when_all_done=batched).cpu()  # else: any done
     return first_episodes(td) if batched else [td]
 
 

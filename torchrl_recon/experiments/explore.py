@@ -16,7 +16,7 @@ from torchrl_recon.collectors import (
     concat_trajectories,
     validation_trajectories,
 )
-from torchrl_recon.envs import close_env
+from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import population_multi_step_errors
 from torchrl_recon.experiments.common import (
@@ -70,14 +70,13 @@ def validation_stage(ctx: RunContext) -> TensorDictBase:
     def run():
         seed = ctx.stage_seed("validation")
         env = build_env(cfg, seed=seed, episode_steps=length, num_envs=cfg.num_envs)
-        try:
-            val = validation_trajectories(
-                env, count=count, length=length, seed=seed, policy=cfg.validation.policy
-            )
-        except EpisodesTooShort as err:
-            raise short_validation_error(cfg, err) from None
-        finally:
-            close_env(env)
+        with closing_env(env):
+            try:
+                val = validation_trajectories(
+                    env, count=count, length=length, seed=seed, policy=cfg.validation.policy
+                )
+            except EpisodesTooShort as err:
+                raise short_validation_error(cfg, err) from None
         ctx.stages.save_data("validation", val.select(*DATA_KEYS, strict=False).reshape(-1))
         return {"trajectories": count, "length": length}
 
@@ -124,8 +123,8 @@ def guided_round_stage(
         seed = ctx.stage_seed(name)
         env = build_env(cfg, seed=seed, policy=policy, num_envs=cfg.num_envs)
         desc = f"guided exploration {r + 1}/{rounds}"
-        data = collect(env, policy, frames=frames, seed=seed, progress=cfg.progress, desc=desc)
-        close_env(env)  # the collector has closed a batched env already
+        with closing_env(env):  # the collector has closed a batched env already
+            data = collect(env, policy, frames=frames, seed=seed, progress=cfg.progress, desc=desc)
         planned = data[REPLANNED].squeeze(-1)
         ctx.stages.save_data(name, data.select(*DATA_KEYS))
         feasible = int(data[FEASIBLE].squeeze(-1)[planned].sum())

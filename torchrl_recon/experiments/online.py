@@ -10,7 +10,7 @@ import time
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
-from torchrl_recon.envs import close_env
+from torchrl_recon.envs import closing_env
 from torchrl_recon.experiments.common import (
     build_env,
     build_planner,
@@ -67,11 +67,10 @@ def play_stage(
             planner = build_planner(cfg.planner, model, Objective(alpha=cfg.alpha, beta=cfg.beta))
             mpc = mpc_policy(cfg, planner, threshold, warmup=warmup)
         seed = ctx.stage_seed(name)
-        env = build_env(cfg, seed=seed, policy=mpc)
-        new, plan_s = play(
-            env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
-        )
-        close_env(env)
+        with closing_env(build_env(cfg, seed=seed, policy=mpc)) as env:
+            new, plan_s = play(
+                env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
+            )
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
         seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
         record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}

@@ -65,7 +65,7 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
 @needs_compiler
 def test_a_compiled_fit_still_stops_on_non_finite_data():
     data = _buffer(0)[:]
-    data["observation"][:] = float("nan")  # eager, the warm-up's input check refuses it
+    data["observation"][:] = float("nan")  # eager, the world model's input check refuses it
     rb = make_sequence_buffer(200, slice_len=8, num_slices=4)
     rb.extend(data)
     with pytest.raises(FloatingPointError, match=r"member\(s\) \[0, 1\] is not finite"):

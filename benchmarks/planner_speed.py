@@ -90,10 +90,11 @@ def plain_model_env(world) -> WorldModelPlanningEnv:
 
 
 def compiled(model: PlanningModel, mode: str) -> PlanningModel:
-    """A planning model sharing ``model``'s networks whose one-block pass is ``torch.compile``d."""
-    twin = PlanningModel(model.world_model, model.cost_fn, uncertainty=model.uncertainty)
-    twin._predict = torch.compile(twin._predict, mode=mode, dynamic=False)
-    return twin
+    """A planning model sharing ``model``'s networks whose one-block pass is ``torch.compile``d
+    (``PlanningModel(compile=mode)``)."""
+    return PlanningModel(
+        model.world_model, model.cost_fn, uncertainty=model.uncertainty, compile=mode
+    )
 
 
 def _plan_no_grad(planner: TorchRLCEMPlanner, start) -> object:

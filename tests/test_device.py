@@ -724,3 +724,24 @@ def test_plan_agrees_on_cpu_and_cuda(planner):
         torch.testing.assert_close(
             getattr(cuda, name).cpu(), getattr(cpu, name), rtol=tol, atol=tol
         )
+
+
+@NEEDS_CUDA
+@pytest.mark.parametrize("mode", ["default", "reduce-overhead"])
+def test_compiled_planning_on_cuda_matches_eager(mode):
+    """``PlanningModel(compile=mode)`` on CUDA (Triton; ``reduce-overhead``: CUDA graphs): the
+    same predictions as the eager pass on the GPU, and a CEM plan from them."""
+    eager = _planning_model("reconstruction").to("cuda")
+    compiled = PlanningModel(
+        eager.world_model, drone_cost, uncertainty=eager.uncertainty, compile=mode
+    ).to("cuda")
+    ctx = [x.to("cuda") for x in _context()]
+    actions = torch.rand(2, 16, 5, M, generator=torch.Generator().manual_seed(5)).to("cuda")
+    with torch.no_grad():
+        a, b = eager(*ctx, actions), compiled(*ctx, actions)
+        b = compiled(*ctx, actions)  # a second call: reduce-overhead replays its graph
+    for x, y in ((a.states, b.states), (a.cost, b.cost), (a.uncertainty, b.uncertainty)):
+        assert y.device.type == "cuda"
+        torch.testing.assert_close(y, x, rtol=RTOL, atol=ATOL)
+    plan = CEMPlanner(compiled, Objective(beta=0.1), horizon=5, num_candidates=16, num_elites=4)
+    assert plan.plan(*ctx).actions.device.type == "cuda"

@@ -19,6 +19,7 @@ from torchrl_recon.planners.mppi import MPPIPlanner
 from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.planners.planning_model import (
+    COMPILE_MODES,
     PlanningModel,
     Prediction,
     TerminationFn,
@@ -33,6 +34,7 @@ from torchrl_recon.planners.registry import (
 from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
+    "COMPILE_MODES",
     "CEMPlanner",
     "EliteMemory",
     "GradientPlanner",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -9,11 +10,15 @@ import torch
 from torch import nn
 from torchrl.envs import EnvBase
 
+from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
+
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+"""``torch.compile``'s modes, for ``PlanningModel(compile=...)``."""
 
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 TerminationFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
@@ -66,6 +71,13 @@ def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         *index.shape, *x.shape[index.ndim :]
     )
     return x.gather(dim, expanded)
+
+
+@functools.cache
+def compiled_pass(fn: Callable, mode: str) -> Callable:
+    """``torch.compile(fn, mode=mode)``, made once per function and mode: every planning model
+    (and every copy of one) shares the compiled code, which takes the model as an argument."""
+    return torch.compile(fn, mode=mode)
 
 
 @dataclass
@@ -168,6 +180,12 @@ class PlanningModel(nn.Module):
             with the rest); planners draw their candidates there. The defaults (−1, 1) fit
             the shipped envs only: for any other env use :meth:`from_env`, which reads them
             from the env's action spec.
+        compile: run the one-block pass (rollout, cost, u) under ``torch.compile``: True for
+            its default mode, or a mode name of :data:`COMPILE_MODES` (``"reduce-overhead"``:
+            CUDA graphs). The same predictions up to float rounding; the first call of each
+            new shape compiles (seconds). Off by default: on a 2-core CPU it was slower than
+            eager, on an H200 1.1–1.3× faster a CEM call (``docs/benchmarks.md``). On the
+            CPU it needs a C++ compiler (refused here without one).
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -188,6 +206,7 @@ class PlanningModel(nn.Module):
         termination_fn: TerminationFn | None = None,
         action_low: float | torch.Tensor = -1.0,
         action_high: float | torch.Tensor = 1.0,
+        compile: bool | str = False,
     ) -> None:
         super().__init__()
         self.world_model, self.cost_fn, self.uncertainty = world_model, cost_fn, uncertainty
@@ -220,6 +239,13 @@ class PlanningModel(nn.Module):
             )
         self.register_buffer("action_low", low.to(device).clone())
         self.register_buffer("action_high", high.to(device).clone())
+        if compile is not False and compile is not True and compile not in COMPILE_MODES:
+            raise ValueError(
+                f"compile must be True, False or one of {list(COMPILE_MODES)}, got {compile!r}."
+            )
+        self.compile_mode = "default" if compile is True else (compile or None)
+        if self.compile_mode is not None:
+            check_compile_support(device)
         check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)
         if termination_fn is not None:
             check_step_fn(
@@ -241,6 +267,7 @@ class PlanningModel(nn.Module):
         *,
         uncertainty: UncertaintyEstimator | None = None,
         termination_fn: TerminationFn | None = None,
+        compile: bool | str = False,
     ) -> PlanningModel:
         """A planning model whose action bounds are the env's (its ``Bounded`` action spec).
 
@@ -269,6 +296,7 @@ class PlanningModel(nn.Module):
             termination_fn=termination_fn,
             action_low=low,
             action_high=high,
+            compile=compile,
         )
 
     @property
@@ -356,13 +384,17 @@ class PlanningModel(nn.Module):
             check_int("block_rows", block_rows)
         batch_rows = int(observation.shape[:-1].numel())
         k = actions.shape[-3]
+        predict = type(self)._predict
+        if self.compile_mode is not None:
+            predict = compiled_pass(predict, self.compile_mode)
         if block_rows is None or batch_rows * k <= block_rows:
-            return self._predict(context_obs, context_action, observation, actions, state)
+            return predict(self, context_obs, context_action, observation, actions, state)
         chunk = max(1, block_rows // batch_rows)
         blocks_u = self._row_independent_u
         prediction = Prediction.concat(
             [
-                self._predict(
+                predict(
+                    self,
                     context_obs,
                     context_action,
                     observation,

@@ -8,17 +8,9 @@ import copy
 import pytest
 import torch
 
-from torchrl_recon.devices import check_compile_support
+from tests.compilers import needs_cpp_compiler
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-
-
-def _has_compiler() -> bool:
-    try:
-        check_compile_support("cpu")
-    except RuntimeError:
-        return False
-    return True
 
 
 def _cost(s, a, s2):
@@ -43,7 +35,7 @@ def _inputs() -> tuple[torch.Tensor, ...]:
     )
 
 
-@pytest.mark.skipif(not _has_compiler(), reason="torch.compile on the CPU needs a C++ compiler")
+@needs_cpp_compiler
 def test_a_compiled_pass_predicts_what_the_eager_one_does_and_copies_keep_their_weights():
     world, est = _networks()
     eager = PlanningModel(world, _cost, uncertainty=est)

@@ -6,25 +6,13 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.compilers import needs_cpp_compiler
 from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.training import fit_population, fit_world_model
 
 from .test_population_fit import FIT, M, N, _buffer
-
-
-def _has_compiler() -> bool:
-    try:
-        check_compile_support("cpu")
-    except RuntimeError:
-        return False
-    return True
-
-
-needs_compiler = pytest.mark.skipif(
-    not _has_compiler(), reason="torch.compile on the CPU needs a C++ compiler"
-)
 
 
 def _world(seed: int) -> LSTMWorldModel:
@@ -39,7 +27,7 @@ def _close(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     )
 
 
-@needs_compiler
+@needs_cpp_compiler
 def test_a_compiled_fit_is_the_eager_fit_up_to_rounding():
     rb = _buffer(0)
     eager, compiled = _world(0), _world(0)
@@ -51,7 +39,7 @@ def test_a_compiled_fit_is_the_eager_fit_up_to_rounding():
     assert not _close(_world(0), compiled)  # it trained
 
 
-@needs_compiler
+@needs_cpp_compiler
 def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
     rb = _buffer(0)
     eager, compiled = [_world(r) for r in range(2)], [_world(r) for r in range(2)]
@@ -62,7 +50,7 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
     assert all(_close(x, y) for x, y in zip(eager, compiled, strict=True))
 
 
-@needs_compiler
+@needs_cpp_compiler
 def test_a_compiled_fit_still_stops_on_non_finite_data():
     data = _buffer(0)[:]
     data["observation"][:] = float("nan")  # eager, the world model's input check refuses it

@@ -157,7 +157,7 @@ EXTRA_OVERRIDES = {"calibrate": ["outcomes.control_recipe=null", "outcomes.explo
 
 def has_pybullet() -> bool:
     """Whether pybullet imports (Minitaur's physics; a GPU image may lack it, and its CUDA smoke
-    tests are then left out of step 4, as the report's header says)."""
+    tests are then left out of the last step, as the report's header says)."""
     try:
         import pybullet  # noqa: F401
     except ImportError:

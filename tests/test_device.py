@@ -610,8 +610,15 @@ def test_populations(device, members):
 @NEEDS_CUDA
 def test_compiled_fits_on_cuda_match_eager():
     """``compile=True`` on CUDA (Triton kernels): the same fits as eager on the GPU, up to float
-    rounding, one model and a population of two (the gpu-check times them)."""
+    rounding, one model and a population of two (the gpu-check times them).
+
+    Adam divides each step by the gradient's running scale, so a weight whose gradient is near
+    zero can move up to one learning rate on a rounding difference (seen on an H200: 1 of 32
+    bias entries 1.7e-5 apart after 4 steps): all but 1 % of the weights must agree at rounding,
+    and none may be more than one Adam step (``lr``) apart."""
+    lr = 1e-3
     fit = dict(steps=4, eval_every=2, val_batches=1, progress=False, fit_normalization=False)
+    fit["lr"] = lr
     results = {}
     for compile in (False, True):
         one = _world_model().to("cuda")
@@ -626,9 +633,15 @@ def test_compiled_fits_on_cuda_match_eager():
     for a, b in zip(p0, p1, strict=True):
         assert b.best_val_loss == pytest.approx(a.best_val_loss, rel=RTOL)
     for a, b in zip([one0, *m0], [one1, *m1], strict=True):
+        apart, total = 0, 0
         for (key, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
             assert y.device.type == "cuda", key
-            torch.testing.assert_close(y, x, rtol=RTOL, atol=ATOL)
+            x, y = x.double(), y.double()  # buffers include bools
+            gap = (y - x).abs()
+            assert gap.max() <= lr, f"{key}: {gap.max():.3g} apart, more than one Adam step"
+            apart += int((gap > ATOL + RTOL * x.abs()).sum())
+            total += x.numel()
+        assert apart <= 0.01 * total, f"{apart} of {total} weights differ beyond rounding"
 
 
 # ---------------------------------------------------------------- evaluation

@@ -75,6 +75,17 @@ def test_dry_run_finds_every_step_wired(tmp_path):
     assert kinds.count("benchmark") == 8 and kinds.count("experiment") == 4, sections
 
 
+def test_the_recorded_wall_time_of_each_results_layout():
+    """Every experiment kind's ``results.json`` layout gives its seconds; none gives None (an
+    online run's used to read as 0.0 s)."""
+    wall_time = _load().recorded_wall_time
+    assert wall_time({"wall_time_s": {"fit": 1.5, "play": 2.0}}) == 3.5
+    assert wall_time({"wall_time_s": 4}) == 4.0
+    online = {"first_fit": {"wall_time_s": 1.0}, "iterations": [{"wall_time_s": 2.5}] * 2}
+    assert wall_time(online) == 6.0
+    assert wall_time({"iterations": []}) is None
+
+
 def test_a_flag_a_benchmark_lacks_is_reported_unwired():
     check = _load()
     script = BENCHMARKS / "planner_speed.py"
@@ -103,5 +114,6 @@ def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     assert set(_sections(report).values()) == {"passed"}, report
     assert "its arithmetic limit" in report and "speed-up" in report
     assert report.count("results.json: device cpu (") == 4, report
+    assert report.count("stages' wall time") == 4, report  # online's included
     assert "torch.compile (default) vs eager" in report, report
     assert "torch.compile vs eager, R=3: sequential" in report, report

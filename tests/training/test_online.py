@@ -239,3 +239,35 @@ def test_a_refit_without_refit_uncertainty_leaves_the_estimator_as_it_was():
     before = {k: v.clone() for k, v in estimator.state_dict().items()}
     assert set(fit_models(world, estimator, data, schedule, seed=1, warm=True)) == {"world_model"}
     assert all(torch.equal(v, estimator.state_dict()[k]) for k, v in before.items())
+
+
+def test_each_network_is_fitted_with_its_own_settings(monkeypatch):
+    """``FitSchedule.uncertainty`` sets the estimator's fits apart from the world model's (the
+    online recipe's ``training.uncertainty`` block); refits take ``refit_steps`` for both."""
+    data = _eight_step_episodes(48)
+    schedule = replace(
+        TINY_FIT, val_fraction=0.34, lr=3e-3, uncertainty={"lr": 1e-3, "steps": 7, "patience": 1}
+    )
+    seen = {}
+
+    def spy(name):
+        def fit(model, buffer, **kwargs):
+            seen[name] = {
+                k: kwargs[k] for k in ("steps", "lr", "eval_every", "patience", "compile")
+            }
+            return FitResult(0, 0.0)
+
+        return fit
+
+    monkeypatch.setattr(online, "world_model_fit", lambda model: spy("world_model"))
+    monkeypatch.setattr(online, "fit_uncertainty", spy("uncertainty"))
+    world, estimator = LSTMWorldModel(3, 1, window=4), ReconstructionUncertainty(3, 1, window=4)
+    fit_models(world, estimator, data, schedule, seed=0, warm=False)
+    base = {"eval_every": 1, "compile": False}
+    assert seen["world_model"] == base | {"steps": 2, "lr": 3e-3, "patience": 10}
+    assert seen["uncertainty"] == base | {"steps": 7, "lr": 1e-3, "patience": 1}
+    fit_models(world, estimator, data, schedule, seed=1, warm=True)
+    assert seen["world_model"]["steps"] == seen["uncertainty"]["steps"] == 2  # refit_steps
+    assert seen["uncertainty"]["lr"] == 1e-3
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['hidden'\]"):
+        replace(TINY_FIT, uncertainty={"hidden": 4})

@@ -108,7 +108,11 @@ def refit_stage(
     sizes |= {k: cfg[k] for k in ("refit_steps", "refit_old_steps")}
     refit_u = cfg.refit_uncertainty == "always" or reads_uncertainty(cfg, n + 1)
     schedule = FitSchedule(
-        **t.world_model, mode=str(t.world_model_mode), refit_uncertainty=refit_u, **sizes
+        **t.world_model,
+        mode=str(t.world_model_mode),
+        refit_uncertainty=refit_u,
+        uncertainty=dict(t.uncertainty),
+        **sizes,
     )
     modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 

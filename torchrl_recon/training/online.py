@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -51,7 +52,18 @@ class FitSchedule:
     the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
     exploring rounds). ``compile``: the world model's fits under ``torch.compile``
     (:func:`~torchrl_recon.training.train_loss_module`; compiled once per process, reused by
-    every refit)."""
+    every refit). ``uncertainty``: the estimator's fits' own settings where they differ from the
+    world model's, any of :data:`FIT_SETTINGS` (its first fit's ``steps``, ``lr``,
+    ``eval_every``, ``patience``, ``compile``); its refits take ``refit_steps`` too.
+
+    Examples:
+        >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_fit()["lr"]
+        0.001
+        >>> FitSchedule(uncertainty={"hidden": 8})
+        Traceback (most recent call last):
+        ...
+        ValueError: FitSchedule.uncertainty has unknown key(s) ['hidden']; expected any of ['compile', 'eval_every', 'lr', 'patience', 'steps'].
+    """
 
     steps: int = 1000
     refit_steps: int = 300
@@ -65,6 +77,22 @@ class FitSchedule:
     val_fraction: float = 0.1
     mode: str = "multi_step"
     compile: bool = False
+    uncertainty: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.uncertainty) - set(FIT_SETTINGS))
+        if unknown:
+            raise ValueError(
+                f"FitSchedule.uncertainty has unknown key(s) {unknown}; expected any of "
+                f"{sorted(FIT_SETTINGS)}."
+            )
+
+    def estimator_fit(self) -> dict[str, Any]:
+        """The estimator's fit settings: the world model's, then :attr:`uncertainty`'s."""
+        return {k: getattr(self, k) for k in FIT_SETTINGS} | dict(self.uncertainty)
+
+
+FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own
 
 
 @dataclass
@@ -129,30 +157,37 @@ def fit_models(
     buffers = sequence_buffers(parts, **sizes, keys=FIT_KEYS)
     common = dict(
         val_buffer=buffers[1],
-        steps=s.refit_steps if warm else s.steps,
-        lr=s.lr,
-        eval_every=s.eval_every,
-        patience=s.patience,
         seed=seed,
         progress=progress,
         logger=logger,
         fit_normalization=not warm,
         checkpoint_modules={},
     )
+    fits = {
+        "world_model": {k: getattr(s, k) for k in FIT_SETTINGS},
+        "uncertainty": s.estimator_fit(),
+    }
+    if warm:
+        for settings in fits.values():
+            settings["steps"] = s.refit_steps
     fit_world = world_model_fit(world_model)
     out = {
         "world_model": fit_world(
             world_model,
             buffers[0],
             mode=s.mode,
-            compile=s.compile,
             log_prefix=f"{log_prefix}world_model/",
             **common,
+            **fits["world_model"],
         ).best_val_loss
     }
     if estimator is not None and (s.refit_uncertainty or not warm):
         out["uncertainty"] = fit_uncertainty(
-            estimator, buffers[0], log_prefix=f"{log_prefix}uncertainty/", **common
+            estimator,
+            buffers[0],
+            log_prefix=f"{log_prefix}uncertainty/",
+            **common,
+            **fits["uncertainty"],
         ).best_val_loss
     return out
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import torchrl_recon
+from tests.compilers import needs_cpp_compiler
 from tests.experiments.tiny import TINY as TINY_OVERRIDES
 from torchrl_recon.experiments import calibrate, control, explore
 from torchrl_recon.experiments.common import build_models, fit_stage, planning_model
@@ -84,6 +85,18 @@ def test_control_stages_one_by_one(tmp_path):
     record = control.setting_stage(ctx, setting, controller)
     assert len(record["episodes"]) == 1
     assert math.isnan(record["std"]["real_cost"])  # one episode: no spread to measure
+
+
+@needs_cpp_compiler  # the switch checks for one when the model is built
+@pytest.mark.parametrize("kind", ["control", "explore", "online"])
+def test_planning_compile_reaches_the_planning_model(kind, tmp_path):
+    """``planning_compile`` is the planning model's ``compile`` (its pass compiles at the first
+    plan; a run with it is checked against eager by hand: the control smoke's results moved at
+    float rounding only)."""
+    for value, mode in ((False, None), (True, "default"), ("reduce-overhead", "reduce-overhead")):
+        cfg = _ctx(tmp_path, kind, f"planning_compile={str(value).lower()}").cfg
+        world, estimator = build_models(cfg, 6, 3)
+        assert planning_model(cfg, world, estimator).compile_mode == mode
 
 
 def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):

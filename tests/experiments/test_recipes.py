@@ -161,13 +161,12 @@ def test_device_cuda_without_a_gpu_is_refused_before_any_work(tmp_path):
     assert "CUDA device" in proc.stderr and not out.exists()
 
 
-def test_compile_without_a_cpp_compiler_is_refused_before_any_work(tmp_path, monkeypatch):
+@pytest.mark.parametrize("key", ["training.world_model.compile", "planning_compile"])
+def test_compile_without_a_cpp_compiler_is_refused_before_any_work(key, tmp_path, monkeypatch):
     monkeypatch.setenv("CXX", "no-such-compiler++")
     out = tmp_path / "run"
     recipe = RECIPES / "industrial_benchmark" / "control_smoke.yaml"
-    proc = _run(
-        "control", recipe, f"output_dir={out}", "device=cpu", "training.world_model.compile=true"
-    )
+    proc = _run("control", recipe, f"output_dir={out}", "device=cpu", f"{key}=true")
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("error: ") and "'no-such-compiler++' is not on PATH" in last

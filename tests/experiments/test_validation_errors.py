@@ -119,6 +119,9 @@ BAD = [
         ["'estimators[2].kwargs.dropout'"],
     ),
     ("drone/calibrate_smoke", "evaluation.ood_state_shift=0", ["ood_state_shift"]),
+    ("drone/control_smoke", "planning_compile=maybe", ["'planning_compile'", "reduce-overhead"]),
+    ("gym/online_smoke", "planning_compile=1", ["'planning_compile'", "got 1"]),
+    ("drone/calibrate_smoke", "planning_compile=true", ["unknown key 'planning_compile'"]),
     ("drone/calibrate_smoke", "random_steps=60", ["'random_steps'", "two trajectories"]),
     (
         "drone/calibrate_smoke",

@@ -105,12 +105,18 @@ def planning_model(
     cfg: DictConfig, world: LSTMWorldModel, uncertainty: UncertaintyEstimator | None = None
 ) -> PlanningModel:
     """The recipe's :class:`PlanningModel`: its cost, ``env.termination`` and the action bounds
-    of its env (built and closed without stepping)."""
+    of its env (built and closed without stepping), its pass compiled as ``planning_compile``
+    says."""
     path = cfg.env.get("termination")
     termination = None if path is None else import_cost(path, what="termination")
     with closing_env(build_env(cfg, seed=0, episode_steps=1)) as env:
         return PlanningModel.from_env(
-            world, cost_fn(cfg), env, uncertainty=uncertainty, termination_fn=termination
+            world,
+            cost_fn(cfg),
+            env,
+            uncertainty=uncertainty,
+            termination_fn=termination,
+            compile=cfg.get("planning_compile", False),
         )
 
 

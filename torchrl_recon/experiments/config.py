@@ -26,6 +26,7 @@ from torchrl_recon.experiments.field_checks import (
     finite,
     positive,
 )
+from torchrl_recon.planners import COMPILE_MODES
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 """Setting and estimator names: they name stage records and folders of the run directory."""
@@ -242,8 +243,24 @@ class RunConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
 
 
+def _compile_choice(value: Any) -> str | None:
+    if value is True or value is False or value in COMPILE_MODES:
+        return None
+    return f"false, true or a torch.compile mode of {list(COMPILE_MODES)}"
+
+
 @dataclass
-class ExploreConfig(RunConfig):
+class PlanningRunConfig(RunConfig):
+    """What every run that plans has too. ``planning_compile``: the planning model's pass
+    (rollout, cost, u) under ``torch.compile`` (``PlanningModel(compile=...)``: ``true`` or a
+    mode such as ``reduce-overhead``, CUDA graphs); the same plans up to float rounding after a
+    compile of seconds per new batch shape. Off by default: see ``docs/planning.md``."""
+
+    planning_compile: Any = checked(False, _compile_choice)
+
+
+@dataclass
+class ExploreConfig(PlanningRunConfig):
     """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
 
     experiment: str = "explore"
@@ -288,7 +305,7 @@ class ReplanConfig:
 
 
 @dataclass
-class OnlineConfig(RunConfig):
+class OnlineConfig(PlanningRunConfig):
     """Learning a task online (PETS's loop): ``random_steps`` random steps, then ``iterations``
     rounds of ``steps_per_iteration`` MPC steps, each followed by a warm-started refit
     (``refit_steps``; on the round's new steps plus ``refit_old_steps`` older ones drawn by
@@ -324,7 +341,7 @@ def _non_empty(what: str) -> Any:
 
 
 @dataclass
-class ControlConfig(RunConfig):
+class ControlConfig(PlanningRunConfig):
     """Uncertainty-aware control (paper §3.1, Fig. 3). The random data are a step budget,
     ``random_episodes × random_episode_steps`` steps (the paper's "10 episodes of 500 time
     steps, 5000 samples"): an env whose episodes end early fills it with more, shorter ones.

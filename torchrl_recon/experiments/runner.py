@@ -30,9 +30,11 @@ FITS = ("world_model", "uncertainty")
 
 def run_device(cfg: DictConfig) -> torch.device:
     """The device ``cfg`` runs on, checked on this machine: it exists (``ValueError``), and where
-    a fit asks for ``compile``, torch.compile can build kernels there (``RuntimeError``)."""
+    a fit asks for ``compile`` or the planning model for ``planning_compile``, torch.compile can
+    build kernels there (``RuntimeError``)."""
     device = resolve_device(cfg.device)
-    if any(OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS):
+    fits = [OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS]
+    if any(fits) or cfg.get("planning_compile", False):
         check_compile_support(device)
     return device
 

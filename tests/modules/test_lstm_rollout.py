@@ -59,6 +59,25 @@ def test_fused_rollout_passes_gradcheck(activation):
     )
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_a_populations_fused_rollout_passes_gradcheck(activation):
+    """The member path (one sigmoid over the gates, one weight-gradient matmul after the loop)
+    against finite differences (float64), two members apart, weights included."""
+    torch.manual_seed(3)
+    members = [_frozen_model(activation, torch.float64) for _ in range(2)]
+    for k, member in enumerate(members):  # members apart
+        member.lstm.weight_hh_l0.data.add_(0.1 * k)
+    stacked = [torch.stack(ws) for ws in zip(*(m._folded_weights() for m in members))]
+    weights = tuple(w.detach().requires_grad_(True) for w in stacked)
+    inputs = tuple(
+        torch.stack([x.detach(), x.detach() * 0.5]).requires_grad_(True)
+        for x in _inputs(2, 4, torch.float64)
+    )
+    assert torch.autograd.gradcheck(
+        lambda s, h, c, a, *w: LSTMRollout.apply(s, h, c, a, activation, *w), (*inputs, *weights)
+    )
+
+
 def test_multi_step_training_is_bitwise_the_recorded_graph(monkeypatch):
     """A few Adam steps of the multi-step loss land on the same weights as with the reference."""
     from tensordict import TensorDict

@@ -11,6 +11,7 @@ from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.training import fit_population, fit_world_model
+from torchrl_recon.training.fit import COMPILING
 
 from .test_population_fit import FIT, M, N, _buffer
 
@@ -74,3 +75,17 @@ def test_compile_without_a_cpp_compiler_is_refused_before_any_step(monkeypatch):
     with pytest.raises(RuntimeError, match="not on PATH"):
         fit_population([model, untouched], _buffer(0), compile=True, **FIT)
     check_compile_support("cuda")  # nothing to check off the CPU
+
+
+@needs_cpp_compiler
+@pytest.mark.parametrize("population", [False, True])
+def test_a_compiled_fits_progress_bar_says_the_first_step_compiles(population, capsys):
+    """The cold compile takes tens of seconds on a CPU with the bar at 0: the bar says why."""
+    fit = FIT | {"progress": True}
+    if population:
+        fit_population([_world(r) for r in range(2)], _buffer(0), compile=True, **fit)
+    else:
+        fit_world_model(_world(0), _buffer(0), seed=1, compile=True, **fit)
+    assert COMPILING in capsys.readouterr().err
+    fit_world_model(_world(0), _buffer(0), seed=1, **fit)  # eager: no such note
+    assert COMPILING not in capsys.readouterr().err

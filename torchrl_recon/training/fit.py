@@ -59,6 +59,21 @@ def _training_loss(fn: Callable[..., torch.Tensor], compile: bool) -> Callable[.
     return torch.compile(fn, dynamic=False) if compile else fn
 
 
+COMPILING = "torch.compile: the first step compiles"
+"""What a compiled fit's progress bar says until its first step is done (on a CPU a cold
+compile takes tens of seconds, with the bar at 0)."""
+
+
+def _fit_bar(steps: int, log_prefix: str, progress: bool, compile: bool) -> tqdm:
+    """The fit's progress bar over steps ``1..steps``; with ``compile`` it says so (see
+    :data:`COMPILING`) until the caller clears it after the first step."""
+    desc = log_prefix.rstrip("/") or "fit"
+    bar = tqdm(range(1, steps + 1), desc=desc, disable=not progress, leave=False)
+    if compile:
+        bar.set_postfix_str(COMPILING)
+    return bar
+
+
 @torch.no_grad()
 def _evaluate(loss_module: LossModule, batches: list) -> float:
     return float(sum(_loss_value(loss_module, b) for b in batches) / len(batches))
@@ -199,9 +214,7 @@ def _train_loss_module(
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
-    bar = tqdm(
-        range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False
-    )
+    bar = _fit_bar(steps, log_prefix, progress, compile)
     step = 0
     for step in bar:
         try:
@@ -217,6 +230,8 @@ def _train_loss_module(
         optimizer.step()
         if schedule is not None:
             schedule.step()
+        if compile and step == 1:
+            bar.set_postfix_str("")
         if step % eval_every == 0 or step == steps:
             val_loss = _evaluate(loss_module, fixed_val)
             record = {"step": step, "train_loss": float(loss.detach()), "val_loss": val_loss}
@@ -709,9 +724,7 @@ def _train_members(
             else:
                 value.copy_(best_state[key])
 
-    bar = tqdm(
-        range(1, steps + 1), desc=log_prefix.rstrip("/") or "fit", disable=not progress, leave=False
-    )
+    bar = _fit_bar(steps, log_prefix, progress, compile)
     for step in bar:
         if shared_sampling and count > 1:
             batches = _sample_shared(rng, buffers, active, device)
@@ -747,6 +760,8 @@ def _train_members(
         frozen = [r for r in range(count) if not active[r]]
         if frozen:
             restore(frozen)
+        if compile and step == 1:
+            bar.set_postfix_str("")
         if step % eval_every == 0 or step == steps:
             with torch.no_grad():
                 val = sum(

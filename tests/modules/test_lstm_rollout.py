@@ -67,7 +67,8 @@ def test_a_populations_fused_rollout_passes_gradcheck(activation):
     members = [_frozen_model(activation, torch.float64) for _ in range(2)]
     for k, member in enumerate(members):  # members apart
         member.lstm.weight_hh_l0.data.add_(0.1 * k)
-    stacked = [torch.stack(ws) for ws in zip(*(m._folded_weights() for m in members))]
+    folded = (m._folded_weights() for m in members)
+    stacked = [torch.stack(ws) for ws in zip(*folded, strict=True)]
     weights = tuple(w.detach().requires_grad_(True) for w in stacked)
     inputs = tuple(
         torch.stack([x.detach(), x.detach() * 0.5]).requires_grad_(True)

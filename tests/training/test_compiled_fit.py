@@ -53,14 +53,25 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
 
 @needs_cpp_compiler
 def test_a_compiled_fit_still_stops_on_non_finite_data():
+    """NaN inputs: the eager fit's ValueError naming the input (the compiled step leaves the
+    input checks out; its non-finite loss sends the batch through the eager checks)."""
     data = _buffer(0)[:]
     data["observation"][:] = float("nan")  # eager, the world model's input check refuses it
     rb = make_sequence_buffer(200, slice_len=8, num_slices=4)
     rb.extend(data)
+    messages = []
+    for compile in (False, True):  # the same error as eager: the input named
+        with pytest.raises(ValueError, match="observation contains NaN or inf") as info:
+            fit_population(
+                [_world(r) for r in range(2)], rb, fit_normalization=False, compile=compile, **FIT
+            )
+        messages.append(str(info.value))
+        with pytest.raises(ValueError, match="observation contains NaN or inf"):
+            fit_world_model(_world(0), rb, fit_normalization=False, compile=compile, **FIT)
+    assert messages[0] == messages[1]
+    diverging = FIT | {"lr": 1e30}  # finite inputs, a loss that blows up: as before
     with pytest.raises(FloatingPointError, match=r"member\(s\) \[0, 1\] is not finite"):
-        fit_population(
-            [_world(r) for r in range(2)], rb, fit_normalization=False, compile=True, **FIT
-        )
+        fit_population([_world(r) for r in range(2)], _buffer(0), compile=True, **diverging)
 
 
 def test_compile_without_a_cpp_compiler_is_refused_before_any_step(monkeypatch):

@@ -31,8 +31,8 @@ def check_finite(name: str, x: torch.Tensor) -> None:
     """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad).
 
     Not checked while ``torch.compile`` traces (a fit's ``compile=True`` training step): a
-    data-dependent branch would cut its graph, and the fit's check of each step's loss stops
-    on the same NaN or inf (``FloatingPointError``).
+    data-dependent branch would cut its graph; the fit's check of each step's loss stops on
+    the same NaN or inf and runs the eager step, this check included, on that batch.
 
     Examples:
         >>> check_finite("obs", torch.tensor([0.0, float("nan")]))

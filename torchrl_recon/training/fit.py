@@ -59,6 +59,21 @@ def _training_loss(fn: Callable[..., torch.Tensor], compile: bool) -> Callable[.
     return torch.compile(fn, dynamic=False) if compile else fn
 
 
+def _input_error(eager_fn: Callable[..., torch.Tensor], batch) -> ValueError | None:
+    """After a compiled training step's non-finite loss: the ``ValueError`` the eager step's
+    input checks (left out while compiled, see :func:`~torchrl_recon.modules.checks.check_finite`)
+    raise on the same ``batch``, naming the input as an eager fit would; None where the inputs
+    are finite (the loss itself diverged)."""
+    try:
+        with torch.no_grad():
+            eager_fn(batch)
+    except ValueError as err:
+        return err
+    except FloatingPointError:
+        pass
+    return None
+
+
 COMPILING = "torch.compile: the first step compiles"
 """What a compiled fit's progress bar says until its first step is done (on a CPU a cold
 compile takes tens of seconds, with the bar at 0)."""
@@ -210,16 +225,20 @@ def _train_loss_module(
     )
     val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     device = module_device(loss_module)  # the buffers' storage may stay on the CPU
-    train_loss = _training_loss(partial(_loss_value, loss_module), compile)
+    eager_loss = partial(_loss_value, loss_module)
+    train_loss = _training_loss(eager_loss, compile)
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
     bar = _fit_bar(steps, log_prefix, progress, compile)
     step = 0
     for step in bar:
+        batch = buffer.sample().to(device)
         try:
-            loss = train_loss(buffer.sample().to(device))
+            loss = train_loss(batch)
         except FloatingPointError as err:
+            if compile and (named := _input_error(eager_loss, batch)) is not None:
+                raise named from None
             loss_module.load_state_dict(best_state)
             where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""
             raise FloatingPointError(f"Training stopped at step {step}: {err}{where}.") from err
@@ -745,6 +764,8 @@ def _train_members(
                     f"the loss of member(s) {bad} is not finite; check the data and the learning rate"
                 )
         except FloatingPointError as err:
+            if compile and (named := _input_error(losses_of, batches)) is not None:
+                raise named from None
             restore(list(range(count)))
             raise FloatingPointError(f"Training stopped at step {step}: {err}.") from err
         optimizer.zero_grad(set_to_none=True)

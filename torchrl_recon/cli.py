@@ -23,7 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.errors import DamagedFileError, RecipeError
+from torchrl_recon.errors import CompilerNotFoundError, DamagedFileError, RecipeError
 from torchrl_recon.experiments import compose
 from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
@@ -157,7 +157,7 @@ def precheck(kind: str, recipe: Path, overrides: Sequence[str], *, here: bool = 
         try:
             if here:
                 run_device(checked)
-        except (ValueError, RuntimeError) as e:
+        except (ValueError, CompilerNotFoundError) as e:
             raise RecipeError(f"{source}: {e}") from e
         check_run_dir(checked)
     return completed

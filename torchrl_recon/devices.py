@@ -14,6 +14,8 @@ from typing import Any
 
 import torch
 
+from torchrl_recon.errors import CompilerNotFoundError
+
 DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
 _CUDA_INDEX = re.compile(r"cuda:(\d+)")
 
@@ -72,7 +74,7 @@ def check_compile_support(device: torch.device | str) -> None:
     check on CUDA (Triton comes with torch's CUDA wheels) or on Windows (MSVC's ``cl``).
 
     Raises:
-        RuntimeError: naming the compiler it looked for.
+        CompilerNotFoundError: a ``RuntimeError`` naming the compiler it looked for.
 
     Examples:
         >>> check_compile_support("cuda")  # checked on the CPU only
@@ -81,7 +83,7 @@ def check_compile_support(device: torch.device | str) -> None:
         return
     cxx = os.environ.get("CXX") or "g++"
     if shutil.which(cxx) is None:
-        raise RuntimeError(
+        raise CompilerNotFoundError(
             f"compile=True on the CPU needs a C++ compiler for torch.compile's kernels, and "
             f"{cxx!r} is not on PATH: install one (or point CXX at it), or set compile false."
         )

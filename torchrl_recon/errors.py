@@ -1,4 +1,5 @@
-"""Errors the library raises for bad input and damaged files (the CLI maps them to exit code 2)."""
+"""Errors the library raises for bad input, damaged files and a machine that lacks what a run
+asks for (the CLI maps them to exit code 2)."""
 
 from __future__ import annotations
 
@@ -22,5 +23,15 @@ class RecipeError(ValueError):
 
     Examples:
         >>> issubclass(RecipeError, ValueError)
+        True
+    """
+
+
+class CompilerNotFoundError(RuntimeError):
+    """``compile=True`` on the CPU, and torch.compile cannot build its kernels: no C++ compiler
+    on ``PATH`` (:func:`~torchrl_recon.devices.check_compile_support`).
+
+    Examples:
+        >>> issubclass(CompilerNotFoundError, RuntimeError)
         True
     """

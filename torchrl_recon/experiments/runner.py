@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_compile_support, describe_device, resolve_device
-from torchrl_recon.errors import RecipeError
+from torchrl_recon.errors import CompilerNotFoundError, RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.loggers import make_logger
 from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, validate
@@ -31,7 +31,7 @@ FITS = ("world_model", "uncertainty")
 def run_device(cfg: DictConfig) -> torch.device:
     """The device ``cfg`` runs on, checked on this machine: it exists (``ValueError``), and where
     a fit asks for ``compile`` or the planning model for ``planning_compile``, torch.compile can
-    build kernels there (``RuntimeError``)."""
+    build kernels there (:class:`~torchrl_recon.errors.CompilerNotFoundError`)."""
     device = resolve_device(cfg.device)
     fits = [OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS]
     if any(fits) or cfg.get("planning_compile", False):
@@ -81,7 +81,7 @@ def run(
     cfg = validate(cfg)
     try:
         device = run_device(cfg)
-    except (ValueError, RuntimeError) as e:  # refused before the run directory
+    except (ValueError, CompilerNotFoundError) as e:  # refused before the run directory
         raise RecipeError(str(e)) from e
     torch.set_num_threads(int(cfg.threads))
     extra_meta = {**(extra_meta or {}), "device": describe_device(device)}

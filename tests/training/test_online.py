@@ -269,5 +269,8 @@ def test_each_network_is_fitted_with_its_own_settings(monkeypatch):
     fit_models(world, estimator, data, schedule, seed=1, warm=True)
     assert seen["world_model"]["steps"] == seen["uncertainty"]["steps"] == 2  # refit_steps
     assert seen["uncertainty"]["lr"] == 1e-3
+    compiled_world = replace(TINY_FIT, compile=True)  # the world model's only, as documented
+    assert compiled_world.estimator_fit()["compile"] is False
+    assert replace(compiled_world, uncertainty={"compile": True}).estimator_fit()["compile"]
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['hidden'\]"):
         replace(TINY_FIT, uncertainty={"hidden": 4})

@@ -52,9 +52,10 @@ class FitSchedule:
     the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
     exploring rounds). ``compile``: the world model's fits under ``torch.compile``
     (:func:`~torchrl_recon.training.train_loss_module`; compiled once per process, reused by
-    every refit). ``uncertainty``: the estimator's fits' own settings where they differ from the
-    world model's, any of :data:`FIT_SETTINGS` (its first fit's ``steps``, ``lr``,
-    ``eval_every``, ``patience``, ``compile``); its refits take ``refit_steps`` too.
+    every refit). ``uncertainty``: the estimator's fits' own settings, any of
+    :data:`FIT_SETTINGS`: its first fit's ``steps``, and ``lr``, ``eval_every``, ``patience``
+    (the world model's where not given) and ``compile`` (False where not given); its refits take
+    ``refit_steps`` too.
 
     Examples:
         >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_fit()["lr"]
@@ -88,8 +89,9 @@ class FitSchedule:
             )
 
     def estimator_fit(self) -> dict[str, Any]:
-        """The estimator's fit settings: the world model's, then :attr:`uncertainty`'s."""
-        return {k: getattr(self, k) for k in FIT_SETTINGS} | dict(self.uncertainty)
+        """The estimator's fit settings: the world model's uncompiled, then :attr:`uncertainty`'s."""
+        own = {k: getattr(self, k) for k in FIT_SETTINGS} | {"compile": False}
+        return own | dict(self.uncertainty)
 
 
 FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own

@@ -274,3 +274,5 @@ def test_each_network_is_fitted_with_its_own_settings(monkeypatch):
     assert replace(compiled_world, uncertainty={"compile": True}).estimator_fit()["compile"]
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['hidden'\]"):
         replace(TINY_FIT, uncertainty={"hidden": 4})
+    with pytest.raises(TypeError, match="must be a mapping of fit settings, got NoneType"):
+        replace(TINY_FIT, uncertainty=None)

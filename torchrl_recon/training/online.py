@@ -14,7 +14,7 @@ experiment does); :func:`learn_online` chains them for a Python user.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -81,6 +81,11 @@ class FitSchedule:
     uncertainty: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.uncertainty, Mapping):
+            raise TypeError(
+                f"FitSchedule.uncertainty must be a mapping of fit settings, got "
+                f"{type(self.uncertainty).__name__}."
+            )
         unknown = sorted(set(self.uncertainty) - set(FIT_SETTINGS))
         if unknown:
             raise ValueError(

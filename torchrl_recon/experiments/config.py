@@ -26,7 +26,7 @@ from torchrl_recon.experiments.field_checks import (
     finite,
     positive,
 )
-from torchrl_recon.planners import COMPILE_MODES
+from torchrl_recon.planners import COMPILE_MODES, compile_mode
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 """Setting and estimator names: they name stage records and folders of the run directory."""
@@ -244,9 +244,11 @@ class RunConfig:
 
 
 def _compile_choice(value: Any) -> str | None:
-    if value is True or value is False or value in COMPILE_MODES:
-        return None
-    return f"false, true or a torch.compile mode of {list(COMPILE_MODES)}"
+    try:
+        compile_mode(value)
+    except ValueError:
+        return f"false, true or a torch.compile mode of {list(COMPILE_MODES)}"
+    return None
 
 
 @dataclass

@@ -24,6 +24,7 @@ from torchrl_recon.planners.planning_model import (
     Prediction,
     TerminationFn,
     check_step_fn,
+    compile_mode,
 )
 from torchrl_recon.planners.registry import (
     PLANNERS,
@@ -35,6 +36,7 @@ from torchrl_recon.planners.shooting import RandomShootingPlanner
 
 __all__ = [
     "COMPILE_MODES",
+    "compile_mode",
     "CEMPlanner",
     "EliteMemory",
     "GradientPlanner",

@@ -73,6 +73,27 @@ def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.gather(dim, expanded)
 
 
+def compile_mode(compile: object) -> str | None:
+    """The ``torch.compile`` mode that a ``compile`` switch asks for: None for False, ``"default"``
+    for True, else one of :data:`COMPILE_MODES`.
+
+    Examples:
+        >>> compile_mode(False), compile_mode(True), compile_mode("reduce-overhead")
+        (None, 'default', 'reduce-overhead')
+        >>> compile_mode("fast")
+        Traceback (most recent call last):
+        ...
+        ValueError: compile must be True, False or one of ['default', 'reduce-overhead', 'max-autotune', 'max-autotune-no-cudagraphs'], got 'fast'.
+    """
+    if compile is True or compile is False:
+        return "default" if compile else None
+    if isinstance(compile, str) and compile in COMPILE_MODES:
+        return compile
+    raise ValueError(
+        f"compile must be True, False or one of {list(COMPILE_MODES)}, got {compile!r}."
+    )
+
+
 @functools.cache
 def compiled_pass(fn: Callable, mode: str) -> Callable:
     """``torch.compile(fn, mode=mode)``, made once per function and mode: every planning model
@@ -239,11 +260,7 @@ class PlanningModel(nn.Module):
             )
         self.register_buffer("action_low", low.to(device).clone())
         self.register_buffer("action_high", high.to(device).clone())
-        if compile is not False and compile is not True and compile not in COMPILE_MODES:
-            raise ValueError(
-                f"compile must be True, False or one of {list(COMPILE_MODES)}, got {compile!r}."
-            )
-        self.compile_mode = "default" if compile is True else (compile or None)
+        self.compile_mode = compile_mode(compile)
         if self.compile_mode is not None:
             check_compile_support(device)
         check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)

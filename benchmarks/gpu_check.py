@@ -19,8 +19,8 @@ comes when less than ``MIN_STEP_S`` is left is reported as not run):
    run), population fits (with ``--compile``: the fits with ``compile=True`` against eager),
    episode batching, window scoring, uncertainty overhead, gradient planning and control
    batching;
-3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control`` and
-   ``calibrate`` on the Industrial Benchmark smoke recipes;
+3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control``,
+   ``calibrate`` and ``online`` on the Industrial Benchmark smoke recipes;
 4. the CUDA smoke-recipe tests of the other environments (``tests/experiments/test_recipes.py
    -k "cuda and not industrial_benchmark"``; IB's are step 3).
 

@@ -270,8 +270,8 @@ def test_each_network_is_fitted_with_its_own_settings(monkeypatch):
     assert seen["world_model"]["steps"] == seen["uncertainty"]["steps"] == 2  # refit_steps
     assert seen["uncertainty"]["lr"] == 1e-3
     compiled_world = replace(TINY_FIT, compile=True)  # the world model's only, as documented
-    assert compiled_world.estimator_fit()["compile"] is False
-    assert replace(compiled_world, uncertainty={"compile": True}).estimator_fit()["compile"]
+    assert compiled_world.estimator_settings()["compile"] is False
+    assert replace(compiled_world, uncertainty={"compile": True}).estimator_settings()["compile"]
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['hidden'\]"):
         replace(TINY_FIT, uncertainty={"hidden": 4})
     with pytest.raises(TypeError, match="must be a mapping of fit settings, got NoneType"):

@@ -58,7 +58,7 @@ class FitSchedule:
     ``refit_steps`` too.
 
     Examples:
-        >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_fit()["lr"]
+        >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_settings()["lr"]
         0.001
         >>> FitSchedule(uncertainty={"hidden": 8})
         Traceback (most recent call last):
@@ -93,10 +93,13 @@ class FitSchedule:
                 f"{sorted(FIT_SETTINGS)}."
             )
 
-    def estimator_fit(self) -> dict[str, Any]:
+    def world_model_settings(self) -> dict[str, Any]:
+        """The world model's fit settings, those of :data:`FIT_SETTINGS`."""
+        return {k: getattr(self, k) for k in FIT_SETTINGS}
+
+    def estimator_settings(self) -> dict[str, Any]:
         """The estimator's fit settings: the world model's uncompiled, then :attr:`uncertainty`'s."""
-        own = {k: getattr(self, k) for k in FIT_SETTINGS} | {"compile": False}
-        return own | dict(self.uncertainty)
+        return self.world_model_settings() | {"compile": False} | dict(self.uncertainty)
 
 
 FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own
@@ -170,10 +173,7 @@ def fit_models(
         fit_normalization=not warm,
         checkpoint_modules={},
     )
-    fits = {
-        "world_model": {k: getattr(s, k) for k in FIT_SETTINGS},
-        "uncertainty": s.estimator_fit(),
-    }
+    fits = {"world_model": s.world_model_settings(), "uncertainty": s.estimator_settings()}
     if warm:
         for settings in fits.values():
             settings["steps"] = s.refit_steps

@@ -45,6 +45,7 @@ bench: setup
 	$(PY) benchmarks/planner_speed.py
 	$(PY) benchmarks/gradient_planning.py
 	$(PY) benchmarks/training_speed.py
+	$(PY) benchmarks/gemm_floor.py
 
 # One command for a GPU machine (docs/benchmarks.md#gpu-check): the CUDA tests, every benchmark
 # with --device cuda and a smoke run of each experiment kind on device=cuda, within 8 minutes;

@@ -12,6 +12,7 @@ from pathlib import Path
 from unittest import mock
 
 import pytest
+import torch
 
 from torchrl_recon.timing import interleaved_median_ms
 
@@ -164,3 +165,46 @@ def test_planner_quality_prints_each_planners_cost_and_the_difference_from_cem()
     for label in ("random shooting", "CEM", "MPPI", "iCEM"):
         assert re.search(rf"^\s+{label}\s+mean predicted cost\s+-?[0-9.]+", out, re.M), out
     assert len(re.findall(r"vs CEM\s+[+-][0-9.]+ ± [0-9.]+$", out, re.M)) == 2, out
+
+
+TINY_FLOOR = ["--candidates", "20", "--elites", "4", "--horizon", "5", "--repeats", "1"]
+TINY_FLOOR += ["--members", "3", "--hidden", "4", "--dense", "4", "--window", "2"]
+TINY_FLOOR += ["--slice-len", "4", "--windows", "2"]
+FLOOR_ROW = r"^\s+{}\s+[0-9.]+ ms   GEMM floor\s+([0-9.]+) ms \((\d+) products\)   limit\s+[0-9.]+ ms   floor ([0-9.]+)x its arithmetic limit$"
+
+
+def test_gemm_floor_prints_each_rows_floor_and_what_the_target_leaves():
+    out = _run("gemm_floor.py", *TINY_FLOOR)
+    lines = out.splitlines()
+    assert re.match(GEMM, lines[2]), out
+    products = {}
+    for row in ("CEM (no u)", "CEM (with u, beta=0.1)", "population fit step"):
+        found = [
+            i for i, line in enumerate(lines) if re.match(FLOOR_ROW.format(re.escape(row)), line)
+        ]
+        assert len(found) == 1, (row, out)
+        floor, count, multiple = re.match(
+            FLOOR_ROW.format(re.escape(row)), lines[found[0]]
+        ).groups()
+        assert float(floor) > 0 and float(multiple) > 0, (row, out)
+        products[row] = int(count)
+        room = r"^\s+target [0-9.]+x = [0-9.]+ ms leaves -?[0-9.]+ ms for the rest \(now -?[0-9.]+ ms\)$"
+        assert re.match(room, lines[found[0] + 1]), (row, out)
+    # 5 iterations x 5 steps of at least the gate, dense and head products; u adds its own
+    assert products["CEM (no u)"] >= 75, out
+    assert products["CEM (with u, beta=0.1)"] > products["CEM (no u)"], out
+    assert products["population fit step"] > 0, out
+
+
+def test_gemm_floor_counts_backward_and_out_products():
+    """The recorder sees the products autograd's backward makes and ``out=`` forms."""
+    with mock.patch.object(sys, "path", [str(BENCHMARKS), *sys.path]):
+        import gemm_floor
+    a, b = torch.randn(4, 3, requires_grad=True), torch.randn(3, 5, requires_grad=True)
+    with gemm_floor.MatmulRecorder() as recorder:
+        (a @ b).sum().backward()  # one product forward, two backward
+        torch.mm(a.detach(), b.detach(), out=torch.empty(4, 5))
+        torch.add(a, 1)  # not a product
+    assert sum(recorder.calls.values()) == 4
+    ms, count = gemm_floor.gemm_floor_ms(recorder.calls, torch.device("cpu"), repeats=1, inner=2)
+    assert count == 4 and ms > 0

@@ -188,7 +188,7 @@ def main() -> None:
     cem = dict(num_candidates=args.candidates, iterations=args.iterations, num_elites=args.elites)
     planners = {
         "CEM (no u)": CEMPlanner(
-            PlanningModel(world, COST), Objective(), **cem, horizon=args.horizon
+            PlanningModel(world, COST), Objective(), horizon=args.horizon, **cem
         ),
         "CEM (with u, beta=0.1)": CEMPlanner(
             PlanningModel(world, COST, uncertainty=estimator),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -130,8 +131,11 @@ def _load_state(path: str | Path, name: str, module: nn.Module, state: dict) -> 
     try:
         module.load_state_dict(state)
     except RuntimeError as err:
+        # load_state_dict's message opens with a header line; the first mismatch follows it
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        reason = lines[1] if len(lines) > 1 else _reason(err)
         raise DamagedFileError(
-            f"{path}: the weights of {name!r} do not fit its saved config ({_reason(err)})."
+            f"{path}: the weights of {name!r} do not fit its saved config ({reason})."
         ) from None
 
 
@@ -146,10 +150,12 @@ def load_checkpoint(
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        DamagedFileError: the file is truncated, garbage, a pickle of objects, or not a
-            checkpoint of this format.
+        DamagedFileError: the file is truncated, garbage, a pickle of objects, not a
+            checkpoint of this format, or holds weights that do not fit their saved config.
         KeyError: the file has no module of a requested name.
         ValueError: a stored class or config differs from the module's.
+
+    On any of these errors no module is changed.
 
     Examples:
         >>> import tempfile
@@ -160,7 +166,7 @@ def load_checkpoint(
         {'step': 10}
     """
     payload = _read(path, map_location)
-    for name, module in modules.items():
+    for name, module in modules.items():  # every module checked before any is changed
         if name not in payload["modules"]:
             raise KeyError(
                 f"Checkpoint {path} has no module {name!r}; it has {sorted(payload['modules'])}."
@@ -179,7 +185,10 @@ def load_checkpoint(
             raise ValueError(
                 f"Checkpoint {path}: {name!r} config mismatch (saved, expected): {diff}."
             )
-        _load_state(path, name, module, saved["state_dict"])
+        # load_state_dict copies every tensor that fits before it raises: try a copy first
+        _load_state(path, name, copy.deepcopy(module), saved["state_dict"])
+    for name, module in modules.items():
+        module.load_state_dict(payload["modules"][name]["state_dict"])
     return payload["extra"]
 
 

@@ -1,5 +1,9 @@
 from __future__ import annotations
 
+import math
+import re
+
+import numpy as np
 import pytest
 import torch
 
@@ -364,3 +368,42 @@ def test_gradient_planner_refuses_a_constant_objective():
     model = PlanningModel(LSTMWorldModel(12, 4), drone_cost)
     with pytest.raises(ValueError, match="alpha or beta must be non-zero"):
         GradientPlanner(model, Objective(alpha=0.0, beta=0.0), horizon=5)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"alpha": float("nan")}, ValueError, "alpha must be a finite number, got nan."),
+        ({"beta": float("inf")}, ValueError, "beta must be a finite number, got inf."),
+        ({"beta": "0.1"}, TypeError, "beta must be a number, got '0.1'."),
+        ({"cost_threshold": float("nan")}, ValueError, "cost_threshold must be a finite number"),
+        (
+            {"band": (0.1, 0.5)},
+            TypeError,
+            "band must be an UncertaintyBand or None, got (0.1, 0.5)",
+        ),
+    ],
+)
+def test_objective_refuses_weights_that_are_not_finite_numbers(kwargs, error, message):
+    with pytest.raises(error, match=re.escape(message)):
+        Objective(**kwargs)
+
+
+def test_objective_takes_numpy_and_int_weights_and_bands_take_infinite_bounds():
+    assert Objective(alpha=1, beta=np.float32(0.5)).needs_uncertainty
+    assert UncertaintyBand(low=-math.inf, high=1.0).low == -math.inf
+    with pytest.raises(ValueError, match="band high must be a number, not NaN, got nan"):
+        UncertaintyBand(high=float("nan"))
+
+
+def test_a_context_of_another_dtype_is_refused_naming_it():
+    planner = RandomShootingPlanner(_ae_model(), Objective(), horizon=3, num_candidates=4)
+    ctx = torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3)
+    with pytest.raises(
+        ValueError,
+        match=r"^observation has dtype torch.int64 but the planning model computes in torch.float32; pass observation.to\(torch.float32\).$",
+    ):
+        planner.plan(*ctx[:2], ctx[2].long())
+    with pytest.raises(ValueError, match=r"^context_obs has dtype torch.float64 but"):
+        planner.plan(ctx[0].double(), *ctx[1:])
+    assert planner.plan(*ctx).actions.shape == (3, 2)

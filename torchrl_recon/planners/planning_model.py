@@ -348,7 +348,8 @@ class PlanningModel(nn.Module):
     def check_context(
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
     ) -> None:
-        """Validate a real context: dims, length >= :attr:`context_length`, device, finite values."""
+        """Validate a real context: dims, length >= :attr:`context_length`, device, dtype,
+        finite values."""
         check_features("observation", observation, self.obs_dim)
         check_features("context_obs", context_obs, self.obs_dim, min_ndim=2)
         check_features("context_action", context_action, self.action_dim, min_ndim=2)
@@ -361,7 +362,7 @@ class PlanningModel(nn.Module):
                 f"context_obs {tuple(context_obs.shape)}, context_action {tuple(context_action.shape)} and "
                 f"observation {tuple(observation.shape)} disagree on batch dims."
             )
-        device = self.action_low.device
+        device, dtype = self.action_low.device, self.action_low.dtype
         for name, x in (
             ("observation", observation),
             ("context_obs", context_obs),
@@ -371,6 +372,11 @@ class PlanningModel(nn.Module):
                 raise ValueError(
                     f"{name} is on {x.device} but the planning model is on {device}; move the "
                     f"inputs with .to({str(device)!r}) (or the planner with .to({str(x.device)!r}))."
+                )
+            if x.dtype != dtype:
+                raise ValueError(
+                    f"{name} has dtype {x.dtype} but the planning model computes in {dtype}; "
+                    f"pass {name}.to({dtype})."
                 )
             check_finite(name, x)
 

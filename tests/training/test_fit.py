@@ -1,8 +1,11 @@
 from __future__ import annotations
 
+import copy
 import logging
 import math
+import re
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -17,6 +20,7 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.training import (
+    fit_population,
     fit_uncertainty,
     fit_world_model,
     load_checkpoint,
@@ -353,3 +357,59 @@ def test_best_weights_are_restored_at_the_end():
 
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])
+
+
+@pytest.mark.parametrize(
+    ("setting", "error", "message"),
+    [
+        ({"patience": 0}, ValueError, "patience must be an int >= 1, got 0."),
+        ({"patience": -1}, ValueError, "patience must be an int >= 1, got -1."),
+        ({"lr": -1.0}, ValueError, "lr must be a finite number > 0, got -1.0."),
+        ({"lr": float("nan")}, ValueError, "lr must be a finite number > 0, got nan."),
+        (
+            {"weight_decay": -0.1},
+            ValueError,
+            "weight_decay must be a finite number >= 0, got -0.1.",
+        ),
+        ({"clip_norm": 0.0}, ValueError, "clip_norm must be a finite number > 0, got 0.0."),
+        (
+            {"clip_norm": float("inf")},
+            ValueError,
+            "clip_norm must be a finite number > 0, got inf.",
+        ),
+        ({"lr": "1e-3"}, TypeError, "lr must be a number, got '1e-3'."),
+        ({"seed": "a"}, TypeError, "seed must be an int, got 'a'."),
+        (
+            {"stepz": 3},
+            TypeError,
+            "got an unexpected keyword argument 'stepz'; the keywords are train_loss_module's.",
+        ),
+    ],
+)
+def test_a_fit_setting_out_of_range_is_refused_before_any_step(setting, error, message):
+    rb, _ = _buffers()
+    model = LSTMWorldModel(3, 2, window=4)
+    before = copy.deepcopy(model.state_dict())
+    with pytest.raises(error, match=f"^{re.escape(message)}$"):
+        fit_world_model(model, rb, steps=2, progress=False, **setting)
+    for key, value in model.state_dict().items():  # nothing fitted, not even the normalisation
+        assert torch.equal(value, before[key]), key
+
+
+def test_the_estimators_fit_checks_its_settings_before_its_normalisation():
+    rb, _ = _buffers()
+    estimator = ReconstructionUncertainty(3, 2, window=4)
+    with pytest.raises(ValueError, match=r"^lr must be a finite number > 0, got 0\.0\.$"):
+        fit_uncertainty(estimator, rb, steps=2, lr=0.0, progress=False)
+    assert not estimator.input_norm.fitted
+
+
+def test_a_population_fit_refuses_the_same_settings_and_seeds_that_are_not_ints():
+    rb, _ = _buffers()
+    models = [LSTMWorldModel(3, 2, window=4) for _ in range(2)]
+    with pytest.raises(ValueError, match=r"^patience must be an int >= 1, got 0\.$"):
+        fit_population(models, rb, steps=2, patience=0, progress=False)
+    with pytest.raises(TypeError, match=r"^seeds must be ints, got \[0, 1\.5\]\.$"):
+        fit_population(models, rb, seeds=[0, 1.5], steps=2, progress=False)
+    results = fit_population(models, rb, seeds=[np.int64(3), 4], steps=2, progress=False)
+    assert [r.steps for r in results] == [2, 2]

@@ -3,11 +3,21 @@ value and what was expected."""
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
 from torchrl_recon.modules.activations import ACTIVATIONS
 
-__all__ = ["check_activation", "check_features", "check_finite", "check_int", "check_window"]
+__all__ = [
+    "check_activation",
+    "check_features",
+    "check_finite",
+    "check_int",
+    "check_real",
+    "check_window",
+]
 
 
 def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -> None:
@@ -60,6 +70,39 @@ def check_int(name: str, value: object, minimum: int = 1) -> None:
     """
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}.")
+
+
+def check_real(
+    name: str,
+    value: object,
+    *,
+    minimum: float | None = None,
+    exclusive: bool = False,
+    finite: bool = True,
+) -> None:
+    """Raise unless ``value`` is a real number (not a bool), not NaN, finite (unless
+    ``finite=False``) and at least ``minimum`` (above it with ``exclusive=True``).
+
+    Examples:
+        >>> check_real("lr", -1.0, minimum=0, exclusive=True)
+        Traceback (most recent call last):
+        ...
+        ValueError: lr must be a finite number > 0, got -1.0.
+        >>> check_real("beta", float("nan"))
+        Traceback (most recent call last):
+        ...
+        ValueError: beta must be a finite number, got nan.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number, got {value!r}.")
+    number = float(value)
+    bad = math.isnan(number) or (finite and math.isinf(number))
+    if minimum is not None:
+        bad = bad or number < minimum or (exclusive and number == minimum)
+    if bad:
+        kind = "a finite number" if finite else "a number, not NaN"
+        bound = "" if minimum is None else f" {'>' if exclusive else '>='} {minimum}"
+        raise ValueError(f"{name} must be {kind}{bound}, got {value!r}.")
 
 
 def check_window(name: str, x: torch.Tensor, window: int) -> None:

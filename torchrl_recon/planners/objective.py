@@ -2,25 +2,15 @@
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
 
+from torchrl_recon.modules.checks import check_real
 from torchrl_recon.planners.planning_model import Prediction
 
 BandKind = Literal["absolute", "quantile", "mean_ratio"]
-
-
-def _check_number(name: str, value: object, *, finite: bool = True) -> None:
-    """Refuse a weight or bound that is not a real number, is NaN, or (``finite``) infinite."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a number, got {value!r}.")
-    if math.isnan(float(value)) or (finite and math.isinf(float(value))):
-        kind = "a finite number" if finite else "a number, not NaN"
-        raise ValueError(f"{name} must be {kind}, got {value!r}.")
 
 
 @dataclass(frozen=True)
@@ -52,7 +42,7 @@ class UncertaintyBand:
     def __post_init__(self) -> None:
         for name in ("low", "high"):
             if getattr(self, name) is not None:
-                _check_number(f"band {name}", getattr(self, name), finite=False)
+                check_real(f"band {name}", getattr(self, name), finite=False)
         if self.kind not in ("absolute", "quantile", "mean_ratio"):
             raise ValueError(
                 f"band kind must be 'absolute', 'quantile' or 'mean_ratio', got {self.kind!r}."
@@ -92,6 +82,8 @@ class Objective:
         band: optional :class:`UncertaintyBand` on cumulative u.
         cost_threshold: optional upper bound on predicted cumulative cost.
 
+    Each is checked when the objective is made: NaN, inf or a non-number is refused.
+
     Examples:
         >>> from torchrl_recon.planners.planning_model import Prediction
         >>> pred = Prediction(states=torch.zeros(1, 2, 3, 1), cost=torch.ones(1, 2, 3), uncertainty=torch.ones(1, 2, 3))
@@ -105,10 +97,10 @@ class Objective:
     cost_threshold: float | None = None
 
     def __post_init__(self) -> None:
-        _check_number("alpha", self.alpha)
-        _check_number("beta", self.beta)
+        check_real("alpha", self.alpha)
+        check_real("beta", self.beta)
         if self.cost_threshold is not None:
-            _check_number("cost_threshold", self.cost_threshold)
+            check_real("cost_threshold", self.cost_threshold)
         if self.band is not None and not isinstance(self.band, UncertaintyBand):
             raise TypeError(f"band must be an UncertaintyBand or None, got {self.band!r}.")
 

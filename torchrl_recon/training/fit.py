@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import inspect
 import math
+import numbers
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -21,7 +23,7 @@ from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
 from torchrl_recon.devices import check_compile_support
-from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.checks import check_int, check_real
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.population import ReconstructionPopulation
@@ -116,6 +118,35 @@ def _cached_boundaries(*buffers: TensorDictReplayBuffer | None) -> Iterator[None
             sampler.cache_values = value
 
 
+def _check_fit_settings(
+    *,
+    steps: int,
+    eval_every: int,
+    val_batches: int,
+    patience: int | None,
+    lr: float,
+    weight_decay: float,
+    clip_norm: float | None,
+) -> None:
+    """Refuse a fit setting out of its range in one line naming it, before any work.
+
+    Examples:
+        >>> _check_fit_settings(steps=10, eval_every=5, val_batches=1, patience=0, lr=1e-3,
+        ...                    weight_decay=0.0, clip_norm=None)
+        Traceback (most recent call last):
+        ...
+        ValueError: patience must be an int >= 1, got 0.
+    """
+    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
+        check_int(name, value)
+    if patience is not None:  # None: no early stopping
+        check_int("patience", patience)
+    check_real("lr", lr, minimum=0, exclusive=True)
+    check_real("weight_decay", weight_decay, minimum=0)
+    if clip_norm is not None:  # None: no clipping
+        check_real("clip_norm", clip_norm, minimum=0, exclusive=True)
+
+
 def train_loss_module(
     loss_module: LossModule,
     buffer: TensorDictReplayBuffer,
@@ -165,8 +196,9 @@ def train_loss_module(
         >>> result.steps
         20
     """
-    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
-        check_int(name, value)
+    settings = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
+    _check_fit_settings(**settings, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
+    _check_seed(seed)
     _check_compile(compile, loss_module)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
@@ -285,6 +317,25 @@ def _slice_len(buffer: TensorDictReplayBuffer) -> int:
     return slice_len
 
 
+def _check_seed(seed: object) -> None:
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise TypeError(f"seed must be an int, got {seed!r}.")
+
+
+def _check_train_keywords(kwargs: dict, module: nn.Module) -> None:
+    """Check the keywords a fit hands on to :func:`train_loss_module` as it would (an unknown
+    one included), before the fit does any work of its own (its normalisation)."""
+    try:
+        bound = inspect.signature(train_loss_module).bind(None, None, **kwargs)
+    except TypeError as err:
+        raise TypeError(f"{err}; the keywords are train_loss_module's.") from None
+    bound.apply_defaults()
+    given = bound.arguments
+    _check_fit_settings(**{k: given[k] for k in inspect.signature(_check_fit_settings).parameters})
+    _check_seed(given["seed"])
+    _check_compile(given["compile"], module)
+
+
 def fit_world_model(
     model: LSTMWorldModel,
     buffer: TensorDictReplayBuffer,
@@ -312,7 +363,7 @@ def fit_world_model(
             f"fit_world_model fits one model; this one has num_members={model.num_members} "
             "(fit members with fit_population(model.split(), ...))."
         )
-    _check_compile(kwargs.get("compile", False), model)
+    _check_train_keywords(kwargs, model)
     if fit_normalization:
         data = buffer_contents(buffer)
         model.fit_normalization(data["observation"], data["action"], data["next", "observation"])
@@ -405,7 +456,7 @@ def fit_uncertainty(
         ...                 progress=False).steps
         4
     """
-    _check_compile(kwargs.get("compile", False), estimator)
+    _check_train_keywords(kwargs, estimator)
     if fit_normalization:
         data = buffer_contents(buffer)
         estimator.fit_normalization(data["observation"], data["action"])
@@ -612,8 +663,8 @@ def fit_population(
         >>> [r.steps for r in results]
         [10, 10, 10]
     """
-    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
-        check_int(name, value)
+    settings = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
+    _check_fit_settings(**settings, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")
@@ -629,6 +680,8 @@ def fit_population(
     seeds = list(range(count)) if seeds is None else list(seeds)
     if len(seeds) != count:
         raise ValueError(f"seeds has {len(seeds)} entries; expected one per member ({count}).")
+    if any(isinstance(s, bool) or not isinstance(s, numbers.Integral) for s in seeds):
+        raise TypeError(f"seeds must be ints, got {seeds!r}.")
     for i, buffer in enumerate(buffers):
         if len(buffer) == 0:
             raise ValueError(

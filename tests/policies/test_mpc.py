@@ -433,6 +433,11 @@ def test_bad_input_and_missing_primer():
         policy(td)
     with pytest.raises(ValueError, match="threshold"):
         _small_drone_policy(replan="uncertainty")
+    for bad in (float("nan"), float("inf")):  # a NaN threshold never re-planned
+        with pytest.raises(
+            ValueError, match=r"^threshold must be a finite number, got (nan|inf)\.$"
+        ):
+            _small_drone_policy(replan="uncertainty", threshold=bad)
     with pytest.raises(ValueError, match="replan"):
         _small_drone_policy(replan="sometimes")
     for bad in (0.0, -1.0, float("nan"), float("inf")):

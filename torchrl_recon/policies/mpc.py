@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from torchrl_recon.modules.checks import check_finite, check_int
+from torchrl_recon.modules.checks import check_finite, check_int, check_real
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 from torchrl_recon.policies.env_checks import (
     IS_INIT,
@@ -153,6 +153,7 @@ class MPCPolicy(TensorDictModuleBase):
         if replan == "uncertainty":
             if threshold is None:
                 raise ValueError("replan='uncertainty' needs a threshold.")
+            check_real("threshold", threshold)
             if planner.model.uncertainty is None:
                 raise ValueError(
                     "replan='uncertainty' needs a planning model with an uncertainty estimator."

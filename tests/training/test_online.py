@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import replace
 
 import pytest
@@ -276,3 +277,38 @@ def test_each_network_is_fitted_with_its_own_settings(monkeypatch):
         replace(TINY_FIT, uncertainty={"hidden": 4})
     with pytest.raises(TypeError, match="must be a mapping of fit settings, got NoneType"):
         replace(TINY_FIT, uncertainty=None)
+
+
+@pytest.mark.parametrize(
+    ("settings", "error", "message"),
+    [
+        ({"steps": 0}, ValueError, "steps must be an int >= 1, got 0."),
+        ({"refit_steps": -5}, ValueError, "refit_steps must be an int >= 1, got -5."),
+        ({"refit_old_steps": -1}, ValueError, "refit_old_steps must be an int >= 0, got -1."),
+        ({"lr": float("nan")}, ValueError, "lr must be a finite number > 0, got nan."),
+        ({"patience": 0}, ValueError, "patience must be an int >= 1, got 0."),
+        ({"val_fraction": 1.0}, ValueError, "val_fraction must be in (0, 1), got 1.0."),
+        (
+            {"mode": "two_step"},
+            ValueError,
+            "mode must be 'multi_step' or 'one_step', got 'two_step'.",
+        ),
+        ({"uncertainty": {"lr": -1e-3}}, ValueError, "uncertainty.lr must be a finite number > 0"),
+        ({"uncertainty": {"steps": 2.5}}, ValueError, "uncertainty.steps must be an int >= 1"),
+        (
+            {"uncertainty": {"compile": "yes"}},
+            TypeError,
+            "uncertainty.compile must be True or False",
+        ),
+    ],
+)
+def test_a_schedule_out_of_range_is_refused_when_made(settings, error, message):
+    """Before any env step: the first fit comes only after the random data are collected."""
+    with pytest.raises(error, match=f"^{re.escape(message)}"):
+        FitSchedule(**settings)
+
+
+def test_a_schedule_may_stop_early_never_and_refit_on_new_data_only():
+    schedule = FitSchedule(patience=None, refit_old_steps=0, uncertainty={"patience": None})
+    assert schedule.world_model_settings()["patience"] is None
+    assert schedule.estimator_settings()["patience"] is None

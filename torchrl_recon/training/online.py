@@ -33,6 +33,7 @@ from torchrl_recon.data import (
 )
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
+from torchrl_recon.modules.checks import check_int, check_real
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
@@ -72,7 +73,7 @@ class FitSchedule:
     refit_uncertainty: bool = True
     lr: float = 3e-3
     eval_every: int = 100
-    patience: int = 10
+    patience: int | None = 10
     slice_len: int = 40
     num_slices: int = 32
     val_fraction: float = 0.1
@@ -92,6 +93,21 @@ class FitSchedule:
                 f"FitSchedule.uncertainty has unknown key(s) {unknown}; expected any of "
                 f"{sorted(FIT_SETTINGS)}."
             )
+        # checked here, not at the first fit, which comes after the random data are collected
+        for name in ("steps", "refit_steps", "slice_len", "num_slices"):
+            check_int(name, getattr(self, name))
+        if self.refit_old_steps is not None:
+            check_int("refit_old_steps", self.refit_old_steps, minimum=0)
+        check_real("val_fraction", self.val_fraction, minimum=0, exclusive=True)
+        if self.val_fraction >= 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}.")
+        if self.mode not in ("multi_step", "one_step"):
+            raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
+        for prefix, settings in (
+            ("", self.world_model_settings()),
+            ("uncertainty.", self.uncertainty),
+        ):
+            _check_settings(prefix, settings)
 
     def world_model_settings(self) -> dict[str, Any]:
         """The world model's fit settings, those of :data:`FIT_SETTINGS`."""
@@ -103,6 +119,19 @@ class FitSchedule:
 
 
 FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own
+
+
+def _check_settings(prefix: str, settings: Mapping[str, Any]) -> None:
+    """Refuse a value of :data:`FIT_SETTINGS` out of its range, named with ``prefix``."""
+    for name in ("steps", "eval_every"):
+        if name in settings:
+            check_int(prefix + name, settings[name])
+    if settings.get("patience") is not None:  # None: no early stopping
+        check_int(prefix + "patience", settings["patience"])
+    if "lr" in settings:
+        check_real(prefix + "lr", settings["lr"], minimum=0, exclusive=True)
+    if "compile" in settings and not isinstance(settings["compile"], bool):
+        raise TypeError(f"{prefix}compile must be True or False, got {settings['compile']!r}.")
 
 
 @dataclass

@@ -147,6 +147,36 @@ def test_exploration_phase_needs_an_explorer_and_an_estimator():
         learn_online(env, world, None, make, explore_iterations=2, **common)
 
 
+@pytest.mark.parametrize(
+    ("bad", "error", "message"),
+    [
+        ({"random_steps": 0}, ValueError, "random_steps must be an int >= 1, got 0."),
+        ({"steps_per_iteration": 0}, ValueError, "steps_per_iteration must be an int >= 1, got 0."),
+        ({"iterations": -1}, ValueError, "iterations must be an int >= 0, got -1."),
+        (
+            {"schedule": {"steps": 2}},
+            TypeError,
+            "schedule must be a FitSchedule or None, got dict.",
+        ),
+        (
+            {"policy_kwargs": {"replan_evry": 3}},
+            TypeError,
+            "policy_kwargs: got an unexpected keyword argument 'replan_evry' (they are MPCPolicy's keywords).",
+        ),
+    ],
+)
+def test_learn_online_refuses_bad_arguments_before_any_env_step(bad, error, message):
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=15)
+    world = LSTMWorldModel(3, 1, window=4)
+    model = PlanningModel.from_env(world, pendulum_cost, env)
+    make = lambda: CEMPlanner(model, Objective(), horizon=4, num_candidates=8)  # noqa: E731
+    kwargs = dict(iterations=1, steps_per_iteration=15, random_steps=30, schedule=SCHEDULE) | bad
+    env.step = env.reset = None  # the env is never touched
+    with pytest.raises(error, match=f"^{re.escape(message)}$"):
+        learn_online(env, world, None, make, **kwargs)
+    assert not world.obs_norm.fitted
+
+
 def test_a_world_model_of_members_is_fitted_and_planned_with():
     """learn_online with an ensemble (num_members=3): every member refitted from its own weights
     (they stay distinct), the model error the members' mean."""

@@ -13,6 +13,7 @@ experiment does); :func:`learn_online` chains them for a Python user.
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
@@ -451,6 +452,16 @@ def learn_online(
         >>> [r.iteration for r in records], [r.env_steps for r in records], len(data)
         ([0, 1], [60, 80], 80)
     """
+    # checked before the random data are collected and the first fit runs
+    check_int("iterations", iterations, minimum=0)
+    check_int("steps_per_iteration", steps_per_iteration)
+    check_int("random_steps", random_steps)
+    if schedule is not None and not isinstance(schedule, FitSchedule):
+        raise TypeError(f"schedule must be a FitSchedule or None, got {type(schedule).__name__}.")
+    try:
+        inspect.signature(MPCPolicy).bind(None, **(policy_kwargs or {}))
+    except TypeError as err:
+        raise TypeError(f"policy_kwargs: {err} (they are MPCPolicy's keywords).") from None
     if not 0 <= explore_iterations <= iterations:
         raise ValueError(
             f"explore_iterations={explore_iterations} must be between 0 and iterations={iterations}."

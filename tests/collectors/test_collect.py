@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import re
 import warnings
 from functools import partial
 
@@ -105,3 +106,17 @@ def test_episodes_refuse_a_batched_env():
     env = make_env("drone", seed=0, num_envs=2, parallel=False)
     with pytest.raises(ValueError, match="episodes=2 needs a count >= 1 and one env"):
         collect_random(env, frames=100, seed=0, episodes=2)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"frames": 2.5}, "frames must be an int >= 1, got 2.5."),
+        ({"frames": 0}, "frames must be an int >= 1, got 0."),
+        ({"frames": 10, "frames_per_batch": 0}, "frames_per_batch must be an int >= 1, got 0."),
+    ],
+)
+def test_a_frame_count_that_is_not_a_positive_int_is_refused(kwargs, message):
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=10)
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        collect_random(env, seed=0, **kwargs)

@@ -175,3 +175,17 @@ def test_a_buffer_too_small_for_the_saved_data_is_a_clear_error(saved):
         load_buffer(_fresh(10), path)
     with pytest.raises(FileNotFoundError, match="No saved replay buffer"):
         load_buffer_data(path.parent / "nothing")
+
+
+def test_a_buffer_that_holds_transitions_is_not_restored_over(saved):
+    """Restoring over held transitions mixed the two (5 held + 40 saved read as 45)."""
+    path, expected = saved
+    held = _fresh()
+    held.extend(_transitions(5))
+    before = held[:].clone()
+    with pytest.raises(ValueError, match="restores .* into an empty buffer; the one given holds 5"):
+        load_buffer(held, path)
+    assert len(held) == 5 and (held[:] == before).all()
+    held.empty()
+    assert len(load_buffer(held, path)) == 40
+    torch.testing.assert_close(held[:]["observation"], expected["observation"])

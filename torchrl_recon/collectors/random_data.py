@@ -10,6 +10,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from torchrl_recon.envs.threads import keep_num_threads
+from torchrl_recon.modules.checks import check_int
 
 
 def default_frames_per_batch(frames: int, largest: int = 1000, smallest: int = 100) -> int:
@@ -97,8 +98,9 @@ def collect(
         >>> data.batch_size, data["collector", "traj_ids"].unique().tolist()
         (torch.Size([50]), [0, 1])
     """
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}.")
+    check_int("frames", frames)
+    if frames_per_batch is not None:
+        check_int("frames_per_batch", frames_per_batch)
     if episodes is not None and (episodes < 1 or env.batch_size.numel() > 1):
         raise ValueError(
             f"episodes={episodes} needs a count >= 1 and one env (got batch size "

@@ -310,7 +310,8 @@ def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictR
     Raises:
         FileNotFoundError: ``path`` has no ``storage`` folder.
         DamagedFileError: a file is missing, malformed, truncated, unexpected or a pickle.
-        ValueError: the saved transitions do not fit in ``buffer``.
+        ValueError: the saved transitions do not fit in ``buffer``, or ``buffer`` is not
+            empty (restoring over held transitions would mix the two).
 
     Examples:
         >>> import tempfile
@@ -323,6 +324,11 @@ def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictR
         10
     """
     path = Path(path)
+    if len(buffer):
+        raise ValueError(
+            f"load_buffer restores {path} into an empty buffer; the one given holds "
+            f"{len(buffer)} transitions (call its empty() first, or make a new one)."
+        )
     data, writer_state = _read_saved_buffer(path)
     room = buffer.storage.max_size
     if len(data) > room or writer_state["_cursor"] > room:

@@ -23,14 +23,23 @@ CALIBRATION_COLUMNS = (
 )
 
 
+def _numeric(row: Mapping[str, Any]) -> list[str]:
+    return [k for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+
+
 def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per estimator, mean ± std across seeds of every numeric entry of its row."""
+    """Per estimator, mean ± std across seeds of every numeric entry of its row.
+
+    Every estimator and entry any seed has is kept, each over the seeds that have it
+    (``n_seeds``: the estimator's), so seeds run with different estimator lists lose nothing.
+    """
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
+    names = list(dict.fromkeys(name for r in runs for name in r["estimators"]))
     estimators: dict[str, Any] = {}
-    for name in runs[0]["estimators"]:
+    for name in names:
         rows = [r["estimators"][name] for r in runs if name in r["estimators"]]
-        keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
-        stats = {k: mean_std([row[k] for row in rows]) for k in keys}
+        keys = list(dict.fromkeys(k for row in rows for k in _numeric(row)))
+        stats = {k: mean_std([row[k] for row in rows if k in row]) for k in keys}
         mean, std = ({k: s[i] for k, s in stats.items()} for i in (0, 1))
         estimators[name] = {"mean": mean, "std": std, "n_seeds": len(rows)}
     seeds = [r.get("seed") for r in runs]

@@ -1,0 +1,49 @@
+"""The calibrate experiment's summary across seeds (``torchrl-recon summarize`` of calibrate runs)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from torchrl_recon.reports.calibrate import summarize_env, summary_table
+
+
+def _run(seed: int, estimators: dict) -> dict:
+    return {"experiment": "calibrate", "seed": seed, "horizons": [10], "estimators": estimators}
+
+
+def test_each_estimators_numbers_are_averaged_over_the_seeds_that_ran_it():
+    """Seed 0 (summarised first) lacks an estimator seed 1 has: it was dropped, silently."""
+    runs = [
+        _run(
+            1,
+            {
+                "reconstruction": {"spearman": 0.8, "kind": "reconstruction"},
+                "rnd": {"spearman": 0.2},
+            },
+        ),
+        _run(0, {"reconstruction": {"spearman": 0.6, "kind": "reconstruction"}}),
+    ]
+    s = summarize_env(runs)
+    assert s["seeds"] == [0, 1] and s["horizons"] == [10]
+    rec = s["estimators"]["reconstruction"]
+    assert rec["n_seeds"] == 2 and rec["mean"]["spearman"] == pytest.approx(0.7)
+    assert rec["std"]["spearman"] == pytest.approx(math.sqrt(0.02))  # sample std, ddof = 1
+    assert "kind" not in rec["mean"]  # text entries are not averaged
+    rnd = s["estimators"]["rnd"]  # only seed 1 ran it: kept, over that seed
+    assert rnd["n_seeds"] == 1 and math.isnan(rnd["std"]["spearman"])
+    assert list(s["estimators"]) == ["reconstruction", "rnd"]
+    table = summary_table({"envs": {"industrial_benchmark": s}})
+    assert "industrial_benchmark, seeds [0, 1]: mean across seeds" in table
+    assert any(line.startswith("reconstruction") and "0.7" in line for line in table.splitlines())
+
+
+def test_an_entry_only_some_seeds_have_is_averaged_over_those():
+    """The first seed's row had an entry the next lacked: a KeyError; one it lacked: dropped."""
+    runs = [
+        _run(0, {"reconstruction": {"spearman": 0.6, "cem_ratio_H10": 1.0}}),
+        _run(1, {"reconstruction": {"spearman": 0.8, "explore_ratio": 0.9, "ok": True}}),
+    ]
+    mean = summarize_env(runs)["estimators"]["reconstruction"]["mean"]
+    assert mean == pytest.approx({"spearman": 0.7, "cem_ratio_H10": 1.0, "explore_ratio": 0.9})

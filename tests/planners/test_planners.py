@@ -407,3 +407,42 @@ def test_a_context_of_another_dtype_is_refused_naming_it():
     with pytest.raises(ValueError, match=r"^context_obs has dtype torch.float64 but"):
         planner.plan(ctx[0].double(), *ctx[1:])
     assert planner.plan(*ctx).actions.shape == (3, 2)
+
+
+def _nan_where_first_action_above_half(obs, action, next_obs):
+    """``‖a‖²``, NaN wherever the first action exceeds 0.5: a cost undefined in a region."""
+    cost = action.pow(2).sum(-1) + 0 * next_obs.sum(-1)
+    return cost.masked_fill(action[..., 0] > 0.5, float("nan"))
+
+
+NAN_PLANNERS = {
+    "shooting": (RandomShootingPlanner, {"num_candidates": 200}),
+    "cem": (CEMPlanner, {"num_candidates": 200, "num_elites": 20, "iterations": 3}),
+    "icem": (ICEMPlanner, {"num_candidates": 200, "num_elites": 20, "iterations": 3}),
+    "mppi": (MPPIPlanner, {"num_candidates": 200, "iterations": 3}),
+    "gradient": (GradientPlanner, {"restarts": 8, "steps": 5}),
+}
+
+
+@pytest.mark.parametrize("kind", list(NAN_PLANNERS))
+def test_a_candidate_whose_predicted_cost_is_nan_is_never_chosen(kind):
+    """topk and argmax take NaN for the largest value: every planner chose such candidates."""
+    torch.manual_seed(0)
+    world = LSTMWorldModel(3, 2, window=4)
+    world.fit_normalization(torch.randn(50, 3), torch.rand(50, 2) * 2 - 1, torch.randn(50, 3))
+    model = PlanningModel(world, _nan_where_first_action_above_half)
+    cls, kwargs = NAN_PLANNERS[kind]
+    result = cls(model, Objective(), horizon=5, **kwargs).plan(
+        torch.randn(4, 3), torch.rand(4, 2) * 2 - 1, torch.randn(3)
+    )
+    assert result.actions[:, 0].max() <= 0.5 and torch.isfinite(result.objective).all()
+
+
+def test_every_candidate_nan_is_one_clear_error():
+    model = PlanningModel(LSTMWorldModel(3, 2, window=4), lambda o, a, n: a.sum(-1) * float("nan"))
+    planner = RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=8)
+    with pytest.raises(
+        FloatingPointError,
+        match=r"^every candidate's predicted objective is NaN for 1 of 1 batch element\(s\) \(cost NaN: True",
+    ):
+        planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3))

@@ -171,6 +171,16 @@ class PlannerBase(nn.Module):
         objective = self.objective.score(prediction)
         violation = self.objective.violation(prediction, bounds)
         best = self._pick(objective, violation)  # [*B, 1]
+        undefined = objective.gather(-1, best).isnan() | violation.gather(-1, best).isnan()
+        if undefined.any():  # NaN ranks last: the best is NaN only when every candidate is
+            raise FloatingPointError(
+                f"every candidate's predicted objective is NaN for {int(undefined.sum())} of "
+                f"{undefined.numel()} batch element(s) (cost NaN: "
+                f"{bool(prediction.cost.isnan().all())}, uncertainty NaN: "
+                f"{prediction.uncertainty is not None and bool(prediction.uncertainty.isnan().all())}"
+                "); the world model, the cost function or the estimator gives NaN from this "
+                "context (a diverged fit, or a cost undefined at these states)."
+            )
         feasible = (violation.gather(-1, best) <= 0).squeeze(-1)
         if not feasible.all():
             message = (

@@ -92,10 +92,13 @@ class MPPIPlanner(SamplingPlanner):
         self.temperature, self.noise_std = temperature, noise_std
 
     def _weights(self, prediction: Prediction, bounds) -> torch.Tensor:
-        """softmax(J / λ) over the feasible candidates, ``[*B, K]`` (−violation where none is)."""
+        """softmax(J / λ) over the feasible candidates, ``[*B, K]`` (−violation where none is).
+        A candidate whose J is NaN weighs nothing (one NaN would make every weight NaN)."""
         violation = self.objective.violation(prediction, bounds)
-        feasible = violation <= 0
-        score = self.objective.score(prediction).masked_fill(~feasible, -torch.inf)
+        violation = violation.masked_fill(violation.isnan(), torch.inf)
+        score = self.objective.score(prediction)
+        feasible = (violation <= 0) & ~score.isnan()
+        score = score.masked_fill(~feasible, -torch.inf)
         key = torch.where(feasible.any(-1, keepdim=True), score, -violation)
         return torch.softmax(key / self.temperature, dim=-1)
 

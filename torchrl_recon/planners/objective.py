@@ -133,8 +133,23 @@ class Objective:
 
 
 def rank_key(objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
-    """A key whose top-k picks feasible candidates by J first, then the least-violating ones."""
+    """A key whose top-k picks feasible candidates by J first, then the least-violating ones.
+
+    A candidate whose J or violation is NaN (its predicted cost or u was NaN: a diverged
+    model, or a cost undefined there) ranks below every other: ``topk`` and ``argmax`` take
+    NaN for the largest value, so it would otherwise be picked first.
+
+    Examples:
+        >>> rank_key(torch.tensor([1.0, float("nan"), 3.0]), torch.zeros(3)).argsort().tolist()
+        [1, 0, 2]
+    """
+    objective = objective.masked_fill(objective.isnan(), -torch.inf)
+    violation = violation.masked_fill(violation.isnan(), torch.inf)
     feasible = violation <= 0
     inner = torch.where(feasible, objective, -violation)
-    span = (inner.amax(-1, keepdim=True) - inner.amin(-1, keepdim=True)).nan_to_num(0.0) + 1.0
+    # the span of the finite keys (an infinite one would make every feasible key infinite)
+    finite = inner.isfinite()
+    high = inner.masked_fill(~finite, -torch.inf).amax(-1, keepdim=True)
+    low = inner.masked_fill(~finite, torch.inf).amin(-1, keepdim=True)
+    span = (high - low).nan_to_num(0.0, posinf=0.0, neginf=0.0) + 1.0
     return torch.where(feasible, inner + span, inner)

@@ -153,3 +153,14 @@ def test_an_unknown_id_is_one_clear_error(name, match):
 def test_shipped_entries_are_unchanged():
     assert get_entry("drone") is ENVS["drone"]
     assert not isinstance(get_entry("torchrl_recon/Minitaur-v0"), GymEntry)
+
+
+def test_a_module_that_fails_while_importing_is_one_error_naming_it(tmp_path, monkeypatch):
+    (tmp_path / "broken_env_module.py").write_text("raise RuntimeError('boom at import')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(
+        ValueError,
+        match=r"^Environment 'broken_env_module:Foo-v0': importing module 'broken_env_module' "
+        r"failed: RuntimeError: boom at import$",
+    ):
+        make_env("broken_env_module:Foo-v0", seed=0)

@@ -279,6 +279,11 @@ def _gym_spec(gym_id: str) -> gym.envs.registration.EnvSpec:
                 f"Unknown environment {gym_id!r}: cannot import module {module!r} ({e}); "
                 f"put it on sys.path, or {how}."
             ) from None
+        except Exception as e:  # the user's module fails while importing
+            raise ValueError(
+                f"Environment {gym_id!r}: importing module {module!r} failed: "
+                f"{type(e).__name__}: {e}"
+            ) from None
     register_envs()
     try:
         return gym.spec(env_id)

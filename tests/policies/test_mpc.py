@@ -460,3 +460,36 @@ def test_bad_input_and_missing_primer():
 
 if __name__ == "__main__":
     pytest.main([__file__, "-q", "-s"])
+
+
+class _Misplanning(RandomShootingPlanner):
+    """A plug-in planner with a bug: its plan's actions are changed by ``damage``."""
+
+    damage = staticmethod(lambda actions: actions)
+
+    def plan(self, *args, **kwargs):
+        result = super().plan(*args, **kwargs)
+        result.actions = type(self).damage(result.actions)
+        return result
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (lambda a: a * 100, r"^_Misplanning\.plan returned an action outside the bounds"),
+        (lambda a: a * float("nan"), r"^the actions _Misplanning\.plan returned contains NaN"),
+        (
+            lambda a: a[:, :-1],
+            r"^_Misplanning\.plan returned actions of shape \(1, 5, 4\); expected \(1, 6, 4\)\.$",
+        ),
+    ],
+)
+def test_a_plan_the_env_must_not_get_is_refused(damage, message, monkeypatch):
+    monkeypatch.setattr(_Misplanning, "damage", staticmethod(damage))
+    planner = _Misplanning(
+        _small_drone_model(), Objective(beta=0.1), horizon=PLAN_H, num_candidates=16
+    )
+    policy = MPCPolicy(planner)
+    env = _make_drone(policy, max_episode_steps=10)
+    with pytest.raises(ValueError, match=message):
+        env.rollout(CONTEXT + 1, policy)

@@ -341,6 +341,7 @@ class MPCPolicy(TensorDictModuleBase):
                     obs[idx],
                     init=self._warm_start(plan[idx], step[idx]),
                 )
+            self._check_plan(result.actions, len(idx))
             state[PLAN][idx], state[PLAN_STATES][idx], state[PLAN_COST][idx] = (
                 result.actions,
                 result.states,
@@ -380,6 +381,27 @@ class MPCPolicy(TensorDictModuleBase):
             value = state[key].reshape(*batch, *state[key].shape[1:])
             tensordict.set(("next", key), value.to(out_device))
         return tensordict
+
+    def _check_plan(self, actions: torch.Tensor, rows: int) -> None:
+        """Refuse a plan the env must not be given (a plug-in planner's bug): not ``[rows, H,
+        M]``, NaN or inf, or outside the action bounds (by more than float rounding)."""
+        name = type(self.planner).__name__
+        expected = (rows, self.horizon, self.action_dim)
+        if tuple(actions.shape) != expected:
+            raise ValueError(
+                f"{name}.plan returned actions of shape {tuple(actions.shape)}; expected {expected}."
+            )
+        check_finite(f"the actions {name}.plan returned", actions)
+        low, high = self.planner.model.action_low, self.planner.model.action_high
+        slack = 1e-5 * (high - low)
+        outside = (actions < low - slack) | (actions > high + slack)
+        if outside.any():
+            bad = outside.nonzero()[0].tolist()
+            raise ValueError(
+                f"{name}.plan returned an action outside the bounds [{low.tolist()}, "
+                f"{high.tolist()}] (first at index {bad}: {actions[tuple(bad)].item():.6g}); a "
+                "planner keeps its candidates within the planning model's action bounds."
+            )
 
     def _rest_action(self) -> torch.Tensor:
         """The zero action, clamped into the planner's bounds, ``[M]``."""

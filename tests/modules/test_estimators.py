@@ -419,3 +419,26 @@ def test_window_local_estimators_score_rows_independently(kind):
         whole = est.score(obs, action)
         parts = torch.cat([est.score(obs[:2], action[:2]), est.score(obs[2:], action[2:])])
     torch.testing.assert_close(parts, whole)
+
+
+class _PerStepScores(ReconstructionUncertainty):
+    """An estimator of one's own with a bug: one u per step, not per window."""
+
+    def score_sequence(self, x):
+        return x.abs().sum(-1)
+
+
+def test_an_estimator_returning_the_wrong_shape_is_one_clear_error_everywhere():
+    est = _PerStepScores(3, 2, window=4)
+    message = (
+        r"^_PerStepScores\.score_sequence returned \({}\) for sequences \({}\); expected \({}\): "
+        r"one u per window of 4 steps\.$"
+    )
+    with pytest.raises(ValueError, match=message.format("2, 10", "2, 10, 5", "2, 7")):
+        est.score(torch.zeros(2, 10, 3), torch.zeros(2, 10, 2))
+    with pytest.raises(ValueError, match=message.format("6, 4", "6, 4, 5", "6, 1")):
+        est.score_windows(torch.zeros(6, 4, 5))
+    world = LSTMWorldModel(3, 2, window=4)
+    model = PlanningModel(world, lambda o, a, n: n.pow(2).sum(-1), uncertainty=est)
+    with pytest.raises(ValueError, match=r"^_PerStepScores\.score_sequence returned \(3, 8\)"):
+        model(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3), torch.zeros(3, 5, 2))

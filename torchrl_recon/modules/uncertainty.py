@@ -128,7 +128,7 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
         check_finite("action", action.detach())
         batch, length = obs.shape[:-2], obs.shape[-2]
         x = torch.cat([obs, action], -1).reshape(-1, length, self.feature_dim)
-        return self.score_sequence(x).reshape(*batch, length - self.window + 1)
+        return checked_scores(self, x).reshape(*batch, length - self.window + 1)
 
     def score_windows(self, windows: torch.Tensor) -> torch.Tensor:
         """u of single windows ``[*B, T, N + M]`` → ``[*B]``."""
@@ -138,7 +138,7 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
                 f"windows has shape {tuple(windows.shape)}; expected [*B, {self.window}, {self.feature_dim}]."
             )
         batch = windows.shape[:-2]
-        return self.score_sequence(windows.reshape(-1, self.window, self.feature_dim)).reshape(
+        return checked_scores(self, windows.reshape(-1, self.window, self.feature_dim)).reshape(
             batch
         )
 
@@ -148,3 +148,24 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
         pad = u.new_full((*u.shape[:-1], self.window - 1), float("nan"))
         tensordict.set(self.out_keys[0], torch.cat([pad, u], -1))
         return tensordict
+
+
+def checked_scores(estimator: UncertaintyEstimator, x: torch.Tensor) -> torch.Tensor:
+    """``estimator.score_sequence(x)`` with its shape checked, ``[R, L - T + 1]``: what the
+    library calls, so an estimator of your own that returns another shape is one clear error,
+    not a failed (or silently wrong) reshape further on.
+
+    Examples:
+        >>> from torchrl_recon.modules import ReconstructionUncertainty
+        >>> checked_scores(ReconstructionUncertainty(2, 1, window=3), torch.zeros(4, 5, 3)).shape
+        torch.Size([4, 3])
+    """
+    u = estimator.score_sequence(x)
+    expected = (x.shape[0], x.shape[1] - estimator.window + 1)
+    if not isinstance(u, torch.Tensor) or tuple(u.shape) != expected:
+        got = tuple(u.shape) if isinstance(u, torch.Tensor) else type(u).__name__
+        raise ValueError(
+            f"{type(estimator).__name__}.score_sequence returned {got} for sequences "
+            f"{tuple(x.shape)}; expected {expected}: one u per window of {estimator.window} steps."
+        )
+    return u

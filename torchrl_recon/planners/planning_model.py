@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
 
@@ -502,6 +502,6 @@ class PlanningModel(nn.Module):
             # GRAD_BLOCK_WINDOWS windows keep each block's forward and backward in cache.
             step = max(1, GRAD_BLOCK_WINDOWS // horizon)
             if rows > step:
-                u = torch.cat([est.score_sequence(block) for block in x.split(step)])
+                u = torch.cat([checked_scores(est, block) for block in x.split(step)])
                 return u.view(*batch, k, horizon)
-        return est.score_sequence(x).view(*batch, k, horizon)
+        return checked_scores(est, x).view(*batch, k, horizon)

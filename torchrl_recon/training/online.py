@@ -99,9 +99,13 @@ class FitSchedule:
             check_int(name, getattr(self, name))
         if self.refit_old_steps is not None:
             check_int("refit_old_steps", self.refit_old_steps, minimum=0)
-        check_real("val_fraction", self.val_fraction, minimum=0, exclusive=True)
-        if self.val_fraction >= 1:
-            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}.")
+        fraction = self.val_fraction
+        if (
+            isinstance(fraction, bool)
+            or not isinstance(fraction, (int, float))
+            or not 0 < fraction < 1
+        ):
+            raise ValueError(f"val_fraction must be in (0, 1), got {fraction!r}.")
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
         for prefix, settings in (

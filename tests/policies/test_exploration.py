@@ -47,6 +47,14 @@ def test_exploration_objective_refuses_penalised_uncertainty_and_a_cap_below_the
         exploration_objective(beta=0.5)
     with pytest.raises(ValueError, match=r"cap=1\.1 must be at least ratio=1\.2"):
         exploration_objective(ratio=1.2, cap=1.1)
+    for kwargs, message in (
+        ({"ratio": float("nan")}, r"^ratio must be a finite number > 0, got nan\.$"),
+        ({"ratio": 0.0}, r"^ratio must be a finite number > 0, got 0\.0\.$"),
+        ({"cap": float("nan")}, r"^cap must be a finite number, got nan\.$"),
+        ({"beta": float("nan")}, r"^beta must be a finite number, got nan\.$"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            exploration_objective(**kwargs)
 
 
 def test_exploration_policy_executes_whole_plans_by_default():

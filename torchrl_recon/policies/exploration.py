@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchrl_recon.modules.checks import check_real
 from torchrl_recon.planners.base import PlannerBase
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.policies.mpc import MPCPolicy
@@ -20,6 +21,10 @@ def exploration_objective(
         >>> exploration_objective(ratio=1.5, cap=3.0).band
         UncertaintyBand(low=1.5, high=3.0, kind='mean_ratio')
     """
+    check_real("ratio", ratio, minimum=0, exclusive=True)
+    if cap is not None:
+        check_real("cap", cap)
+    check_real("beta", beta)
     if beta > 0:
         raise ValueError(f"exploration seeks uncertainty: beta must be <= 0, got {beta}.")
     if cap is not None and cap < ratio:

@@ -133,7 +133,7 @@ def _load_state(path: str | Path, name: str, module: nn.Module, state: dict) -> 
     except RuntimeError as err:
         # load_state_dict's message opens with a header line; the first mismatch follows it
         lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-        reason = lines[1] if len(lines) > 1 else _reason(err)
+        reason = (lines[1] if len(lines) > 1 else _reason(err)).rstrip(".")
         raise DamagedFileError(
             f"{path}: the weights of {name!r} do not fit its saved config ({reason})."
         ) from None

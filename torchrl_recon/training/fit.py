@@ -196,15 +196,8 @@ def train_loss_module(
         >>> result.steps
         20
     """
-    _check_fit_settings(
-        steps=steps,
-        eval_every=eval_every,
-        val_batches=val_batches,
-        patience=patience,
-        lr=lr,
-        weight_decay=weight_decay,
-        clip_norm=clip_norm,
-    )
+    counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
+    _check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     _check_seed(seed)
     _check_compile(compile, loss_module)
     if len(buffer) == 0:
@@ -670,15 +663,8 @@ def fit_population(
         >>> [r.steps for r in results]
         [10, 10, 10]
     """
-    _check_fit_settings(
-        steps=steps,
-        eval_every=eval_every,
-        val_batches=val_batches,
-        patience=patience,
-        lr=lr,
-        weight_decay=weight_decay,
-        clip_norm=clip_norm,
-    )
+    counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
+    _check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")

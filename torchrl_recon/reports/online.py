@@ -19,18 +19,22 @@ def summarize_env(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Per iteration, the mean return over seeds (each seed's mean over its episodes), and the
     random policy's and the last half's mean ± sample std over seeds."""
     runs = sorted(runs, key=lambda r: r.get("seed", 0))
-    count = min(len(r["iterations"]) for r in runs)
+    counts = [len(r["iterations"]) for r in runs]
+    count = min(counts)  # iterations every seed has
     per_iteration = [
         mean_std([_mean(r["iterations"][i]["returns"]) for r in runs], finite=True)
         for i in range(count)
     ]
-    return {
+    summary = {
         "seeds": [r.get("seed") for r in runs],
         "random": mean_std([r["random"]["mean_return"] for r in runs], finite=True),
         "last_half": mean_std([r["mean_return_last_half"] for r in runs], finite=True),
         "iterations": [{"mean": m, "std": s} for m, s in per_iteration],
         "env_steps": [runs[0]["iterations"][i]["env_steps"] for i in range(count)],
     }
+    if len(set(counts)) > 1:  # said, not silently cut: the rows stop at the shortest seed's
+        summary["iterations_per_seed"] = counts
+    return summary
 
 
 def result_table(r: Mapping[str, Any]) -> str:
@@ -62,6 +66,11 @@ def summary_table(r: Mapping[str, Any]) -> str:
             f"online {env}, seeds {s['seeds']}: random policy {pm(*s['random'])}, "
             f"last half {pm(*s['last_half'])}"
         )
+        if "iterations_per_seed" in s:
+            title += (
+                f" (iterations per seed {s['iterations_per_seed']}: the rows stop at "
+                f"{len(s['iterations'])}; each seed's last half is its own)"
+            )
         parts.append(render(["iter", "env steps", "return"], rows, title))
     return "\n\n".join(parts)
 

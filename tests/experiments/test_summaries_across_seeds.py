@@ -1,4 +1,5 @@
-"""The calibrate experiment's summary across seeds (``torchrl-recon summarize`` of calibrate runs)."""
+"""Summaries across seeds that meet seeds of different shapes: calibrate runs with different
+estimator lists, online runs with different iteration counts."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import math
 import pytest
 
 from torchrl_recon.reports.calibrate import summarize_env, summary_table
+from torchrl_recon.reports.online import summarize_env as online_summary
+from torchrl_recon.reports.online import summary_table as online_table
 
 
 def _run(seed: int, estimators: dict) -> dict:
@@ -47,3 +50,25 @@ def test_an_entry_only_some_seeds_have_is_averaged_over_those():
     ]
     mean = summarize_env(runs)["estimators"]["reconstruction"]["mean"]
     assert mean == pytest.approx({"spearman": 0.7, "cem_ratio_H10": 1.0, "explore_ratio": 0.9})
+
+
+def test_an_online_summary_of_seeds_with_different_lengths_says_where_its_rows_stop():
+    def run(seed: int, returns: list[float]) -> dict:
+        iterations = [{"returns": [r], "env_steps": 10 * (i + 1)} for i, r in enumerate(returns)]
+        return {
+            "seed": seed,
+            "iterations": iterations,
+            "random": {"mean_return": -5.0},
+            "mean_return_last_half": returns[-1],
+        }
+
+    same = online_summary([run(0, [1.0, 2.0]), run(1, [3.0, 4.0])])
+    assert "iterations_per_seed" not in same and len(same["iterations"]) == 2
+    cut = online_summary([run(0, [1.0, 2.0, 3.0]), run(1, [3.0, 4.0])])
+    assert cut["iterations_per_seed"] == [3, 2] and len(cut["iterations"]) == 2
+    assert cut["iterations"][1]["mean"] == pytest.approx(3.0)
+    table = online_table({"envs": {"Pendulum-v1": cut}})
+    assert (
+        "(iterations per seed [3, 2]: the rows stop at 2; each seed's last half is its own)"
+        in table
+    )

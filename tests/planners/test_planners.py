@@ -446,3 +446,40 @@ def test_every_candidate_nan_is_one_clear_error():
         match=r"^every candidate's predicted objective is NaN for 1 of 1 batch element\(s\) \(cost NaN: True",
     ):
         planner.plan(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3))
+
+
+@pytest.mark.parametrize(
+    ("kind", "low", "high"), [("quantile", 0.25, 0.75), ("mean_ratio", 1.0, 1.5)]
+)
+def test_a_relative_band_leaves_nan_reference_u_out(kind, low, high):
+    """One NaN u among the reference candidates made the bounds NaN: every candidate infeasible."""
+    band = UncertaintyBand(low=low, high=high, kind=kind)
+    reference = torch.arange(5.0).repeat(2, 1)
+    with_nan = reference.clone()
+    with_nan[0, 4] = float("nan")
+    clean = [bound.squeeze(-1).tolist() for bound in band.resolve(reference)]
+    bounds = [bound.squeeze(-1).tolist() for bound in band.resolve(with_nan)]
+    left_out = [bound.squeeze(-1).tolist() for bound in band.resolve(reference[:, :4])]
+    assert [b[0] for b in bounds] == [b[0] for b in left_out]  # row 0: as without the NaN
+    assert [b[1] for b in bounds] == [b[1] for b in clean]  # row 1: unchanged
+
+
+def test_a_plan_in_a_band_avoids_candidates_whose_u_is_nan():
+    """u = |a|, NaN wherever the action exceeds 0.5: the band resolves from the others and the
+    plan never takes a NaN-u candidate."""
+    model = PlanningModel(integrator_model(), integrator_cost)
+
+    class AbsActionNaNAbove(torch.nn.Module):
+        obs_dim, action_dim, window, window_local = 1, 1, 1, True
+
+        def score_sequence(self, x):
+            u = x[..., 1].abs()
+            return u.masked_fill(u > 0.5, float("nan"))
+
+    model.uncertainty = AbsActionNaNAbove()
+    objective = Objective(alpha=0.0, band=UncertaintyBand(low=0.5, high=1.5, kind="mean_ratio"))
+    torch.manual_seed(0)
+    planner = CEMPlanner(model, objective, horizon=4, num_candidates=200, num_elites=20)
+    result = planner.plan(torch.zeros(4, 1), torch.zeros(4, 1), torch.full((1,), 0.5))
+    assert bool(result.feasible) and torch.isfinite(result.uncertainty).all()
+    assert float(result.actions.abs().max()) <= 0.5

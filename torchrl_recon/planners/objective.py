@@ -57,8 +57,17 @@ class UncertaintyBand:
             )
 
     def resolve(self, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Absolute bounds ``([*B, 1], [*B, 1])`` from reference cumulative u ``[*B, K]``."""
+        """Absolute bounds ``([*B, 1], [*B, 1])`` from reference cumulative u ``[*B, K]``.
+
+        Reference candidates whose u is NaN are left out of a relative band (one would make
+        the bounds NaN, and every candidate infeasible).
+        """
         batch = reference.shape[:-1]
+        relative = self.kind != "absolute" and (self.low, self.high) != (None, None)
+        skip_nan = relative and bool(reference.isnan().any())  # else the exact ops as before
+        quantile, mean = (
+            (torch.nanquantile, torch.nanmean) if skip_nan else (torch.quantile, torch.mean)
+        )
 
         def one(value: float | None, default: float) -> torch.Tensor:
             if value is None:
@@ -66,8 +75,8 @@ class UncertaintyBand:
             if self.kind == "absolute":
                 return reference.new_full((*batch, 1), value)
             if self.kind == "quantile":
-                return torch.quantile(reference, value, dim=-1, keepdim=True)
-            return value * reference.mean(-1, keepdim=True)
+                return quantile(reference, value, dim=-1, keepdim=True)
+            return value * mean(reference, -1, keepdim=True)
 
         return one(self.low, -torch.inf), one(self.high, torch.inf)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from pathlib import Path
 from typing import Any
@@ -233,6 +234,23 @@ def sequence_buffers(
     return buffers
 
 
+def check_val_fraction(val_fraction: object) -> None:
+    """Refuse a validation fraction that is not a number in (0, 1).
+
+    Examples:
+        >>> check_val_fraction(1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: val_fraction must be in (0, 1), got 1.0.
+    """
+    if (
+        isinstance(val_fraction, bool)
+        or not isinstance(val_fraction, numbers.Real)
+        or not 0 < val_fraction < 1
+    ):
+        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction!r}.")
+
+
 def split_by_trajectory(
     data: TensorDictBase, val_fraction: float, *, seed: int, traj_key: NestedKey = TRAJ_KEY
 ) -> tuple[TensorDictBase, TensorDictBase]:
@@ -245,8 +263,7 @@ def split_by_trajectory(
         >>> len(train), len(val)
         (30, 10)
     """
-    if not 0.0 < val_fraction < 1.0:
-        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}.")
+    check_val_fraction(val_fraction)
     ids = _trajectory_ids(data, traj_key, "split_by_trajectory")
     unique = torch.unique(ids)
     if len(unique) < 2:

@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -118,33 +119,32 @@ def _cached_boundaries(*buffers: TensorDictReplayBuffer | None) -> Iterator[None
             sampler.cache_values = value
 
 
-def _check_fit_settings(
-    *,
-    steps: int,
-    eval_every: int,
-    val_batches: int,
-    patience: int | None,
-    lr: float,
-    weight_decay: float,
-    clip_norm: float | None,
-) -> None:
-    """Refuse a fit setting out of its range in one line naming it, before any work.
+def check_fit_settings(prefix: str = "", **settings: Any) -> None:
+    """Refuse any given fit setting (``steps``, ``eval_every``, ``val_batches``, ``patience``,
+    ``lr``, ``weight_decay``, ``clip_norm``) out of its range, in one line naming it as
+    ``prefix`` + its name, before any work. Other keywords are left to their own checks.
 
     Examples:
-        >>> _check_fit_settings(steps=10, eval_every=5, val_batches=1, patience=0, lr=1e-3,
-        ...                    weight_decay=0.0, clip_norm=None)
+        >>> check_fit_settings(steps=10, patience=0, lr=1e-3)
         Traceback (most recent call last):
         ...
         ValueError: patience must be an int >= 1, got 0.
+        >>> check_fit_settings("uncertainty.", lr=-1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: uncertainty.lr must be a finite number > 0, got -1.0.
     """
-    for name, value in (("steps", steps), ("eval_every", eval_every), ("val_batches", val_batches)):
-        check_int(name, value)
-    if patience is not None:  # None: no early stopping
-        check_int("patience", patience)
-    check_real("lr", lr, minimum=0, exclusive=True)
-    check_real("weight_decay", weight_decay, minimum=0)
-    if clip_norm is not None:  # None: no clipping
-        check_real("clip_norm", clip_norm, minimum=0, exclusive=True)
+    for name in ("steps", "eval_every", "val_batches"):
+        if name in settings:
+            check_int(prefix + name, settings[name])
+    if settings.get("patience") is not None:  # None: no early stopping
+        check_int(prefix + "patience", settings["patience"])
+    if "lr" in settings:
+        check_real(prefix + "lr", settings["lr"], minimum=0, exclusive=True)
+    if "weight_decay" in settings:
+        check_real(prefix + "weight_decay", settings["weight_decay"], minimum=0)
+    if settings.get("clip_norm") is not None:  # None: no clipping
+        check_real(prefix + "clip_norm", settings["clip_norm"], minimum=0, exclusive=True)
 
 
 def train_loss_module(
@@ -197,7 +197,7 @@ def train_loss_module(
         20
     """
     counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
-    _check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
+    check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     _check_seed(seed)
     _check_compile(compile, loss_module)
     if len(buffer) == 0:
@@ -331,7 +331,7 @@ def _check_train_keywords(kwargs: dict, module: nn.Module) -> None:
         raise TypeError(f"{err}; the keywords are train_loss_module's.") from None
     bound.apply_defaults()
     given = bound.arguments
-    _check_fit_settings(**{k: given[k] for k in inspect.signature(_check_fit_settings).parameters})
+    check_fit_settings(**given)
     _check_seed(given["seed"])
     _check_compile(given["compile"], module)
 
@@ -664,7 +664,7 @@ def fit_population(
         [10, 10, 10]
     """
     counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
-    _check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
+    check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")

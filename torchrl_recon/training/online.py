@@ -32,14 +32,14 @@ from torchrl_recon.data import (
     sequence_buffers,
     split_by_trajectory,
 )
-from torchrl_recon.data.buffers import TRAJ_KEY
+from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
-from torchrl_recon.modules.checks import check_int, check_real
+from torchrl_recon.modules.checks import check_int
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
-from torchrl_recon.training.fit import fit_uncertainty, world_model_fit
+from torchrl_recon.training.fit import check_fit_settings, fit_uncertainty, world_model_fit
 
 
 @dataclass
@@ -99,20 +99,18 @@ class FitSchedule:
             check_int(name, getattr(self, name))
         if self.refit_old_steps is not None:
             check_int("refit_old_steps", self.refit_old_steps, minimum=0)
-        fraction = self.val_fraction
-        if (
-            isinstance(fraction, bool)
-            or not isinstance(fraction, (int, float))
-            or not 0 < fraction < 1
-        ):
-            raise ValueError(f"val_fraction must be in (0, 1), got {fraction!r}.")
+        check_val_fraction(self.val_fraction)
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
         for prefix, settings in (
             ("", self.world_model_settings()),
             ("uncertainty.", self.uncertainty),
         ):
-            _check_settings(prefix, settings)
+            check_fit_settings(prefix, **settings)
+            if "compile" in settings and not isinstance(settings["compile"], bool):
+                raise TypeError(
+                    f"{prefix}compile must be True or False, got {settings['compile']!r}."
+                )
 
     def world_model_settings(self) -> dict[str, Any]:
         """The world model's fit settings, those of :data:`FIT_SETTINGS`."""
@@ -124,19 +122,6 @@ class FitSchedule:
 
 
 FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own
-
-
-def _check_settings(prefix: str, settings: Mapping[str, Any]) -> None:
-    """Refuse a value of :data:`FIT_SETTINGS` out of its range, named with ``prefix``."""
-    for name in ("steps", "eval_every"):
-        if name in settings:
-            check_int(prefix + name, settings[name])
-    if settings.get("patience") is not None:  # None: no early stopping
-        check_int(prefix + "patience", settings["patience"])
-    if "lr" in settings:
-        check_real(prefix + "lr", settings["lr"], minimum=0, exclusive=True)
-    if "compile" in settings and not isinstance(settings["compile"], bool):
-        raise TypeError(f"{prefix}compile must be True or False, got {settings['compile']!r}.")
 
 
 @dataclass

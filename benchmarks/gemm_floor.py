@@ -35,9 +35,7 @@ from collections.abc import Callable
 
 import torch
 from _common import (
-    ACTION_DIM,
     COST,
-    OBS_DIM,
     context,
     describe,
     fit_step_flops,
@@ -52,9 +50,8 @@ from _common import (
 
 # PyTorch's documented home of dispatch modes ("Extending PyTorch"); there is no public alias.
 from torch.utils._python_dispatch import TorchDispatchMode
-from training_speed import random_buffer
+from training_speed import random_buffer, world_models
 
-from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
 from torchrl_recon.training import fit_population
@@ -214,18 +211,7 @@ def main() -> None:
         print_row(name, measured[name], floor, count, limit, target)
 
     rb = random_buffer(args)
-    torch.manual_seed(0)
-    models = [
-        LSTMWorldModel(
-            OBS_DIM, ACTION_DIM, hidden_size=args.hidden, dense_size=args.dense, window=args.window
-        ).to(device)
-        for _ in range(args.members)
-    ]
-    data = rb[:]
-    for model in models:
-        model.fit_normalization(
-            *(data[k].to(device) for k in ("observation", "action", ("next", "observation")))
-        )
+    models = world_models(args, rb, args.members, device)
     seeds = list(range(args.members))
 
     def fit(steps: int) -> None:

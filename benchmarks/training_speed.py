@@ -76,6 +76,26 @@ def random_buffer(args: argparse.Namespace, trajectories: int = 16, length: int 
     return rb
 
 
+def world_models(
+    args: argparse.Namespace, rb, count: int, device: torch.device
+) -> list[LSTMWorldModel]:
+    """``count`` world models of ``args``' sizes on ``device`` (drawn after
+    ``torch.manual_seed(0)``), each with its normalisation fitted on ``rb``'s transitions."""
+    torch.manual_seed(0)
+    models = [
+        LSTMWorldModel(
+            OBS_DIM, ACTION_DIM, hidden_size=args.hidden, dense_size=args.dense, window=args.window
+        ).to(device)
+        for _ in range(count)
+    ]
+    data = rb[:]
+    for model in models:
+        model.fit_normalization(
+            *(data[k].to(device) for k in ("observation", "action", ("next", "observation")))
+        )
+    return models
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--threads", type=int, default=1)
@@ -105,24 +125,6 @@ def main() -> None:
         progress=False,
     )
 
-    def models(count: int) -> list[LSTMWorldModel]:
-        torch.manual_seed(0)
-        out = []
-        for _ in range(count):
-            model = LSTMWorldModel(
-                OBS_DIM,
-                ACTION_DIM,
-                hidden_size=args.hidden,
-                dense_size=args.dense,
-                window=args.window,
-            ).to(device)
-            data = rb[:]
-            model.fit_normalization(
-                *(data[k].to(device) for k in ("observation", "action", ("next", "observation")))
-            )
-            out.append(model)
-        return out
-
     print(
         f"device={device}, threads={args.threads}, hidden={args.hidden}, dense={args.dense}, "
         f"window={args.window}, slice_len={args.slice_len}, windows/member={args.windows}, "
@@ -131,7 +133,7 @@ def main() -> None:
     )
     rate = gemm_gflops(device)
     print(gemm_line(rate))
-    template = models(1)[0]
+    template = world_models(args, rb, 1, device)[0]
     flops = fit_step_flops(template, args.windows, args.slice_len)
     member_limit = limit_ms(flops, rate)
     print(
@@ -140,7 +142,10 @@ def main() -> None:
     )
     speed_up = {}
     for count in args.members:
-        sequential, population = models(count), models(count)
+        sequential, population = (
+            world_models(args, rb, count, device),
+            world_models(args, rb, count, device),
+        )
         seeds = list(range(count))
 
         def run_sequential(ms=sequential, seeds=seeds, compile=False):

@@ -22,9 +22,9 @@ from torchrl_recon.training.fit import FitResult
 from torchrl_recon.training.online import (
     FitSchedule,
     fit_models,
-    learn_online,
     recent_and_sampled,
 )
+from torchrl_recon.trainers import learn_online
 
 SCHEDULE = FitSchedule(
     steps=6, refit_steps=3, eval_every=3, slice_len=8, num_slices=4, val_fraction=0.34

@@ -1,22 +1,27 @@
 """The online experiment (its stages, recipe check and ``EXPERIMENT``): random data, a first
-fit, then per iteration an MPC play stage and a warm-started refit
-(:mod:`torchrl_recon.training.online` does the work)."""
+fit, then per iteration an MPC play stage and a warm-started refit, run as TorchRL's
+``Trainer`` (:class:`~torchrl_recon.trainers.OnlineTrainer`) whose collector and fits are the
+run directory's stages, so a stopped run resumes where it stopped."""
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from torchrl_recon.envs import closing_env
 from torchrl_recon.experiments.common import (
     build_env,
+    build_models,
     build_planner,
     check_random_data,
     checkpoint_stage,
-    models_stage,
+    dims,
+    fit_stage,
     mpc_policy,
     planning_model,
     random_data_stage,
@@ -29,16 +34,10 @@ from torchrl_recon.experiments.experiment_type import ExperimentType
 from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
+from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.reports.stats import mean_std
-from torchrl_recon.training.online import (
-    FitSchedule,
-    append_steps,
-    episode_returns,
-    fit_models,
-    new_steps_metrics,
-    play,
-    shared_keys,
-)
+from torchrl_recon.trainers import IterationCollector, ModelFitStepper, OnlineTrainer, play
+from torchrl_recon.training.online import FitSchedule, episode_returns, fit_models, shared_keys
 
 STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 """Stage name templates, in run order (``{n}`` the iteration, from 1)."""
@@ -49,8 +48,9 @@ def play_stage(
 ) -> dict:
     """Stage ``play_<n>``: ``steps_per_iteration`` steps of MPC (re-planning threshold from all
     ``data`` so far) or, in the rounds that explore, exploration, with the current models and
-    the resolved ``warmup``, stored as ``buffers/play_<n>``; its record: :func:`new_steps_metrics`,
-    the seconds spent planning and in the env, and which ``policy`` played."""
+    the resolved ``warmup``, stored as ``buffers/play_<n>`` (the env's keys); its record: the
+    re-plans, the seconds spent planning and in the env, and which ``policy`` played (the
+    steps' returns, model error and u are :class:`~torchrl_recon.trainers.LogIteration`'s)."""
     cfg, name = ctx.cfg, f"play_{n}"
 
     def run() -> dict:
@@ -72,13 +72,12 @@ def play_stage(
                 env, mpc, frames=cfg.steps_per_iteration, seed=seed, progress=cfg.progress
             )
         ctx.stages.save_data(name, new.select(*shared_keys(data, new)))  # the env's keys
-        seen = new_steps_metrics(model.world_model, model.uncertainty, new, cfg.training.slice_len)
-        record = seen | {"plan_s": plan_s, "env_s": time.perf_counter() - start - plan_s}
-        record["policy"] = "explore" if exploring else "mpc"
-        if ctx.logger is not None:
-            for key in ("model_error", "mean_u", "replans"):
-                ctx.logger.log_scalar(f"online/{key}", record[key], step=n)
-        return record
+        return {
+            "replans": int(new[REPLANNED].sum()),
+            "plan_s": plan_s,
+            "env_s": time.perf_counter() - start - plan_s,
+            "policy": "explore" if exploring else "mpc",
+        }
 
     return ctx.stages.run(name, run)
 
@@ -97,23 +96,30 @@ def reads_uncertainty(cfg: DictConfig, n: int) -> bool:
     return cfg.beta != 0 or str(cfg.replan.mode) == "uncertainty" or n <= cfg.exploration.iterations
 
 
+def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSchedule:
+    """The online recipe's fits as a :class:`~torchrl_recon.training.online.FitSchedule`: its
+    ``training`` block with ``refit_steps`` and ``refit_old_steps``."""
+    t = cfg.training
+    sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
+    sizes |= {k: cfg[k] for k in ("refit_steps", "refit_old_steps")}
+    return FitSchedule(
+        **t.world_model,
+        mode=str(t.world_model_mode),
+        refit_uncertainty=refit_uncertainty,
+        uncertainty=dict(t.uncertainty),
+        **sizes,
+    )
+
+
 def refit_stage(
     ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, new_steps: int
 ) -> dict:
     """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting the networks warm on
     ``data`` (the ``new_steps`` last are this round's) as :class:`OnlineConfig` says; the
     estimator too when a later plan reads it (:func:`reads_uncertainty`) or always."""
-    cfg, t, name = ctx.cfg, ctx.cfg.training, f"refit_{n}"
-    sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
-    sizes |= {k: cfg[k] for k in ("refit_steps", "refit_old_steps")}
+    cfg, name = ctx.cfg, f"refit_{n}"
     refit_u = cfg.refit_uncertainty == "always" or reads_uncertainty(cfg, n + 1)
-    schedule = FitSchedule(
-        **t.world_model,
-        mode=str(t.world_model_mode),
-        refit_uncertainty=refit_u,
-        uncertainty=dict(t.uncertainty),
-        **sizes,
-    )
+    schedule = recipe_schedule(cfg, refit_uncertainty=refit_u)
     modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
 
     def fit() -> dict:
@@ -134,30 +140,112 @@ def refit_stage(
     return checkpoint_stage(ctx, name, modules, fit)
 
 
+class StagedCollector(IterationCollector):
+    """The online experiment's iterations as run-directory stages: iteration 0 is the random
+    data (stage ``random_data``, collected before the models are built), iteration ``n`` the
+    stage ``play_<n>`` (:func:`play_stage`; a done stage's steps are loaded back)."""
+
+    def __init__(
+        self,
+        ctx: RunContext,
+        model: PlanningModel,
+        random_data: TensorDictBase,
+        warmup: str,
+        data: Callable[[], TensorDictBase],
+    ) -> None:
+        cfg = ctx.cfg
+        super().__init__(
+            iterations=cfg.iterations,
+            steps_per_iteration=cfg.steps_per_iteration,
+            random_steps=cfg.random_steps,
+            explore_iterations=cfg.exploration.iterations,
+        )
+        self.ctx, self.model, self.random_data = ctx, model, random_data
+        self.warmup, self.data = warmup, data
+
+    def collect_iteration(self, iteration: int) -> TensorDictBase:
+        if iteration == 0:
+            self.batch_info = dict(iteration=0, policy="random", plan_s=0.0, env_s=0.0, replans=0)
+            return self.random_data
+        played = play_stage(self.ctx, iteration, self.model, self.data(), self.warmup)
+        keys = ("policy", "plan_s", "env_s", "replans")
+        self.batch_info = {"iteration": iteration} | {k: played[k] for k in keys}
+        return self.ctx.stages.load_data(f"play_{iteration}")
+
+
+class StagedFit(ModelFitStepper):
+    """The online experiment's fits as run-directory stages: the first is stage ``models``
+    (:func:`~.common.fit_stage`), the ``n``-th refit stage ``refit_<n>`` (:func:`refit_stage`);
+    a done stage's checkpoint is loaded back. :attr:`stage_records` keeps each stage's record."""
+
+    def __init__(self, ctx: RunContext, model: PlanningModel, replay_buffer: ReplayBuffer) -> None:
+        super().__init__(model.world_model, model.uncertainty, replay_buffer)
+        self.ctx, self.model = ctx, model
+        self.stage_records: dict[int, dict] = {}
+
+    def fit(self, data: TensorDictBase, *, index: int, new_steps: int) -> dict[str, float]:
+        if index == 0:
+            modules = {"world_model": self.world_model, "uncertainty": self.estimator}
+            record = fit_stage(self.ctx, "models", data, modules)
+            self.stage_records[0] = record
+            return {k: record[f"{k}_val_loss"] for k in modules}
+        record = refit_stage(self.ctx, index, self.model, data, new_steps)
+        self.stage_records[index] = record
+        return record["val_loss"]
+
+
 def run(ctx: RunContext) -> dict:
-    """Run (or resume) the online experiment; return its results."""
+    """Run (or resume) the online experiment through an
+    :class:`~torchrl_recon.trainers.OnlineTrainer` whose collector and fits are the run
+    directory's stages; return its results."""
     cfg = ctx.cfg
     data = random_data_stage(ctx, "random_data", frames=cfg.random_steps)
     check_random_data(cfg, data)  # two episodes to split, before any fit
     warmup = warmup_mode(cfg, data)  # from the random data only, once
-    world, estimator, first = models_stage(ctx, data, "models")
+    world, estimator = build_models(cfg, *dims(data), ctx.device)
     model = planning_model(cfg, world, estimator)
+    buffer = ReplayBuffer(
+        storage=LazyTensorStorage(cfg.random_steps + cfg.iterations * cfg.steps_per_iteration)
+    )
+    collector = StagedCollector(ctx, model, data, warmup, lambda: buffer[:])
+    fits = StagedFit(ctx, model, buffer)
+    trainer = OnlineTrainer(
+        collector=collector,
+        world_model=world,
+        estimator=estimator,
+        schedule=recipe_schedule(cfg),
+        replay_buffer=buffer,
+        stepper=fits,
+        progress=cfg.progress,
+        logger=ctx.logger,
+    )
+    trainer.train()
     iterations = []
-    for n in range(1, cfg.iterations + 1):
-        played = play_stage(ctx, n, model, data, warmup)
-        new = ctx.stages.load_data(f"play_{n}")
-        data = append_steps(data, new)
-        refit = refit_stage(ctx, n, model, data, len(new))
-        iterations.append({"iteration": n, "env_steps": len(data), **played, **refit})
-    random_returns = episode_returns(data[: cfg.random_steps])
+    for record in trainer.records[1:]:
+        n = record.iteration
+        iterations.append(
+            {
+                "iteration": n,
+                "env_steps": record.env_steps,
+                "returns": record.episode_returns,
+                "model_error": record.model_error,
+                "mean_u": record.mean_uncertainty,
+                "replans": record.replans,
+                "plan_s": record.plan_s,
+                "env_s": record.env_s,
+                "policy": record.policy,
+                **fits.stage_records[n],
+            }
+        )
+    random_returns = episode_returns(data)
     late = [r for it in iterations[len(iterations) // 2 :] for r in it["returns"]]
     return ctx.results_header() | {
         **({"warmup": warmup} if warmup != "random" else {}),
         "random": {"returns": random_returns, "mean_return": mean_std(random_returns)[0]},
-        "first_fit": first,
+        "first_fit": fits.stage_records[0],
         "iterations": iterations,
         "mean_return_last_half": mean_std(late)[0],
-        "env_steps": len(data),
+        "env_steps": trainer.collected_frames,
     }
 
 

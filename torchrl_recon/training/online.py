@@ -1,31 +1,22 @@
-"""Online model-based RL (PETS's loop) composed from the library's parts.
+"""The parts of online model-based RL (PETS's loop) that its Trainer hooks use: the fit
+schedule and the fits (:func:`fit_models`), the iteration record and its metrics (returns,
+the model's error on new data before the refit, mean u).
 
-random warm-up data → fit world model and estimator → repeat {play steps with an
-:class:`~torchrl_recon.policies.MPCPolicy` through TorchRL's ``Collector``; append them to the
-data; refit, warm-started}. The first rounds may explore instead (an
-:class:`~torchrl_recon.policies.ExplorationPolicy`: the paper's capped-u objective, α = 0).
-Each iteration is recorded: env return, the model's error on the new data before the refit,
-mean u, re-plans, and the wall time split into fit / plan / env.
-
-The pieces are public so that a run can be staged and resumed step by step (the ``online``
-experiment does); :func:`learn_online` chains them for a Python user.
+The loop itself is TorchRL's ``Trainer``: :class:`~torchrl_recon.trainers.OnlineTrainer` and
+:func:`~torchrl_recon.trainers.learn_online` (the first rounds may explore instead of control:
+an :class:`~torchrl_recon.policies.ExplorationPolicy`, the paper's capped-u objective, α = 0).
 """
 
 from __future__ import annotations
 
-import inspect
-import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.record.loggers import Logger
 
-from torchrl_recon.collectors import collect, collect_random, concat_trajectories
 from torchrl_recon.data import (
     FIT_KEYS,
     cut_sequences,
@@ -36,9 +27,7 @@ from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.objectives import WorldModelPredictionLoss
-from torchrl_recon.planners import PlannerBase, window_uncertainty
-from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
-from torchrl_recon.policies.mpc import REPLANNED
+from torchrl_recon.planners import window_uncertainty
 from torchrl_recon.training.fit import check_fit_settings, fit_uncertainty, world_model_fit
 
 
@@ -222,7 +211,7 @@ def recent_and_sampled(
     data: TensorDictBase, first_new: int | torch.Tensor, old_steps: int, *, seed: int
 ) -> TensorDictBase:
     """The steps of ``data``'s trajectories with an id from ``first_new`` on (the new ones: ids
-    grow with each :func:`append_steps`), after whole older trajectories drawn at random
+    grow with each batch, as an :class:`~torchrl_recon.trainers.IterationCollector` numbers them), after whole older trajectories drawn at random
     (``seed``) until they hold ``old_steps`` steps (the last one drawn may take it past
     ``old_steps``; all of them if they hold fewer).
 
@@ -260,24 +249,6 @@ def episode_returns(data: TensorDictBase) -> list[float]:
     sums = reward.new_zeros(len(unique)).index_add_(0, inverse, reward)
     ended = done.new_zeros(len(unique)).index_put_((inverse,), done, accumulate=True)
     return sums[ended].tolist()
-
-
-def append_steps(data: TensorDictBase, new: TensorDictBase) -> TensorDictBase:
-    """``data`` followed by ``new``, on the keys both hold (the env's: the policy's own keys
-    and a storage's ``index`` are left out), with distinct trajectory ids.
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> a = TensorDict({"x": torch.zeros(2), "index": torch.arange(2),
-        ...     ("collector", "traj_ids"): torch.zeros(2, dtype=torch.long)}, [2])
-        >>> b = TensorDict({"x": torch.ones(3), "mpc_plan": torch.ones(3),
-        ...     ("collector", "traj_ids"): torch.zeros(3, dtype=torch.long)}, [3])
-        >>> out = append_steps(a, b)
-        >>> sorted(out.keys()), out["collector", "traj_ids"].tolist()
-        (['collector', 'x'], [0, 0, 1, 1, 1])
-    """
-    shared = shared_keys(data, new)
-    return concat_trajectories(data.select(*shared), new.select(*shared))
 
 
 def shared_keys(data: TensorDictBase, new: TensorDictBase) -> list:
@@ -331,208 +302,3 @@ def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBas
     if estimator is None:
         return float("nan")
     return float(window_uncertainty(data, estimator).mean())
-
-
-def new_steps_metrics(
-    world_model: LSTMWorldModel,
-    estimator: UncertaintyEstimator | None,
-    new: TensorDictBase,
-    slice_len: int,
-) -> dict:
-    """How the models did on an iteration's new MPC steps, before they are refitted on them:
-    the returns of the episodes that ended, the world model's one-step error, the mean u and
-    the number of re-plans."""
-    return {
-        "returns": episode_returns(new),
-        "model_error": model_error(world_model, new, slice_len),
-        "mean_u": mean_uncertainty(estimator, new),
-        "replans": int(new[REPLANNED].sum()),
-    }
-
-
-class _Timed(TensorDictModuleBase):
-    """``policy`` with the wall time of its calls summed in ``seconds``."""
-
-    def __init__(self, policy: TensorDictModuleBase) -> None:
-        super().__init__()
-        self.policy, self.seconds = policy, 0.0
-        self.in_keys, self.out_keys = policy.in_keys, policy.out_keys
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        start = time.perf_counter()
-        out = self.policy(tensordict)
-        self.seconds += time.perf_counter() - start
-        return out
-
-
-def play(
-    env: EnvBase,
-    policy: MPCPolicy,
-    *,
-    frames: int,
-    seed: int,
-    progress: bool = False,
-) -> tuple[TensorDictBase, float]:
-    """``frames`` steps of ``policy`` on ``env`` (the policy's primer appended) through
-    TorchRL's collector; returns the steps and the seconds spent planning."""
-    timed = _Timed(policy)
-    data = collect(env, timed, frames=frames, seed=seed, progress=progress, desc="mpc")
-    return data, timed.seconds
-
-
-def learn_online(
-    env: EnvBase,
-    world_model: LSTMWorldModel,
-    estimator: UncertaintyEstimator | None,
-    make_planner: Callable[[], PlannerBase],
-    *,
-    iterations: int,
-    steps_per_iteration: int,
-    random_steps: int,
-    schedule: FitSchedule | None = None,
-    policy_kwargs: dict | None = None,
-    explore_iterations: int = 0,
-    make_explorer: Callable[[], PlannerBase] | None = None,
-    seed: int = 0,
-    progress: bool = False,
-    logger: Logger | None = None,
-    on_iteration: Callable[[IterationRecord], None] | None = None,
-) -> tuple[list[IterationRecord], TensorDictBase]:
-    """Learn a task online: ``random_steps`` random steps, then ``iterations`` rounds of
-    ``steps_per_iteration`` MPC steps, refitting both networks after each round; the first
-    ``explore_iterations`` of those rounds explore instead of controlling.
-
-    Args:
-        env: the TorchRL env (episodes of its own length; terminations end them early); each
-            policy plays it through a ``TransformedEnv`` that adds the policy's primer.
-        world_model, estimator: the networks the planner's model holds (``estimator`` may be
-            None for β = 0).
-        make_planner: returns the planner (its model built on ``world_model`` and
-            ``estimator``); called once, after the first fit.
-
-    Keyword Args:
-        policy_kwargs: keywords of :class:`~torchrl_recon.policies.MPCPolicy` (re-planning).
-        explore_iterations: how many of the ``iterations`` rounds (the first ones) an
-            :class:`~torchrl_recon.policies.ExplorationPolicy` plays, seeking high but capped u
-            (paper §2.4) to widen the data before control starts; needs ``make_explorer``
-            and an ``estimator``.
-        make_explorer: returns the exploring planner, whose objective comes from
-            :func:`~torchrl_recon.policies.exploration_objective`; called once, after the
-            first fit.
-        on_iteration: called with each record as it is made (e.g. to log or save).
-
-    Returns:
-        The records (iteration 0 is the random data) and all data collected.
-
-    Examples:
-        >>> from torchrl_recon.envs import make_env
-        >>> from torchrl_recon.modules import ReconstructionUncertainty
-        >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-        >>> env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
-        >>> world = LSTMWorldModel(3, 1, window=4)
-        >>> cost = lambda s, a, s1: s1[..., 2].pow(2) + (1 - s1[..., 0])
-        >>> model = PlanningModel.from_env(world, cost, env)
-        >>> records, data = learn_online(env, world, None,
-        ...     lambda: CEMPlanner(model, Objective(), horizon=5, num_candidates=16, iterations=2,
-        ...                        num_elites=4),
-        ...     iterations=1, steps_per_iteration=20, random_steps=60,
-        ...     schedule=FitSchedule(steps=4, refit_steps=2, eval_every=2, slice_len=8, num_slices=4,
-        ...                          val_fraction=0.34))
-        >>> [r.iteration for r in records], [r.env_steps for r in records], len(data)
-        ([0, 1], [60, 80], 80)
-    """
-    # checked before the random data are collected and the first fit runs
-    check_int("iterations", iterations, minimum=0)
-    check_int("steps_per_iteration", steps_per_iteration)
-    check_int("random_steps", random_steps)
-    if schedule is not None and not isinstance(schedule, FitSchedule):
-        raise TypeError(f"schedule must be a FitSchedule or None, got {type(schedule).__name__}.")
-    try:
-        inspect.signature(MPCPolicy).bind(None, **(policy_kwargs or {}))
-    except TypeError as err:
-        raise TypeError(f"policy_kwargs: {err} (they are MPCPolicy's keywords).") from None
-    if not 0 <= explore_iterations <= iterations:
-        raise ValueError(
-            f"explore_iterations={explore_iterations} must be between 0 and iterations={iterations}."
-        )
-    if explore_iterations and (make_explorer is None or estimator is None):
-        raise ValueError(
-            f"explore_iterations={explore_iterations} needs make_explorer and an estimator "
-            "(exploration seeks the estimator's uncertainty)."
-        )
-    schedule = schedule or FitSchedule()
-    start = time.perf_counter()
-    data = collect_random(env, frames=random_steps, seed=seed, progress=progress)
-    env_s = time.perf_counter() - start
-    start = time.perf_counter()
-    fit_models(
-        world_model,
-        estimator,
-        data,
-        schedule,
-        seed=seed,
-        warm=False,
-        progress=progress,
-        logger=logger,
-        log_prefix="iteration_0/",
-    )
-    record = IterationRecord(
-        0,
-        len(data),
-        episode_returns(data),
-        float("nan"),
-        mean_uncertainty(estimator, data),
-        0,
-        time.perf_counter() - start,
-        0.0,
-        env_s,
-        policy="random",
-    )
-    records = [record]
-    if on_iteration is not None:
-        on_iteration(record)
-    policies = {"mpc": MPCPolicy(make_planner(), **(policy_kwargs or {}))}
-    if explore_iterations:
-        policies["explore"] = ExplorationPolicy(make_explorer())
-    envs = {
-        k: TransformedEnv(env, p.make_tensordict_primer(), auto_unwrap=False)
-        for k, p in policies.items()
-    }
-    for i in range(1, iterations + 1):
-        kind = "explore" if i <= explore_iterations else "mpc"
-        start = time.perf_counter()
-        new, plan_s = play(
-            envs[kind], policies[kind], frames=steps_per_iteration, seed=seed + i, progress=progress
-        )
-        env_s = time.perf_counter() - start - plan_s
-        seen = new_steps_metrics(world_model, estimator, new, schedule.slice_len)
-        data = append_steps(data, new)
-        start = time.perf_counter()
-        fit_models(
-            world_model,
-            estimator,
-            data,
-            schedule,
-            seed=seed + i,
-            warm=True,
-            new_steps=len(new),
-            progress=progress,
-            logger=logger,
-            log_prefix=f"iteration_{i}/",
-        )
-        record = IterationRecord(
-            i,
-            len(data),
-            seen["returns"],
-            seen["model_error"],
-            seen["mean_u"],
-            seen["replans"],
-            time.perf_counter() - start,
-            plan_s,
-            env_s,
-            policy=kind,
-        )
-        records.append(record)
-        if on_iteration is not None:
-            on_iteration(record)
-    return records, data

@@ -114,7 +114,11 @@ class PlannerStatePrimer(TensorDictPrimer):
 
     def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
-        if self._planner_bounds is None or not isinstance(self.container, EnvBase):
+        try:  # TorchRL raises while a Compose it joins has no env yet (TransformedEnv's unwrap)
+            in_env = isinstance(self.container, EnvBase)
+        except ValueError:
+            in_env = False
+        if self._planner_bounds is None or not in_env:
             return  # not (yet) in an env: checked when its Compose joins one
         parent = self.parent
         if parent is None:

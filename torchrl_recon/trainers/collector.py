@@ -38,6 +38,10 @@ class TimedPolicy(TensorDictModuleBase):
         self.policy, self.seconds = policy, 0.0
         self.in_keys, self.out_keys = policy.in_keys, policy.out_keys
 
+    def make_tensordict_primer(self):
+        """The wrapped policy's primer (an MPC policy's state, to append to the env)."""
+        return self.policy.make_tensordict_primer()
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         start = time.perf_counter()
         out = self.policy(tensordict)

@@ -85,6 +85,10 @@ class LogIteration(TrainerHookBase):
         info = dict(getattr(self._collector(), "batch_info", None) or {})
         fitted = not unfitted_normalizers(self.world_model)
         u_ready = self.estimator is not None and not unfitted_normalizers(self.estimator)
+        if "policy" not in info:  # another collector: random actions up to init_random_frames
+            random_frames = getattr(self._collector(), "init_random_frames", None) or 0
+            steps = self._trainer.collected_frames if self._trainer is not None else 0
+            info["policy"] = "random" if steps <= random_frames else "mpc"
         if "replans" not in info:
             info["replans"] = int(batch[REPLANNED].sum()) if REPLANNED in batch.keys() else 0
         if "plan_s" not in info:
@@ -130,7 +134,7 @@ class LogIteration(TrainerHookBase):
             fit_s,
             seen["plan_s"],
             seen["env_s"],
-            policy=seen.get("policy", "mpc" if math.isfinite(seen["model_error"]) else "random"),
+            policy=seen["policy"],
         )
         self.records.append(record)
         if self.on_iteration is not None:
@@ -152,8 +156,14 @@ class LogIteration(TrainerHookBase):
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.records = [IterationRecord(**r) for r in state_dict["records"]]
 
+    def start(self) -> None:
+        """Start the clocks (``setup``: the Trainer's collection begins)."""
+        self._last_end = time.perf_counter()
+        self._planned_s = getattr(self.timed_policy, "seconds", 0.0)
+
     def register(self, trainer: Trainer, name: str = "log_iteration") -> None:
         self._trainer = trainer
+        trainer.register_op("setup", self.start)
         trainer.register_op("pre_steps_log", self.before_fit)
         trainer.register_op("post_steps_log", self.after_fit)
         trainer.register_module(name, self)

@@ -7,6 +7,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -213,7 +214,8 @@ def run_recipe(
 
 
 def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
-    """``(kind, name, first comment line)`` of each shipped recipe (of ``kind`` only, if given).
+    """``(kind, name, what it runs)`` of each shipped recipe (of ``kind`` only, if given): the
+    first sentence of its leading comment (:func:`recipe_about`).
 
     Examples:
         >>> ("explore", "drone/explore_smoke") in [r[:2] for r in shipped_recipes("explore")]
@@ -222,10 +224,30 @@ def shipped_recipes(kind: str | None = None) -> list[tuple[str, str, str]]:
     out = []
     for found in [k for k in EXPERIMENT_TYPES if kind in (None, k)]:
         for path in sorted(compose.RECIPES_DIR.glob(f"*/{found}*.yaml")):
-            lines = path.read_text().splitlines()
-            about = next((x.lstrip("#").strip() for x in lines if x.startswith("#")), "")
+            about = recipe_about(path.read_text())
             out.append((found, f"{path.parent.name}/{path.stem}", about))
     return out
+
+
+def recipe_about(text: str, width: int = 110) -> str:
+    """The first sentence of a recipe's leading comment (its lines joined, up to an empty
+    comment line or an indented command), cut at a word before ``width`` characters.
+
+    Examples:
+        >>> recipe_about("# Pendulum-v1 learned online: PETS's sizes. The rest.")
+        "Pendulum-v1 learned online: PETS's sizes."
+    """
+    words = []
+    for line in text.splitlines():
+        if not line.startswith("#") or line.startswith("#  ") or not line.strip("# "):
+            break
+        words.append(line.lstrip("#").strip())
+    about = " ".join(words)
+    end = re.search(r"(?<!\bFig)(?<!\beq)(?<!e\.g)(?<!i\.e)\. ", about)  # not "Fig. 3", "eq. 4"
+    about = about if end is None else about[: end.start() + 1]
+    if len(about) > width:
+        about = about[: about.rfind(" ", 0, width - 1)].rstrip(",;:") + " …"
+    return about
 
 
 def _experiment(args: argparse.Namespace) -> int:

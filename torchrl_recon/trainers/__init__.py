@@ -4,6 +4,7 @@ agent's own Trainer and loop built from them (docs/torchrl_trainer.md)."""
 
 from __future__ import annotations
 
+from torchrl_recon.trainers.buffer import ReplayBufferSteps
 from torchrl_recon.trainers.collector import (
     IterationCollector,
     OnlineCollector,
@@ -23,6 +24,7 @@ __all__ = [
     "ModelFitStepper",
     "OnlineCollector",
     "OnlineTrainer",
+    "ReplayBufferSteps",
     "TimedPolicy",
     "env_keys",
     "learn_online",

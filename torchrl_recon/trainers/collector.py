@@ -106,9 +106,9 @@ class IterationCollector(BaseCollector):
 
     def iterator(self) -> Iterator[TensorDictBase]:
         while self.iteration <= self.iterations:
-            data = self.collect_iteration(self.iteration)
-            yield self.renumber(data)
-            self.iteration += 1
+            data = self.renumber(self.collect_iteration(self.iteration))
+            self.iteration += 1  # before the yield: a Trainer checkpoints while it holds the batch
+            yield data
 
     def renumber(self, data: TensorDictBase) -> TensorDictBase:
         """``data`` with trajectory ids ``0, 1, ...`` in their order, shifted past the ids of the

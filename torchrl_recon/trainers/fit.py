@@ -102,7 +102,14 @@ class ModelFitStepper(OptimizationStepper):
                 "the replay buffer is empty at the first fit: extend it with each batch "
                 "(register ReplayBufferTrainer(rb).extend at 'batch_process')."
             )
-        return rb[:]
+        data = rb[:]
+        if len(data) != len(rb):
+            raise ValueError(
+                f"the replay buffer counts {len(rb)} steps but its storage returns {len(data)} "
+                "(a storage state of another size loaded into it?); resume a Trainer with the "
+                "configuration it was saved with."
+            )
+        return data
 
     def fit(self, data: TensorDictBase, *, index: int, new_steps: int) -> dict[str, float]:
         """The ``index``-th fit (0: from scratch) on ``data``, whose last ``new_steps`` steps

@@ -16,6 +16,7 @@ from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
+from torchrl_recon.trainers.buffer import ReplayBufferSteps
 from torchrl_recon.trainers.collector import OnlineCollector, check_schedule
 from torchrl_recon.trainers.fit import ModelFitStepper
 from torchrl_recon.trainers.log_iteration import LogIteration
@@ -100,14 +101,13 @@ class OnlineTrainer(Trainer):
             optim_steps_per_batch=1,
             loss_module=WorldModelPredictionLoss(world_model, mode=schedule.mode),
             optimization_stepper=stepper,
-            replay_buffer=replay_buffer,
             logger=logger,
             progress_bar=progress,
             **trainer_kwargs,
         )
-        self.replay_buffer_hook = ReplayBufferTrainer(replay_buffer)
-        self.register_op("batch_process", self.replay_buffer_hook.extend)
-        self.register_module("replay_buffer", self.replay_buffer_hook)
+        self.buffer = replay_buffer  # not Trainer's replay_buffer: see ReplayBufferSteps
+        self.register_op("batch_process", ReplayBufferTrainer(replay_buffer).extend)
+        ReplayBufferSteps(replay_buffer).register(self)
         self.log_iteration = LogIteration(
             world_model, estimator, slice_len=schedule.slice_len, on_iteration=on_iteration
         )
@@ -122,7 +122,7 @@ class OnlineTrainer(Trainer):
 
     def data(self) -> TensorDictBase:
         """Every step collected so far, in order."""
-        return self.replay_buffer[:]
+        return self.buffer[:]
 
 
 def learn_online(

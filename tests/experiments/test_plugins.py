@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 import torchrl_recon
 from tests.experiments.tiny import TINY
+from tests.fitting import fitted
 from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.experiments.common import build_planner
 from torchrl_recon.experiments.config import upgrade_legacy_config
@@ -169,7 +170,7 @@ def test_a_wrong_class_or_keyword_is_one_line_naming_the_key(
     ],
 )
 def test_shipped_kinds_take_their_own_keywords(kind, kwargs):
-    model = PlanningModel(LSTMWorldModel(3, 2, window=2), lambda o, a, n: o.sum(-1))
+    model = PlanningModel(fitted(LSTMWorldModel(3, 2, window=2)), lambda o, a, n: o.sum(-1))
     planner = build_planner(OmegaConf.create({"kind": kind, "kwargs": kwargs}), model, Objective())
     assert type(planner) is PLANNERS[kind]
     assert all(getattr(planner, k) == v for k, v in kwargs.items())

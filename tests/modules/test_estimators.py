@@ -7,6 +7,7 @@ import torch
 from tensordict import TensorDict
 from torch.nn import functional as F
 
+from tests.fitting import fitted
 from torchrl_recon.data.buffers import make_sequence_buffer
 from torchrl_recon.modules import (
     ESTIMATORS,
@@ -391,8 +392,8 @@ def test_rnd_loss_is_mean_squared_u():
 @pytest.mark.parametrize("kind", KINDS)
 def test_estimator_inside_planning_model(kind):
     torch.manual_seed(0)
-    model = LSTMWorldModel(6, 3, window=10)
-    est = make_estimator(kind, 6, 3, window=10, **SMALL[kind])
+    model = fitted(LSTMWorldModel(6, 3, window=10))
+    est = fitted(make_estimator(kind, 6, 3, window=10, **SMALL[kind]))
 
     def cost(obs, action, next_obs):
         return next_obs.pow(2).sum(-1) + 0.1 * action.pow(2).sum(-1)
@@ -438,7 +439,7 @@ def test_an_estimator_returning_the_wrong_shape_is_one_clear_error_everywhere():
         est.score(torch.zeros(2, 10, 3), torch.zeros(2, 10, 2))
     with pytest.raises(ValueError, match=message.format("6, 4", "6, 4, 5", "6, 1")):
         est.score_windows(torch.zeros(6, 4, 5))
-    world = LSTMWorldModel(3, 2, window=4)
-    model = PlanningModel(world, lambda o, a, n: n.pow(2).sum(-1), uncertainty=est)
+    world = fitted(LSTMWorldModel(3, 2, window=4))
+    model = PlanningModel(world, lambda o, a, n: n.pow(2).sum(-1), uncertainty=fitted(est))
     with pytest.raises(ValueError, match=r"^_PerStepScores\.score_sequence returned \(3, 8\)"):
         model(torch.zeros(4, 3), torch.zeros(4, 2), torch.zeros(3), torch.zeros(3, 5, 2))

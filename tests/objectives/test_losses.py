@@ -4,6 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 
@@ -18,7 +19,7 @@ def _batch(n: int = 24) -> TensorDict:
 
 @pytest.mark.parametrize("mode", ["multi_step", "one_step"])
 def test_world_model_loss_flat_and_2d_batches_agree(mode):
-    loss = WorldModelPredictionLoss(LSTMWorldModel(3, 2, window=4), mode=mode, slice_len=8)
+    loss = WorldModelPredictionLoss(fitted(LSTMWorldModel(3, 2, window=4)), mode=mode, slice_len=8)
     flat = _batch()
     value = loss(flat)["loss_world_model"]
     assert value.ndim == 0 and torch.isfinite(value)
@@ -37,6 +38,8 @@ def _constant_delta_model(window: int = 4) -> LSTMWorldModel:
         model.obs_norm.scale.copy_(S_OBS)
         model.delta_norm.loc.copy_(L_D)
         model.delta_norm.scale.copy_(S_D)
+        for norm in (model.obs_norm, model.action_norm, model.delta_norm):
+            norm.fitted.fill_(True)  # statistics set by hand
     return model
 
 
@@ -94,7 +97,7 @@ def test_bad_mode():
 
 
 def test_uncertainty_loss_is_mean_u():
-    ae = ReconstructionUncertainty(3, 2, window=4, hidden_size=8)
+    ae = fitted(ReconstructionUncertainty(3, 2, window=4, hidden_size=8))
     td = _batch()
     value = UncertaintyLoss(ae, slice_len=8)(td)["loss_uncertainty"]
     seq = td.reshape(3, 8)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, MCDropoutUncertainty, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -27,7 +28,7 @@ H, B = 12, 3
 
 def _model(estimator=ReconstructionUncertainty) -> PlanningModel:
     torch.manual_seed(0)
-    world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
+    world = fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8))
     est = estimator(3, 2, window=4, hidden_size=8)
     est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
     return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)

@@ -7,6 +7,7 @@ import torch
 from torchrl.data import Bounded, Categorical, Unbounded
 from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 
+from tests.fitting import fitted
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
@@ -27,7 +28,7 @@ def pendulum_cost(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tenso
 
 
 def _world(window: int = 2) -> LSTMWorldModel:
-    return LSTMWorldModel(3, 1, window=window, hidden_size=8, dense_size=8)
+    return fitted(LSTMWorldModel(3, 1, window=window, hidden_size=8, dense_size=8))
 
 
 def _policy(model: PlanningModel) -> MPCPolicy:
@@ -71,7 +72,7 @@ def test_unusable_specs_are_refused(spec, match):
 def test_from_env_reads_pendulum_bounds_on_the_models_device_and_dtype():
     env = GymEnv("Pendulum-v1")
     pm = PlanningModel.from_env(
-        _world(), pendulum_cost, env, uncertainty=ReconstructionUncertainty(3, 1, window=2)
+        _world(), pendulum_cost, env, uncertainty=fitted(ReconstructionUncertainty(3, 1, window=2))
     )
     assert pm.action_low.tolist() == [-2.0] and pm.action_high.tolist() == [2.0]
     on_meta = PlanningModel.from_env(_world().to("meta"), pendulum_cost, env)
@@ -113,7 +114,7 @@ def test_a_policy_with_the_envs_bounds_is_accepted_and_acts_in_the_whole_box(num
 def test_check_env_refuses_other_bounds_and_an_exploration_policy_too():
     env = make_env("Pendulum-v1", seed=0)
     model = PlanningModel(
-        _world(), pendulum_cost, uncertainty=ReconstructionUncertainty(3, 1, window=2)
+        _world(), pendulum_cost, uncertainty=fitted(ReconstructionUncertainty(3, 1, window=2))
     )
     explorer = ExplorationPolicy(
         RandomShootingPlanner(model, exploration_objective(), horizon=3, num_candidates=8)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from tests.compilers import needs_cpp_compiler
+from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 
@@ -19,7 +20,7 @@ def _cost(s, a, s2):
 
 def _networks() -> tuple[LSTMWorldModel, ReconstructionUncertainty]:
     torch.manual_seed(0)
-    world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
+    world = fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8))
     est = ReconstructionUncertainty(3, 2, window=4, hidden_size=8)
     est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
     return world, est

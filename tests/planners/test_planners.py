@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -113,7 +114,7 @@ def test_plan_result_is_consistent_with_the_model(context):
 
 def _ae_model(seed: int = 0):
     torch.manual_seed(seed)
-    world = LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)
+    world = fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8))
     est = ReconstructionUncertainty(3, 2, window=4, hidden_size=8)
     est.fit_normalization(torch.randn(100, 3), torch.rand(100, 2) * 0.2)
     return PlanningModel(world, lambda s, a, s2: s2.pow(2).sum(-1), uncertainty=est)
@@ -439,7 +440,8 @@ def test_a_candidate_whose_predicted_cost_is_nan_is_never_chosen(kind):
 
 
 def test_every_candidate_nan_is_one_clear_error():
-    model = PlanningModel(LSTMWorldModel(3, 2, window=4), lambda o, a, n: a.sum(-1) * float("nan"))
+    world = fitted(LSTMWorldModel(3, 2, window=4))
+    model = PlanningModel(world, lambda o, a, n: a.sum(-1) * float("nan"))
     planner = RandomShootingPlanner(model, Objective(), horizon=3, num_candidates=8)
     with pytest.raises(
         FloatingPointError,

@@ -12,6 +12,7 @@ import pytest
 import torch
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 
+from tests.fitting import fitted
 from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -91,7 +92,7 @@ def test_costs_and_u_stop_after_the_predicted_end():
 
 
 def test_the_torchrl_adapter_stops_the_reward_after_the_end():
-    world = LSTMWorldModel(1, 1, window=2)
+    world = fitted(LSTMWorldModel(1, 1, window=2))
     env = WorldModelPlanningEnv(
         world, reward_cost, termination_fn=lambda s, a, s1: s1[..., 0] > -1e9
     )

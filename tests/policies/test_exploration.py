@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.fitting import fitted
 from torchrl_recon.envs.drone import drone_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
@@ -22,9 +23,9 @@ def _model(uncertainty: bool = True) -> PlanningModel:
     torch.manual_seed(0)
     estimator = ReconstructionUncertainty(12, 4, window=3, hidden_size=8) if uncertainty else None
     return PlanningModel(
-        LSTMWorldModel(12, 4, window=3, hidden_size=8, dense_size=8),
+        fitted(LSTMWorldModel(12, 4, window=3, hidden_size=8, dense_size=8)),
         drone_cost,
-        uncertainty=estimator,
+        uncertainty=estimator and fitted(estimator),
     )
 
 

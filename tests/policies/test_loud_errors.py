@@ -6,6 +6,7 @@ import pytest
 import torch
 from torchrl.envs import DoubleToFloat, GymEnv, InitTracker, TransformedEnv
 
+from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import PlanningModel, RandomShootingPlanner
 from torchrl_recon.planners.objective import Objective
@@ -18,9 +19,9 @@ def pendulum_cost(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tenso
 
 def _model() -> PlanningModel:
     return PlanningModel(
-        LSTMWorldModel(3, 1, window=2, hidden_size=8, dense_size=8),
+        fitted(LSTMWorldModel(3, 1, window=2, hidden_size=8, dense_size=8)),
         pendulum_cost,
-        uncertainty=ReconstructionUncertainty(3, 1, window=2, hidden_size=8),
+        uncertainty=fitted(ReconstructionUncertainty(3, 1, window=2, hidden_size=8)),
         action_low=-2.0,
         action_high=2.0,
     )

@@ -4,6 +4,7 @@ import pytest
 import torch
 from torchrl.collectors import Collector, MultiSyncCollector
 
+from tests.fitting import fitted
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.envs.drone import drone_cost
 from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel, ReconstructionUncertainty
@@ -24,9 +25,9 @@ CONTEXT, PLAN_H = 3, 6  # the small policy's context (window) and plan horizon
 def _small_drone_model() -> PlanningModel:
     torch.manual_seed(0)
     return PlanningModel(
-        LSTMWorldModel(12, 4, window=CONTEXT, hidden_size=8, dense_size=8),
+        fitted(LSTMWorldModel(12, 4, window=CONTEXT, hidden_size=8, dense_size=8)),
         drone_cost,
-        uncertainty=ReconstructionUncertainty(12, 4, window=CONTEXT, hidden_size=8),
+        uncertainty=fitted(ReconstructionUncertainty(12, 4, window=CONTEXT, hidden_size=8)),
     )
 
 

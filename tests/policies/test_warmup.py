@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.fitting import fitted
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.drone import drone_cost
 from torchrl_recon.modules import LSTMWorldModel
@@ -15,7 +16,7 @@ from torchrl_recon.policies import MPCPolicy
 def _policy(low=-1.0, high=1.0, **kwargs) -> MPCPolicy:
     torch.manual_seed(0)
     model = PlanningModel(
-        LSTMWorldModel(12, 4, window=3), drone_cost, action_low=low, action_high=high
+        fitted(LSTMWorldModel(12, 4, window=3)), drone_cost, action_low=low, action_high=high
     )
     planner = CEMPlanner(
         model, Objective(), horizon=5, num_candidates=16, num_elites=4, iterations=2

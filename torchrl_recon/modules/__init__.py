@@ -6,6 +6,7 @@ from torchrl_recon.modules.baselines import LinearDeltaModel
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.ensemble import EnsembleUncertainty
 from torchrl_recon.modules.estimators import ESTIMATORS, get_estimator_class, make_estimator
+from torchrl_recon.modules.fitted import FittedCheck, check_fitted, unfitted_normalizers
 from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
@@ -16,8 +17,10 @@ from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.modules.world_model_ensemble import WorldModelEnsembleUncertainty
 
 __all__ = [
+    "check_fitted",
     "EnsembleUncertainty",
     "ESTIMATORS",
+    "FittedCheck",
     "LinearDeltaModel",
     "LSTMWorldModel",
     "get_estimator_class",
@@ -30,6 +33,7 @@ __all__ = [
     "ReconstructionUncertainty",
     "RNDUncertainty",
     "UncertaintyEstimator",
+    "unfitted_normalizers",
     "WorldModelEnsembleUncertainty",
     "WorldModelPopulation",
 ]

@@ -6,6 +6,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
+from torchrl_recon.modules.fitted import ESTIMATOR, warn_unfitted
 from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
@@ -19,6 +20,10 @@ class UncertaintyLoss(LossModule):
     ``("collector", "mask")`` marks real steps, see ``make_sequence_buffer(pad_short=True)``)
     passes the mask on: only windows of real steps count.
 
+    The estimator's normalisation should be fitted first (``fit_normalization``, as
+    :func:`~torchrl_recon.training.fit_uncertainty` does): the first call on an estimator that
+    was never fitted warns once (``UserWarning``) that the loss runs in identity statistics.
+
     Args:
         estimator: the estimator to train.
 
@@ -28,8 +33,10 @@ class UncertaintyLoss(LossModule):
 
     Examples:
         >>> from torchrl_recon.modules import ReconstructionUncertainty
-        >>> loss = UncertaintyLoss(ReconstructionUncertainty(6, 3, window=4), slice_len=8)
+        >>> ae = ReconstructionUncertainty(6, 3, window=4)
         >>> td = TensorDict({"observation": torch.randn(16, 6), "action": torch.randn(16, 3)}, [16])
+        >>> ae.fit_normalization(td["observation"], td["action"])
+        >>> loss = UncertaintyLoss(ae, slice_len=8)
         >>> loss(td)["loss_uncertainty"].shape
         torch.Size([])
     """
@@ -45,6 +52,8 @@ class UncertaintyLoss(LossModule):
         super().__init__()
         self.estimator, self.slice_len = estimator, slice_len
         self.obs_key, self.action_key = obs_key, action_key
+        self.fit_checked = False
+        """Whether the estimator's normalisation was checked (at the first call, warned if unfitted)."""
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = as_sequences(tensordict, self.slice_len)
@@ -63,4 +72,7 @@ class UncertaintyLoss(LossModule):
             raise FloatingPointError(
                 f"uncertainty loss is {loss.item()}; check the data and the learning rate."
             )
+        if not torch.compiler.is_compiling() and not self.fit_checked:
+            self.fit_checked = True
+            warn_unfitted(self.estimator, ESTIMATOR, type(self).__name__)
         return TensorDict({"loss_uncertainty": loss}, [])

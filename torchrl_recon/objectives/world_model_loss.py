@@ -8,6 +8,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
+from torchrl_recon.modules.fitted import WORLD_MODEL, warn_unfitted
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
 
@@ -26,6 +27,10 @@ class WorldModelPredictionLoss(LossModule):
     ``make_sequence_buffer(pad_short=True)``) counts real steps only, episodes shorter than
     the warm-up started at rest (:meth:`~torchrl_recon.modules.LSTMWorldModel.prediction_loss`).
 
+    The world model's normalisation should be fitted first (``fit_normalization``, as
+    :func:`~torchrl_recon.training.fit_world_model` does): the first call on a model that was
+    never fitted warns once (``UserWarning``) that the loss runs in identity statistics.
+
     Args:
         world_model: the model to train.
 
@@ -36,6 +41,7 @@ class WorldModelPredictionLoss(LossModule):
 
     Examples:
         >>> model = LSTMWorldModel(6, 3, window=4)
+        >>> model.fit_normalization(torch.randn(32, 6), torch.randn(32, 3), torch.randn(32, 6))
         >>> loss = WorldModelPredictionLoss(model, slice_len=8)
         >>> td = TensorDict({"observation": torch.randn(16, 6), "action": torch.randn(16, 3),
         ...                  ("next", "observation"): torch.randn(16, 6)}, [16])
@@ -58,6 +64,8 @@ class WorldModelPredictionLoss(LossModule):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
         self.world_model, self.mode, self.slice_len = world_model, mode, slice_len
         self.obs_key, self.action_key, self.next_obs_key = obs_key, action_key, next_obs_key
+        self.fit_checked = False
+        """Whether the world model's normalisation was checked (at the first call, warned if unfitted)."""
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = as_sequences(tensordict, self.slice_len)
@@ -91,4 +99,7 @@ class WorldModelPredictionLoss(LossModule):
             raise FloatingPointError(
                 f"world-model loss is {loss.item()}; check the data and the learning rate."
             )
+        if not torch.compiler.is_compiling() and not self.fit_checked:
+            self.fit_checked = True
+            warn_unfitted(model, WORLD_MODEL, type(self).__name__)
         return TensorDict({"loss_world_model": loss}, [])

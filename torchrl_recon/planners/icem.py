@@ -67,7 +67,9 @@ class ICEMPlanner(CEMPlanner):
     Examples:
         >>> from torchrl_recon.modules import LSTMWorldModel
         >>> from torchrl_recon.envs.drone import drone_cost
-        >>> planner = ICEMPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost), Objective(),
+        >>> world_model = LSTMWorldModel(12, 4)
+        >>> world_model.fit_normalization(torch.randn(50, 12), torch.rand(50, 4), torch.randn(50, 12))
+        >>> planner = ICEMPlanner(PlanningModel(world_model, drone_cost), Objective(),
         ...                       horizon=20, num_candidates=64, num_elites=8, iterations=3)
         >>> planner.population_sizes()
         [64, 52, 41]

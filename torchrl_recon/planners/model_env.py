@@ -11,6 +11,7 @@ from torchrl.modules import LSTMModule
 
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.planning_model import CostFn, TerminationFn, check_step_fn
@@ -86,7 +87,9 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
     transition ``termination_fn`` says ends the episode (its flag ``wm_ended`` is carried
     like the LSTM state). Start a rollout from
     :meth:`initial_state`, which warms the LSTM up on a real context. The env's device is the
-    world model's (it is not moved).
+    world model's (it is not moved). As :class:`~torchrl_recon.planners.PlanningModel`, it
+    refuses a world model or estimator whose normalisation was never fitted, at the first
+    :meth:`initial_state`, reset or step (a ``ValueError`` saying how to fit it).
 
     Args:
         world_model: the world model.
@@ -101,7 +104,9 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
     Examples:
         >>> from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
         >>> from torchrl_recon.envs.drone import drone_cost
-        >>> env = WorldModelPlanningEnv(LSTMWorldModel(12, 4, window=3), drone_cost)
+        >>> world_model = LSTMWorldModel(12, 4, window=3)
+        >>> world_model.fit_normalization(torch.randn(50, 12), torch.rand(50, 4), torch.randn(50, 12))
+        >>> env = WorldModelPlanningEnv(world_model, drone_cost)
         >>> planner = TorchRLCEMPlanner(env, planning_horizon=5, optim_steps=2, num_candidates=16, top_k=4)
         >>> td = env.initial_state(torch.zeros(3, 12), torch.zeros(3, 4), torch.zeros(12))
         >>> planner(td)["action"].shape
@@ -144,6 +149,8 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         super().__init__(module, device=device)
         self.lstm_world_model, self.estimator = world_model, uncertainty
         self.termination_fn = termination_fn
+        self._world_model_fitted = FittedCheck(WORLD_MODEL)
+        self._estimator_fitted = FittedCheck(ESTIMATOR)
         hid = world_model.hidden_size
         observation = {
             "observation": Unbounded((n,), device=device),
@@ -164,6 +171,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         self, context_obs: torch.Tensor, context_action: torch.Tensor, observation: torch.Tensor
     ) -> TensorDictBase:
         """A start tensordict from a real context ``[*B, T, N]``, ``[*B, T, M]`` and state ``[*B, N]``."""
+        self.check_fitted()
         wm = self.lstm_world_model
         with torch.no_grad():
             h, c = wm.warmup(context_obs, context_action)
@@ -190,8 +198,21 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
             )
         return td
 
+    def check_fitted(self) -> None:
+        """Refuse a world model or estimator whose normalisation was never fitted (checked once,
+        then only re-checked after their ``fitted`` buffers changed; see
+        :class:`~torchrl_recon.modules.fitted.FittedCheck`)."""
+        self._world_model_fitted(self.lstm_world_model)
+        if self.estimator is not None:
+            self._estimator_fitted(self.estimator)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self.check_fitted()
+        return super()._step(tensordict)
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         """Keep a given start state; fill missing entries with zeros (``is_init`` False)."""
+        self.check_fitted()
         batch = tensordict.batch_size if tensordict is not None else self.batch_size
         out = self.observation_spec.zero(batch)
         if tensordict is not None:

@@ -59,7 +59,9 @@ class MPPIPlanner(SamplingPlanner):
     Examples:
         >>> from torchrl_recon.modules import LSTMWorldModel
         >>> from torchrl_recon.envs.drone import drone_cost
-        >>> planner = MPPIPlanner(PlanningModel(LSTMWorldModel(12, 4), drone_cost), Objective(),
+        >>> world_model = LSTMWorldModel(12, 4)
+        >>> world_model.fit_normalization(torch.randn(50, 12), torch.rand(50, 4), torch.randn(50, 12))
+        >>> planner = MPPIPlanner(PlanningModel(world_model, drone_cost), Objective(),
         ...                       horizon=20, num_candidates=64, iterations=3, temperature=0.5)
         >>> planner.plan(torch.zeros(10, 12), torch.zeros(10, 4), torch.zeros(12)).actions.shape
         torch.Size([20, 4])

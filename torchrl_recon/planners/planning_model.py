@@ -13,6 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
+from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
@@ -178,6 +179,11 @@ class PlanningModel(nn.Module):
     scores every T-window of (context + imagined) (s, a) pairs in one call, and the cost
     function scores every transition in one call.
 
+    Both networks' normalisation must be fitted from data: the first :meth:`warmup` or call
+    (not the constructor: a policy is built before any data exists) refuses a world model or
+    estimator whose normalisation was never fitted, with a ``ValueError`` that says how to fit
+    it (:meth:`check_fitted`).
+
     Args:
         world_model: anything with ``imagine(context_obs, context_action, observation, actions)``
             and ``obs_dim``, ``action_dim``, ``window`` attributes (e.g. :class:`LSTMWorldModel`).
@@ -211,8 +217,11 @@ class PlanningModel(nn.Module):
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
         >>> from torchrl_recon.modules import ReconstructionUncertainty
-        >>> pm = PlanningModel(LSTMWorldModel(6, 3), industrial_benchmark_cost,
-        ...                    uncertainty=ReconstructionUncertainty(6, 3))
+        >>> world_model, estimator = LSTMWorldModel(6, 3), ReconstructionUncertainty(6, 3)
+        >>> obs, action = torch.rand(50, 6), torch.rand(50, 3)  # fit the normalisation on data
+        >>> world_model.fit_normalization(obs, action, obs + 0.1 * torch.randn(50, 6))
+        >>> estimator.fit_normalization(obs, action)
+        >>> pm = PlanningModel(world_model, industrial_benchmark_cost, uncertainty=estimator)
         >>> pred = pm(torch.rand(10, 6), torch.rand(10, 3), torch.rand(6), torch.rand(100, 30, 3))
         >>> pred.states.shape, pred.cost.shape, pred.uncertainty.shape
         (torch.Size([100, 30, 6]), torch.Size([100, 30]), torch.Size([100, 30]))
@@ -274,6 +283,8 @@ class PlanningModel(nn.Module):
                 device=device,
                 boolean=True,
             )
+        self._world_model_fitted = FittedCheck(WORLD_MODEL)
+        self._uncertainty_fitted = FittedCheck(ESTIMATOR)
 
     @classmethod
     def from_env(
@@ -322,6 +333,18 @@ class PlanningModel(nn.Module):
         u_window = 0 if self.uncertainty is None else self.uncertainty.window - 1
         return max(self.world_model.window, u_window)
 
+    def check_fitted(self) -> None:
+        """Refuse a world model or estimator whose normalisation was never fitted (one
+        ``ValueError`` line saying how to fit it); :meth:`warmup` and :meth:`forward` call it.
+
+        The values are read once; after they passed, a call only sees that the ``fitted``
+        buffers are the same tensors, not written since (a ``load_state_dict`` or a new fit
+        re-checks), so later plans do no host sync (:class:`~torchrl_recon.modules.fitted.FittedCheck`).
+        """
+        self._world_model_fitted(self.world_model)
+        if self.uncertainty is not None:
+            self._uncertainty_fitted(self.uncertainty)
+
     @torch.no_grad()
     def warmup(
         self, context_obs: torch.Tensor, context_action: torch.Tensor
@@ -330,6 +353,7 @@ class PlanningModel(nn.Module):
 
         Pass it as ``state=`` to every call on the same context instead of recomputing it.
         """
+        self.check_fitted()
         warmup = getattr(self.world_model, "warmup", None)
         if warmup is None:
             return None
@@ -403,6 +427,7 @@ class PlanningModel(nn.Module):
                 dropout's masks) still scores all rows in one call, so every candidate is
                 scored by the same masks. None (default): one pass.
         """
+        self.check_fitted()
         if block_rows is not None:
             check_int("block_rows", block_rows)
         batch_rows = int(observation.shape[:-1].numel())

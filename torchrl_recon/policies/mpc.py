@@ -119,7 +119,9 @@ class MPCPolicy(TensorDictModuleBase):
         >>> from torchrl_recon.envs.drone import drone_cost
         >>> from torchrl_recon.modules import LSTMWorldModel
         >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-        >>> planner = CEMPlanner(PlanningModel(LSTMWorldModel(12, 4, window=3), drone_cost), Objective(),
+        >>> world_model = LSTMWorldModel(12, 4, window=3)
+        >>> world_model.fit_normalization(torch.randn(50, 12), torch.rand(50, 4), torch.randn(50, 12))
+        >>> planner = CEMPlanner(PlanningModel(world_model, drone_cost), Objective(),
         ...                      horizon=10, num_candidates=32, num_elites=4, iterations=2)
         >>> policy = MPCPolicy(planner, replan="every_n", replan_every=5)
         >>> env = make_env("drone", seed=0).append_transform(policy.make_tensordict_primer())

@@ -18,13 +18,13 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import exploration_objective
+from torchrl_recon.trainers import learn_online
 from torchrl_recon.training.fit import FitResult
 from torchrl_recon.training.online import (
     FitSchedule,
     fit_models,
     recent_and_sampled,
 )
-from torchrl_recon.trainers import learn_online
 
 SCHEDULE = FitSchedule(
     steps=6, refit_steps=3, eval_every=3, slice_len=8, num_slices=4, val_fraction=0.34

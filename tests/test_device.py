@@ -759,3 +759,25 @@ def test_compiled_planning_on_cuda_matches_eager(mode):
         torch.testing.assert_close(y, x, rtol=RTOL, atol=ATOL)
     plan = CEMPlanner(compiled, Objective(beta=0.1), horizon=5, num_candidates=16, num_elites=4)
     assert plan.plan(*ctx).actions.device.type == "cuda"
+
+
+@NEEDS_CUDA
+def test_sampling_planners_plan_every_row_in_one_pass_on_cuda(monkeypatch):
+    """``block_rows="auto"`` (the default): no row blocks on a GPU, even for K = 3,000 rows of
+    two envs, where the CPU splits them into blocks of 512."""
+    model = _planning_model(None).to("cuda")
+    passes = []
+    predict = PlanningModel._predict
+
+    def counted(self, *args, **kwargs):
+        passes.append(args[3].shape[-3])
+        return predict(self, *args, **kwargs)
+
+    monkeypatch.setattr(PlanningModel, "_predict", counted)
+    planner = CEMPlanner(model, Objective(), horizon=5, num_candidates=3000, num_elites=30)
+    planner.plan(*(x.cuda() for x in _context()))
+    assert passes == [3000] * planner.iterations
+    model.cpu()
+    passes.clear()
+    planner.plan(*_context())
+    assert passes == ([512] * 5 + [440]) * planner.iterations  # 2 envs: blocks of 512 x 2 rows

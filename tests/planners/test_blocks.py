@@ -22,6 +22,7 @@ from torchrl_recon.planners import (
     RandomShootingPlanner,
     UncertaintyBand,
 )
+from torchrl_recon.planners.planning_model import BLOCK_ROWS, resolve_block_rows
 
 H, B = 12, 3
 
@@ -136,11 +137,29 @@ def test_block_rows_must_be_a_positive_int():
         model(*_context(), actions, block_rows=-1)
 
 
-def test_default_block_leaves_one_env_of_1000_candidates_in_one_pass():
-    """The sampling planners' default block holds one env's K = 1000 (the recipes'), so a
-    single-env plan runs exactly as before; 10 envs run in blocks of 102 candidates."""
+def test_default_block_is_cache_sized_on_the_cpu_and_one_pass_on_a_gpu(monkeypatch):
+    """``block_rows="auto"`` (every sampling planner's default) holds one env's K = 1000 (the
+    recipes') in one pass on the CPU and splits 10 envs into blocks of 102 candidates; on a GPU
+    every row goes in one pass (a pass there is bound by launches, not cache)."""
     model = _model()
     planner = CEMPlanner(model, Objective(), horizon=H)
-    assert planner.block_rows >= 1000
+    assert planner.block_rows == "auto"
     for other in (RandomShootingPlanner, MPPIPlanner, ICEMPlanner):
-        assert other(model, Objective(), horizon=H).block_rows == planner.block_rows
+        assert other(model, Objective(), horizon=H).block_rows == "auto"
+    assert resolve_block_rows("auto", torch.device("cpu")) == BLOCK_ROWS >= 1000
+    assert resolve_block_rows("auto", torch.device("cuda")) is None
+    assert resolve_block_rows("auto", torch.device("cuda", 1)) is None
+    assert resolve_block_rows(64, torch.device("cuda")) == 64  # a user's choice is kept
+    passes = []
+    predict = PlanningModel._predict
+
+    def counted(self, *args, **kwargs):
+        passes.append(args[3].shape[-3])  # the candidates of this pass
+        return predict(self, *args, **kwargs)
+
+    monkeypatch.setattr(PlanningModel, "_predict", counted)
+    model(*_context(1), torch.rand(1, 1000, H, 2), block_rows="auto")
+    model(*_context(10), torch.rand(10, 1000, H, 2), block_rows="auto")
+    assert passes == [1000] + [102] * 9 + [82]
+    with pytest.raises(ValueError, match="^block_rows must be a positive int, None"):
+        CEMPlanner(model, Objective(), horizon=H, block_rows="all")

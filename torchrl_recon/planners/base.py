@@ -15,9 +15,6 @@ from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gat
 
 OnInfeasible = Literal["fallback", "raise"]
 
-BLOCK_ROWS = 1024
-"""Default ``block_rows`` of the sampling planners: candidate rows evaluated per block."""
-
 
 class InfeasiblePlanWarning(RuntimeWarning):
     """No candidate met the constraints; the least-violating one was returned (``feasible=False``)."""

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible
+from torchrl_recon.planners.base import OnInfeasible
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
 from torchrl_recon.planners.sampling import (
@@ -52,7 +52,7 @@ class CEMPlanner(SamplingPlanner):
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
             :meth:`PlanningModel.forward`): many envs' candidates in one call then run at the
             speed of cache-sized batches instead of spilling the rollout state to memory. The
-            result is the unblocked one up to float rounding. None: one pass.
+            result is the unblocked one up to float rounding. "auto" (default): 1024 on the CPU, one pass on a GPU; None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"``.
 
     Examples:
@@ -77,7 +77,7 @@ class CEMPlanner(SamplingPlanner):
         num_elites: int = 100,
         smoothing: float = 0.1,
         min_std: float = 0.02,
-        block_rows: int | None = BLOCK_ROWS,
+        block_rows: int | str | None = "auto",
         on_infeasible: OnInfeasible = "fallback",
         return_mean_elites: bool = False,
         warm_start_uniform: float = 0.5,

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlanResult
+from torchrl_recon.planners.base import OnInfeasible, PlanResult
 from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.noise import colored_noise
@@ -61,7 +61,7 @@ class ICEMPlanner(CEMPlanner):
         smoothing: momentum α in [0, 1) of the mean/std update.
         min_std: floor on the standard deviation, as a fraction of the action range.
         block_rows: evaluate candidate rows in blocks of about this many (see
-            :class:`CEMPlanner`). None: one pass.
+            :class:`CEMPlanner`). "auto" (default): 1024 on the CPU, one pass on a GPU; None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
 
     Examples:
@@ -91,7 +91,7 @@ class ICEMPlanner(CEMPlanner):
         noise_beta: float = 2.0,
         smoothing: float = 0.1,
         min_std: float = 0.02,
-        block_rows: int | None = BLOCK_ROWS,
+        block_rows: int | str | None = "auto",
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible
+from torchrl_recon.planners.base import OnInfeasible
 from torchrl_recon.planners.objective import Objective
 from torchrl_recon.planners.planning_model import PlanningModel, Prediction
 from torchrl_recon.planners.sampling import BestSeen, SamplingPlanner, check_positive
@@ -53,7 +53,7 @@ class MPPIPlanner(SamplingPlanner):
         temperature: λ > 0 of the weights softmax(J / λ).
         noise_std: std of the perturbations, as a fraction of the action range (> 0).
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
-            :class:`CEMPlanner`). None: one pass.
+            :class:`CEMPlanner`). "auto" (default): 1024 on the CPU, one pass on a GPU; None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
 
     Examples:
@@ -77,7 +77,7 @@ class MPPIPlanner(SamplingPlanner):
         iterations: int = 5,
         temperature: float = 1.0,
         noise_std: float = 0.25,
-        block_rows: int | None = BLOCK_ROWS,
+        block_rows: int | str | None = "auto",
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(

@@ -65,6 +65,37 @@ def check_step_fn(
         )
 
 
+BLOCK_ROWS = 1024
+"""Candidate rows per block on the CPU, where a block's rollout state and u windows then stay in
+cache (``block_rows="auto"``, the sampling planners' default)."""
+
+
+def resolve_block_rows(block_rows: int | str | None, device: torch.device) -> int | None:
+    """The rows per block for ``device``: ``"auto"`` is :data:`BLOCK_ROWS` on the CPU and None
+    (all rows in one pass) on any other device, where a pass is bound by kernel launches, not
+    cache: K = 10,000 candidates of H = 30 steps hold a few tens of MB (states, actions, the
+    LSTM's gates of one step, u's windows), far below a GPU's memory. An int or None is kept.
+
+    Examples:
+        >>> resolve_block_rows("auto", torch.device("cpu")), resolve_block_rows("auto", torch.device("cuda"))
+        (1024, None)
+        >>> resolve_block_rows(256, torch.device("cuda")), resolve_block_rows("all", torch.device("cpu"))
+        Traceback (most recent call last):
+        ...
+        ValueError: block_rows must be a positive int, None (one pass) or 'auto', got 'all'.
+    """
+    if block_rows == "auto":
+        return BLOCK_ROWS if device.type == "cpu" else None
+    if block_rows is None:
+        return None
+    if isinstance(block_rows, str):
+        raise ValueError(
+            f"block_rows must be a positive int, None (one pass) or 'auto', got {block_rows!r}."
+        )
+    check_int("block_rows", block_rows)
+    return block_rows
+
+
 def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Pick candidates ``index`` ``[*B, k]`` along the candidate dim of ``x`` ``[*B, K, ...]`` → ``[*B, k, ...]``."""
     dim = index.ndim - 1
@@ -412,14 +443,15 @@ class PlanningModel(nn.Module):
         actions: torch.Tensor,
         *,
         state: tuple[torch.Tensor, torch.Tensor] | None = None,
-        block_rows: int | None = None,
+        block_rows: int | str | None = None,
     ) -> Prediction:
         """Predict states, cost and u for candidates ``actions`` ``[*B, K, H, M]``.
 
         Keyword Args:
             state: the world model's state from :meth:`warmup` on this context.
             block_rows: evaluate at most about this many rows (batch elements × candidates)
-                at a time: the candidates are split along K into blocks of
+                at a time (``"auto"``: :data:`BLOCK_ROWS` on the CPU, one pass elsewhere; see
+                :func:`resolve_block_rows`): the candidates are split along K into blocks of
                 ``max(1, block_rows // B)``, each block one batched pass over all batch
                 elements, so a block's rollout state and u windows stay in cache. Each row's
                 prediction depends on that row alone, so the result is that of one pass up
@@ -428,8 +460,7 @@ class PlanningModel(nn.Module):
                 scored by the same masks. None (default): one pass.
         """
         self.check_fitted()
-        if block_rows is not None:
-            check_int("block_rows", block_rows)
+        block_rows = resolve_block_rows(block_rows, actions.device)
         batch_rows = int(observation.shape[:-1].numel())
         k = actions.shape[-3]
         predict = type(self)._predict

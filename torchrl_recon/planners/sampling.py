@@ -11,7 +11,12 @@ import torch
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective, rank_key
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
+from torchrl_recon.planners.planning_model import (
+    PlanningModel,
+    Prediction,
+    gather_candidates,
+    resolve_block_rows,
+)
 
 WARM_START_STD = 0.25
 """Spread of the first batch's candidates around a warm start ``init``, as a fraction of the
@@ -103,13 +108,12 @@ class SamplingPlanner(PlannerBase):
         horizon: int,
         num_candidates: int,
         iterations: int,
-        block_rows: int | None,
+        block_rows: int | str | None,
         on_infeasible: OnInfeasible,
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
-        if block_rows is not None:
-            check_int("block_rows", block_rows)
+        resolve_block_rows(block_rows, torch.device("cpu"))  # checked now, resolved per call
         check_int("iterations", iterations)
         self.num_candidates, self.iterations, self.block_rows = (
             num_candidates,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 
 from torchrl_recon.modules.checks import check_int
-from torchrl_recon.planners.base import BLOCK_ROWS, OnInfeasible, PlannerBase
+from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.planning_model import PlanningModel, resolve_block_rows
 
 
 class RandomShootingPlanner(PlannerBase):
@@ -21,7 +21,7 @@ class RandomShootingPlanner(PlannerBase):
         horizon: H.
         num_candidates: K.
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
-            :class:`~torchrl_recon.planners.CEMPlanner`). None: one pass.
+            :class:`~torchrl_recon.planners.CEMPlanner`). "auto" (default): 1024 on the CPU, one pass on a GPU; None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
 
     Examples:
@@ -42,13 +42,12 @@ class RandomShootingPlanner(PlannerBase):
         *,
         horizon: int,
         num_candidates: int = 1000,
-        block_rows: int | None = BLOCK_ROWS,
+        block_rows: int | str | None = "auto",
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
-        if block_rows is not None:
-            check_int("block_rows", block_rows)
+        resolve_block_rows(block_rows, torch.device("cpu"))  # checked now, resolved per call
         self.num_candidates, self.block_rows = num_candidates, block_rows
 
     @torch.inference_mode()

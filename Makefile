@@ -6,7 +6,7 @@ PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-all test-faults lint bench mutation gpu-check
+.PHONY: setup demo test test-all test-faults lint bench mutation gpu-check gpu-check-quick
 
 setup: $(VENV)/.installed
 
@@ -54,6 +54,10 @@ GPU_CHECK_OUT ?= outputs/gpu_check
 
 gpu-check: setup
 	$(PY) benchmarks/gpu_check.py --out $(GPU_CHECK_OUT)
+
+# The planners' and fits' CUDA tests and benchmarks only (K = 1,000 and 10,000), to iterate on a GPU.
+gpu-check-quick: setup
+	$(PY) benchmarks/gpu_check.py --out $(GPU_CHECK_OUT) --quick
 
 # Mutation testing (docs/testing.md); not part of `make test`. It runs in a copy of the work
 # tree under MUTATION_DIR. MUTANTS: mutmut mutant-name globs (default: the sample in

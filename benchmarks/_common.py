@@ -4,6 +4,7 @@ arithmetic limit (FLOPs counted from the weights over the GEMM rate measured in 
 from __future__ import annotations
 
 import argparse
+import os
 
 import torch
 from torch import nn
@@ -23,6 +24,18 @@ from torchrl_recon.planners import (
 from torchrl_recon.timing import interleaved_median_ms
 
 OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
+
+
+SETUP_ONLY = "TORCHRL_RECON_SETUP_ONLY"
+"""Set (to anything) in a benchmark's environment: it stops with ``setup done`` once its
+arguments are accepted and its recipes resolved (:func:`setup_done`; gpu_check's argv test)."""
+
+
+def setup_done() -> None:
+    """Exit 0 here, printing ``setup done``, when :data:`SETUP_ONLY` is set; else nothing."""
+    if os.environ.get(SETUP_ONLY):
+        print("setup done", flush=True)
+        raise SystemExit(0)
 
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import parse_args
+from _common import parse_args, setup_done
 
 from torchrl_recon.experiments import control, explore
 from torchrl_recon.experiments.common import batches, build_planner, planning_model
@@ -53,6 +53,7 @@ def main() -> None:
         "logger.backend=none",
     ]
     cfg = load_recipe(RECIPES / args.env / "control.yaml", overrides)
+    setup_done()
     with tempfile.TemporaryDirectory() as run_dir:
         ctx = RunContext(cfg, Path(run_dir))
         data = control.random_data_stage(ctx, "random_data", frames=4 * 250, episode_steps=250)

@@ -37,6 +37,7 @@ from _common import (
     paper_models,
     parse_args,
     plan_flops,
+    setup_done,
 )
 
 from torchrl_recon.devices import resolve_device
@@ -72,6 +73,7 @@ def main() -> None:
     )
     add_device_argument(parser)
     args = parse_args(parser)
+    setup_done()
     device = resolve_device(args.device)
     print(f"device: {describe(device)}, threads={args.threads}")
     world, estimator = paper_models(device=device)

@@ -7,6 +7,7 @@ Run (``make gpu-check`` does the first)::
     python benchmarks/gpu_check.py --out /tmp/check --dry-run           # wiring only, no GPU needed
     python benchmarks/gpu_check.py --out /tmp/check --device cpu --tiny # every step, tiny, on the CPU
     python benchmarks/gpu_check.py --out /tmp/check --steps 1 10 11     # only these steps
+    python benchmarks/gpu_check.py --out /tmp/check --quick             # planners and fits only
 
 Steps, in this order (each a subprocess with its own time limit; all of them together within
 ``--budget-s``, 450 s by default, so the whole check stays under 8 minutes: a step whose turn
@@ -16,7 +17,8 @@ comes when less than ``MIN_STEP_S`` is left is reported as not run):
    without a GPU);
 2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
    GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
-   run), population fits (with ``--compile``: the fits with ``compile=True`` against eager),
+   run), the same at K = 10,000 candidates (1,000 elites), population fits (with
+   ``--compile``: the fits with ``compile=True`` against eager),
    episode batching, window scoring, uncertainty overhead, gradient planning and control
    batching;
 3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control``,
@@ -29,7 +31,8 @@ the torch / CUDA / cuDNN / torchrl versions, and for each step its command, exit
 time and printed figures; each step's whole output is in ``<out>/logs/``, the experiments'
 run directories in ``<out>/runs/``. Without a CUDA device the report says "no CUDA device":
 the test steps still run (their CUDA tests skip) and the GPU steps are reported as skipped.
-``--dry-run`` runs nothing heavy: it checks that every step is wired (the tests are
+``--quick`` runs the planners' and fits' CUDA tests, the planner rows at K = 1,000 and 10,000
+and the fit rows, to iterate on a GPU. ``--dry-run`` runs nothing heavy: it checks that every step is wired (the tests are
 collected, each benchmark script accepts the flags passed to it, each recipe resolves with
 its overrides) and writes the report with every section. Exit status: 0 when no step failed,
 timed out or was found unwired, else 1.
@@ -98,6 +101,13 @@ BENCHMARK_STEPS = [
         ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
     ),
     benchmark(
+        "planners at K = 10,000 (1,000 elites) vs TorchRL's CEMPlanner",
+        "planner_speed.py",
+        120,
+        ["--candidates", "10000", "--elites", "1000", "--horizons", "30", "--repeats", "3"],
+        ["--candidates", "40", "--elites", "4", "--horizons", "5", "--repeats", "1"],
+    ),
+    benchmark(
         "population fits (eager and torch.compile)",
         "training_speed.py",
         150,
@@ -148,7 +158,9 @@ BENCHMARK_STEPS = [
         "control batching",
         "control_batching.py",
         90,
-        ["--steps", "10"],  # one plan per episode: 75 s at 20 steps on an H200
+        # one plan per episode (10 random warm-up steps first; 10 made the recipe refuse
+        # itself): 75 s at 20 steps on an H200
+        ["--steps", "11"],
         ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
     ),
 ]
@@ -166,24 +178,36 @@ def has_pybullet() -> bool:
     return True
 
 
-def build_steps(device: str, tiny: bool, out: Path) -> list[Step]:
-    """Every step of the check, in order, for ``device`` (``cuda``, ``cuda:N`` or ``cpu``)."""
+QUICK_SCRIPTS = ("planner_speed.py", "training_speed.py")
+"""The benchmarks of ``--quick``: the planner rows (K = 1,000 and 10,000) and the fit rows."""
+QUICK_TESTS = "cuda and (plan or fit)"
+"""The CUDA tests of ``--quick``: the planners' and the fits'."""
+
+
+def build_steps(device: str, tiny: bool, out: Path, quick: bool = False) -> list[Step]:
+    """Every step of the check, in order, for ``device`` (``cuda``, ``cuda:N`` or ``cpu``);
+    ``quick``: the planners' and fits' CUDA tests and the benchmarks of :data:`QUICK_SCRIPTS`."""
     python = sys.executable
     pytest = [python, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider"]
+    selection = QUICK_TESTS if quick else "cuda"
     steps = [
         Step(
-            "CUDA tests (tests/test_device.py -k cuda)",
+            f'CUDA tests (tests/test_device.py -k "{selection}")',
             "tests",
-            pytest + ["tests/test_device.py", "-k", "cuda"],
+            pytest + ["tests/test_device.py", "-k", selection],
             180,
             needs_cuda=False,
             tail=15,
         )
     ]
     for name, script, timeout_s, full, small in BENCHMARK_STEPS:
+        if quick and script not in QUICK_SCRIPTS:
+            continue
         args = small if tiny else full
         argv = [python, str(BENCHMARKS / script), *args, "--device", device]
         steps.append(Step(f"benchmark: {name} ({script})", "benchmark", argv, timeout_s))
+    if quick:
+        return steps
     for kind in EXPERIMENT_KINDS:
         recipe = f"industrial_benchmark/{kind}_smoke"
         run_dir = out / "runs" / kind
@@ -406,6 +430,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cuda", help="cuda, cuda:N or cpu (default cuda)")
     parser.add_argument("--tiny", action="store_true", help="the benchmarks at tiny sizes")
     parser.add_argument("--dry-run", action="store_true", help="check the wiring, run nothing")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="only the planners' and fits' CUDA tests and benchmarks (within 3 minutes)",
+    )
     parser.add_argument("--budget-s", type=float, default=BUDGET_S, help="the whole check's time")
     parser.add_argument(
         "--steps", type=int, nargs="+", help="run only these steps (numbers as in the report)"
@@ -421,8 +450,9 @@ def main(argv: list[str] | None = None) -> int:
         print(
             "no CUDA device: the test steps run (their CUDA tests skip), the GPU steps are skipped"
         )
-    steps = build_steps(args.device, args.tiny, out)
+    steps = build_steps(args.device, args.tiny, out, quick=args.quick)
     mode = "dry run" if args.dry_run else ("tiny" if args.tiny else "full")
+    mode += ", quick" if args.quick else ""
     report, header = out / "gpu_check.md", machine_lines(args.device)
     start = time.perf_counter()
     for i, step in enumerate(steps, 1):

@@ -26,7 +26,7 @@ import copy
 import time
 
 import torch
-from _common import COST, context, paper_models, parse_device_args
+from _common import COST, context, paper_models, parse_device_args, setup_done
 
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
 from torchrl_recon.timing import interleaved_median_ms
@@ -48,6 +48,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=1)
     args, device = parse_device_args(parser)
+    setup_done()
     world, estimator = paper_models(device=device)  # frozen weights, as the planner has them
     ctx = context(device=device)
     state = world.warmup(ctx[0], ctx[1])

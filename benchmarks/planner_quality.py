@@ -17,7 +17,7 @@ import argparse
 import math
 
 import torch
-from _common import parse_device_args
+from _common import parse_device_args, setup_done
 
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import cut_sequences, make_sequence_buffer, split_by_trajectory
@@ -82,6 +82,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args, device = parse_device_args(parser)
+    setup_done()
     print(
         f"budget: K={args.candidates} x {args.iterations} iterations x H={args.horizon} "
         f"(iCEM without population decay, so the same rows); {args.contexts} contexts x "

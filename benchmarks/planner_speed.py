@@ -42,6 +42,7 @@ from _common import (
     paper_models,
     parse_device_args,
     plan_flops,
+    setup_done,
 )
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
@@ -134,6 +135,7 @@ def main() -> None:
     plain_env = plain_model_env(world)
     start = env.initial_state(*ctx)
     cem = dict(num_candidates=args.candidates, iterations=args.iterations, num_elites=args.elites)
+    setup_done()
     mppi = dict(num_candidates=args.candidates, iterations=args.iterations)
     print(
         f"K={args.candidates}, {args.iterations} iterations, top-k {args.elites}, threads={args.threads}, "

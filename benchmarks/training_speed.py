@@ -46,6 +46,7 @@ from _common import (
     limit_ms,
     limit_text,
     parse_device_args,
+    setup_done,
 )
 from tensordict import TensorDict
 
@@ -114,6 +115,7 @@ def main() -> None:
         help="also time these fits with compile=True (no names: both)",
     )
     args, device = parse_device_args(parser)
+    setup_done()
     compiled_fits = () if args.compile is None else tuple(args.compile) or COMPILED_FITS
     rb = random_buffer(args)
     fit = dict(

@@ -15,6 +15,7 @@ from _common import (
     context,
     paper_models,
     parse_device_args,
+    setup_done,
 )
 
 from torchrl_recon.planners import PlanningModel
@@ -28,6 +29,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args, device = parse_device_args(parser)
+    setup_done()
     world, estimator = paper_models(device=device)
     rollout_only = PlanningModel(world, COST)
     with_u = PlanningModel(world, COST, uncertainty=estimator)

@@ -19,7 +19,15 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import WINDOW, gemm_gflops, gemm_line, limit_ms, limit_text, parse_device_args
+from _common import (
+    WINDOW,
+    gemm_gflops,
+    gemm_line,
+    limit_ms,
+    limit_text,
+    parse_device_args,
+    setup_done,
+)
 
 from torchrl_recon.modules import ReconstructionUncertainty, WorldModelEnsembleUncertainty
 from torchrl_recon.modules.uncertainty import window_view
@@ -61,6 +69,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args, device = parse_device_args(parser)
+    setup_done()
     torch.manual_seed(0)
     n, m = args.obs_dim, args.action_dim
     sizes = dict(window=WINDOW, hidden_size=32, dense_size=32)

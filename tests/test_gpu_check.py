@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import re
 import subprocess
 from contextlib import redirect_stdout
@@ -117,3 +118,50 @@ def test_every_step_runs_on_the_cpu_at_tiny_sizes(tmp_path):
     assert report.count("stages' wall time") == 4, report  # online's included
     assert "torch.compile (default) vs eager" in report, report
     assert "torch.compile vs eager, R=3: sequential" in report, report
+
+
+SETUP_RUNNER = """
+import json, os, runpy, sys
+sys.path.insert(0, sys.argv[1])
+os.environ["TORCHRL_RECON_SETUP_ONLY"] = "1"
+for argv in json.loads(sys.argv[2]):
+    sys.argv = argv
+    try:
+        runpy.run_path(argv[0], run_name="__main__")
+        print("NO EXIT", argv, flush=True)
+    except SystemExit as stop:
+        print("EXIT", stop.code, argv, flush=True)
+"""
+
+
+def test_every_full_size_benchmark_argv_passes_its_setup_on_the_cpu(tmp_path):
+    """Each benchmark step's full-size argv (the GPU check's own), on the CPU, runs to the end of
+    its setup (arguments accepted, recipes resolved: ``TORCHRL_RECON_SETUP_ONLY`` stops it
+    there), all in one process. Step 9's ``--steps 10`` made the Drone control recipe refuse
+    itself here."""
+    steps = [s for s in _load().build_steps("cpu", False, tmp_path) if s.kind == "benchmark"]
+    argvs = [step.argv[1:] for step in steps]  # [script, *args]
+    python = steps[0].argv[0]
+    proc = subprocess.run(
+        [python, "-c", SETUP_RUNNER, str(BENCHMARKS), json.dumps(argvs)],
+        cwd=SCRIPT.parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    ends = [line for line in proc.stdout.splitlines() if line.startswith(("EXIT", "NO EXIT"))]
+    assert len(ends) == len(argvs), proc.stdout[-3000:] + proc.stderr[-3000:]
+    for line, argv in zip(ends, argvs, strict=True):
+        assert line.startswith("EXIT 0 "), f"{argv}: {line}\n{proc.stderr[-3000:]}"
+    assert proc.stdout.count("setup done") == len(argvs)
+
+
+def test_quick_selects_the_planner_and_fit_steps(tmp_path):
+    steps = _load().build_steps("cuda", False, tmp_path, quick=True)
+    assert [s.kind for s in steps] == ["tests", "benchmark", "benchmark", "benchmark"]
+    assert steps[0].argv[-1] == "cuda and (plan or fit)"
+    assert all(Path(s.argv[1]).name == "planner_speed.py" for s in steps[1:3])
+    assert "--candidates" not in steps[1].argv  # K = 1,000, the script's default
+    assert steps[2].argv[steps[2].argv.index("--candidates") + 1] == "10000"
+    assert Path(steps[3].argv[1]).name == "training_speed.py"
+    assert len(_load().build_steps("cuda", False, tmp_path)) > len(steps)

@@ -49,7 +49,7 @@ class PlanResult:
 class PlannerBase(nn.Module):
     """Optimise action sequences over a :class:`PlanningModel` for an :class:`Objective`.
 
-    Subclasses implement :meth:`_optimise`, returning candidates ``[*B, K, H, M]`` with their
+    Subclasses implement ``_optimise``, returning candidates ``[*B, K, H, M]`` with their
     prediction; the base class picks the best feasible one. When no candidate is feasible
     the planner falls back to the least-violating candidate and reports ``feasible=False``
     (``on_infeasible="fallback"``, with an :class:`InfeasiblePlanWarning`), or raises :class:`InfeasiblePlanError`

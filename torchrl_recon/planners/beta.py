@@ -23,7 +23,7 @@ __all__ = ["cost_to_u_ratio", "relative_beta", "window_uncertainty"]
 
 
 def cost_to_u_ratio(data: TensorDictBase, per_window_u: torch.Tensor) -> float:
-    """Mean |cost| per step over mean u per window: the unit of a relative β (``beta_relative``).
+    """Mean ``|cost|`` per step over mean u per window: the unit of a relative β (``beta_relative``).
 
     The cost is read as ``-("next", "reward")`` of ``data``.
 
@@ -60,7 +60,7 @@ def window_uncertainty(
     every T-window of each sequence is scored on the estimator's device. When no trajectory has
     ``sequence_length`` steps (an env whose episodes end early), each trajectory is one padded
     sequence and its windows are those the estimator trains on in padded slices
-    (:func:`~torchrl_recon.modules.padding.windows_at_rest`): every window that ends at a real
+    (``torchrl_recon.modules.padding.windows_at_rest``): every window that ends at a real
     step, an episode shorter than T started at rest.
 
     Examples:
@@ -103,7 +103,7 @@ def relative_beta(
 ) -> float:
     """The absolute β for ``Objective(beta=...)`` of a β given in cost units on ``data``.
 
-    ``beta`` × mean |cost| per step / mean u per window, both measured on ``data`` (flat
+    ``beta`` × mean ``|cost|`` per step / mean u per window, both measured on ``data`` (flat
     transitions with ``observation``, ``action``, ``("next", "reward")`` and trajectory ids;
     usually the random data the models were fitted on): ``relative_beta(1.0, ...)`` makes a
     window of average u cost as much as an average step. Negative ``beta`` (exploration) keeps

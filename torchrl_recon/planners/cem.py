@@ -27,7 +27,7 @@ class CEMPlanner(SamplingPlanner):
     of it uniformly and half around ``init``; relative uncertainty bands are resolved from the
     uniform part); later ones sample N(mean, std) clipped to the bounds, with
     ``mean ← smoothing·mean + (1 − smoothing)·elite_mean`` (likewise std, floored at
-    ``min_std``). Elites are ranked feasible-first (see :func:`rank_key`). The whole
+    ``min_std``). Elites are ranked feasible-first (see ``rank_key``). The whole
     candidate batch is one call to the planning model per iteration.
 
     Keyword Args:

@@ -25,7 +25,7 @@ class EliteMemory:
     remembered plan shifted by s steps and padded with its last action (exactly what
     ``MPCPolicy`` passes) recalls that row's elites shifted by the same s steps and padded the
     same way. Other warm starts recall nothing. A recalled row is forgotten (it is consumed);
-    rows not recalled are kept, newest first, up to :data:`MEMORY_ROWS`.
+    rows not recalled are kept, newest first, up to ``MEMORY_ROWS``.
 
     Examples:
         >>> memory = EliteMemory()

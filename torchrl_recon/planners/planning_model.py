@@ -450,8 +450,8 @@ class PlanningModel(nn.Module):
         Keyword Args:
             state: the world model's state from :meth:`warmup` on this context.
             block_rows: evaluate at most about this many rows (batch elements × candidates)
-                at a time (``"auto"``: :data:`BLOCK_ROWS` on the CPU, one pass elsewhere; see
-                :func:`resolve_block_rows`): the candidates are split along K into blocks of
+                at a time (``"auto"``: ``BLOCK_ROWS`` on the CPU, one pass elsewhere; see
+                ``resolve_block_rows``): the candidates are split along K into blocks of
                 ``max(1, block_rows // B)``, each block one batched pass over all batch
                 elements, so a block's rollout state and u windows stay in cache. Each row's
                 prediction depends on that row alone, so the result is that of one pass up

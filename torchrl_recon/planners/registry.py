@@ -54,7 +54,7 @@ def get_planner_class(kind: str) -> type[PlannerBase]:
 
 def check_planner_kwargs(cls: type[PlannerBase], kwargs: Mapping[str, Any]) -> None:
     """Check that ``cls(model, objective, **kwargs)`` binds (see
-    :func:`~torchrl_recon.plugins.check_keywords`).
+    ``torchrl_recon.plugins.check_keywords``).
 
     Raises:
         TypeError: one line naming the keywords at fault and those ``cls`` accepts.

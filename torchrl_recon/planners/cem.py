@@ -31,7 +31,7 @@ class CEMPlanner(SamplingPlanner):
     candidate batch is one call to the planning model per iteration.
 
     Keyword Args:
-        horizon: H.
+        horizon: H (steps planned ahead).
         num_candidates: K per iteration.
         iterations: number of CEM iterations.
         num_elites: top-k kept per iteration.

@@ -48,7 +48,7 @@ class GradientPlanner(PlannerBase):
     the best feasible one returned, which is the paper's "stop the ascent" at an uncertainty cap.
 
     Keyword Args:
-        horizon: H.
+        horizon: H (steps planned ahead).
         restarts: sequences optimised in parallel (uniform initialisation; the first one starts
             from ``init`` when a warm start is given).
         steps: Adam steps.

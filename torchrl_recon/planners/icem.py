@@ -50,7 +50,7 @@ class ICEMPlanner(CEMPlanner):
         objective: the :class:`Objective`.
 
     Keyword Args:
-        horizon: H.
+        horizon: H (steps planned ahead).
         num_candidates: K, the first iteration's population.
         iterations: number of iterations.
         num_elites: elites per iteration (at most ``num_candidates``).

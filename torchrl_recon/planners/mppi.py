@@ -47,7 +47,7 @@ class MPPIPlanner(SamplingPlanner):
         objective: the :class:`Objective`.
 
     Keyword Args:
-        horizon: H.
+        horizon: H (steps planned ahead).
         num_candidates: K per iteration.
         iterations: number of updates of the mean.
         temperature: λ > 0 of the weights softmax(J / λ).

@@ -18,8 +18,8 @@ class RandomShootingPlanner(PlannerBase):
         objective: the :class:`Objective`.
 
     Keyword Args:
-        horizon: H.
-        num_candidates: K.
+        horizon: H (steps planned ahead).
+        num_candidates: K (candidate sequences).
         block_rows: evaluate the ``B·K`` candidate rows in blocks of about this many (see
             :class:`~torchrl_recon.planners.CEMPlanner`). "auto" (default): 1024 on the CPU, one pass on a GPU; None: one pass.
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).

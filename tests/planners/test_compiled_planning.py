@@ -47,7 +47,9 @@ def test_a_compiled_pass_predicts_what_the_eager_one_does_and_copies_keep_their_
         a, b = eager(*inputs), compiled(*inputs)
     for x, y in ((a.states, b.states), (a.cost, b.cost), (a.uncertainty, b.uncertainty)):
         torch.testing.assert_close(y, x, rtol=1e-5, atol=1e-6)
-    plan = CEMPlanner(compiled, Objective(beta=0.1), horizon=6, num_candidates=16, num_elites=4)
+    plan = CEMPlanner(
+        compiled, Objective(beta=0.1), horizon=6, num_candidates=16, num_elites=4, iterations=2
+    )  # planning_compile compiles the whole plan: one graph (tests/planners/test_plan_graph.py)
     result = plan.plan(*inputs[:3])
     assert result.actions.shape == (6, 2) and result.actions.abs().max() <= 1
     twin = copy.deepcopy(compiled)  # its own weights: the compiled code takes the model

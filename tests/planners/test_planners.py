@@ -326,7 +326,7 @@ def test_defaults_are_the_documented_ones():
     assert (cem.smoothing, cem.min_std, cem.on_infeasible) == (0.1, 0.02, "fallback")
     shooting = RandomShootingPlanner(model, Objective(), horizon=3)
     assert (shooting.num_candidates, shooting.on_infeasible) == (1000, "fallback")
-    assert cem.block_rows == shooting.block_rows == 1024
+    assert cem.block_rows == shooting.block_rows == "auto"
     mppi = MPPIPlanner(model, Objective(), horizon=3)
     assert (mppi.num_candidates, mppi.iterations, mppi.temperature, mppi.noise_std) == (
         1000,
@@ -334,11 +334,11 @@ def test_defaults_are_the_documented_ones():
         1.0,
         0.25,
     )
-    assert (mppi.block_rows, mppi.on_infeasible) == (1024, "fallback")
+    assert (mppi.block_rows, mppi.on_infeasible) == ("auto", "fallback")
     icem = ICEMPlanner(model, Objective(), horizon=3)
     assert (icem.num_candidates, icem.iterations, icem.num_elites) == (1000, 5, 100)
     assert (icem.population_decay, icem.keep_elites, icem.noise_beta) == (1.25, 0.3, 2.0)
-    assert (icem.smoothing, icem.min_std, icem.block_rows) == (0.1, 0.02, 1024)
+    assert (icem.smoothing, icem.min_std, icem.block_rows) == (0.1, 0.02, "auto")
     assert icem.population_sizes() == [1000, 800, 640, 512, 410]
 
 

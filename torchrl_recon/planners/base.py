@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 from typing import Literal
@@ -11,7 +12,12 @@ from torch import nn
 
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.objective import Objective, rank_key
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
+from torchrl_recon.planners.planning_model import (
+    PlanningModel,
+    Prediction,
+    compiled_plan,
+    gather_candidates,
+)
 
 OnInfeasible = Literal["fallback", "raise"]
 
@@ -138,6 +144,13 @@ class PlannerBase(nn.Module):
             generator: draw the random candidates from this generator (on its own device, then
                 moved to the model's), e.g. a CPU ``torch.Generator`` for the same candidates
                 on every device. Default: the global RNG of the model's device.
+
+        With the planning model's ``compile`` (a recipe's ``planning_compile``) the whole call,
+        :meth:`plan_graph`, runs as one compiled graph (``fullgraph=True``; with
+        ``"reduce-overhead"`` on a GPU, a CUDA graph) and its flags are read after it; a call
+        with a ``generator`` runs uncompiled (the graph draws from the global RNG). Inductor
+        draws its own random numbers unless ``torch._inductor.config.fallback_random`` is set,
+        so a compiled plan's candidates differ from eager's for the same seed.
         """
         self.model.check_context(context_obs, context_action, observation)
         if init is not None and init.shape != (
@@ -148,13 +161,55 @@ class PlannerBase(nn.Module):
             raise ValueError(
                 f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
             )
-        state = self.model.warmup(
-            context_obs, context_action
-        )  # once per plan, shared by every iteration
+        graph = self.plan_graph
+        mode = self.model.compile_mode
+        if mode is not None and self.compiles_whole_call and generator is None:
+            graph = functools.partial(compiled_plan(type(self).plan_graph, mode), self)
+        return self._checked(*graph(context_obs, context_action, observation, init, generator))
+
+    compiles_whole_call: bool = False
+    """Whether ``planning_compile`` (the planning model's ``compile``) compiles :meth:`plan_graph`
+    whole (``fullgraph=True``): True for the sampling planners (tested graph-break-free);
+    False (a planner of one's own, the gradient planner): only the planning model's pass."""
+
+    def plan_graph(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        init: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple:
+        """The whole planning call as tensor operations with no host synchronisation, so that
+        it is one graph (``torch.compile(..., fullgraph=True)``; with ``mode="reduce-overhead"``
+        on a GPU, one CUDA graph replayed per call): the warm-up on the context, every
+        iteration's sampling, rollout, cost, u, ranking and refit, and the final choice.
+        Returns the chosen actions, states, cost, u (or None) and objective, and the flags that
+        :meth:`plan` reads on the host afterwards: feasible ``[*B]``, NaN objective ``[*B, 1]``,
+        every cost NaN, every u NaN. :meth:`plan` checks its inputs first and raises or warns
+        from the flags after (the same messages as uncompiled)."""
+        state = self.model.warmup(context_obs, context_action)  # once per plan
         candidates, prediction, bounds = self._optimise(
             context_obs, context_action, observation, init, state, generator
         )
-        return self._choose(candidates, prediction, bounds)
+        objective = self.objective.score(prediction)
+        violation = self.objective.violation(prediction, bounds)
+        best = self._pick(objective, violation)  # [*B, 1]
+        best_objective, best_violation = objective.gather(-1, best), violation.gather(-1, best)
+        undefined = best_objective.isnan() | best_violation.isnan()
+        u = prediction.uncertainty
+        chosen, dim = prediction.take(best), best.ndim - 1
+        return (
+            gather_candidates(candidates, best).squeeze(dim),
+            chosen.states.squeeze(dim),
+            chosen.cost.squeeze(dim),
+            None if chosen.uncertainty is None else chosen.uncertainty.squeeze(dim),
+            best_objective.squeeze(-1),
+            (best_violation <= 0).squeeze(-1),
+            undefined,
+            prediction.cost.isnan().all(),
+            None if u is None else u.isnan().all(),
+        )
 
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         raise NotImplementedError
@@ -164,21 +219,19 @@ class PlannerBase(nn.Module):
         least-violating one (:func:`rank_key`)."""
         return rank_key(objective, violation).argmax(-1, keepdim=True)
 
-    def _choose(self, candidates: torch.Tensor, prediction: Prediction, bounds) -> PlanResult:
-        objective = self.objective.score(prediction)
-        violation = self.objective.violation(prediction, bounds)
-        best = self._pick(objective, violation)  # [*B, 1]
-        undefined = objective.gather(-1, best).isnan() | violation.gather(-1, best).isnan()
+    def _checked(
+        self, actions, states, cost, u, objective, feasible, undefined, cost_nan, u_nan
+    ) -> PlanResult:
+        """The :class:`PlanResult` of :meth:`plan_graph`'s tensors, once its flags are read: a
+        NaN objective raises, an infeasible plan warns (or raises with ``on_infeasible="raise"``)."""
         if undefined.any():  # NaN ranks last: the best is NaN only when every candidate is
             raise FloatingPointError(
                 f"every candidate's predicted objective is NaN for {int(undefined.sum())} of "
-                f"{undefined.numel()} batch element(s) (cost NaN: "
-                f"{bool(prediction.cost.isnan().all())}, uncertainty NaN: "
-                f"{prediction.uncertainty is not None and bool(prediction.uncertainty.isnan().all())}"
-                "); the world model, the cost function or the estimator gives NaN from this "
-                "context (a diverged fit, or a cost undefined at these states)."
+                f"{undefined.numel()} batch element(s) (cost NaN: {bool(cost_nan)}, uncertainty "
+                f"NaN: {u_nan is not None and bool(u_nan)}); the world model, the cost function or "
+                "the estimator gives NaN from this context (a diverged fit, or a cost undefined "
+                "at these states)."
             )
-        feasible = (violation.gather(-1, best) <= 0).squeeze(-1)
         if not feasible.all():
             message = (
                 f"No candidate met the constraints (band {self.objective.band}, cost_threshold "
@@ -188,14 +241,4 @@ class PlannerBase(nn.Module):
             if self.on_infeasible == "raise":
                 raise InfeasiblePlanError(message)
             warnings.warn(message, InfeasiblePlanWarning, stacklevel=3)
-
-        chosen = prediction.take(best)
-        dim = best.ndim - 1
-        return PlanResult(
-            actions=gather_candidates(candidates, best).squeeze(dim),
-            states=chosen.states.squeeze(dim),
-            cost=chosen.cost.squeeze(dim),
-            uncertainty=None if chosen.uncertainty is None else chosen.uncertainty.squeeze(dim),
-            objective=objective.gather(-1, best).squeeze(-1),
-            feasible=feasible,
-        )
+        return PlanResult(actions, states, cost, u, objective, feasible)

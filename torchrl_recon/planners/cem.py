@@ -8,7 +8,12 @@ import torch
 
 from torchrl_recon.planners.base import OnInfeasible
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction, gather_candidates
+from torchrl_recon.planners.planning_model import (
+    PlanningModel,
+    Prediction,
+    gather_candidates,
+    without_grad,
+)
 from torchrl_recon.planners.sampling import (
     WARM_START_STD,
     BestSeen,
@@ -128,7 +133,7 @@ class CEMPlanner(SamplingPlanner):
         seen.add(candidates, prediction, elite_idx[..., :1])
         return mean, std, elites
 
-    @torch.inference_mode()
+    @without_grad
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
         mean = std = bounds = None

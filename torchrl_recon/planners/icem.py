@@ -11,7 +11,7 @@ from torchrl_recon.planners.cem import CEMPlanner
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.planning_model import PlanningModel, without_grad
 from torchrl_recon.planners.sampling import WARM_START_STD, BestSeen
 
 
@@ -171,7 +171,7 @@ class ICEMPlanner(CEMPlanner):
         self._last_elites = None
         return result
 
-    @torch.inference_mode()
+    @without_grad
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
         low, high = self.model.action_low, self.model.action_high

@@ -6,7 +6,7 @@ import torch
 
 from torchrl_recon.planners.base import OnInfeasible
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction, without_grad
 from torchrl_recon.planners.sampling import BestSeen, SamplingPlanner, check_positive
 
 
@@ -104,7 +104,7 @@ class MPPIPlanner(SamplingPlanner):
         key = torch.where(feasible.any(-1, keepdim=True), score, -violation)
         return torch.softmax(key / self.temperature, dim=-1)
 
-    @torch.inference_mode()
+    @without_grad
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         batch = observation.shape[:-1]
         bounds = mean = None

@@ -133,6 +133,38 @@ def compiled_pass(fn: Callable, mode: str) -> Callable:
     return torch.compile(fn, mode=mode)
 
 
+def without_grad(fn: Callable) -> Callable:
+    """Run ``fn`` under ``torch.inference_mode()``, or ``torch.no_grad()`` while Dynamo traces it
+    into a graph (Inductor cannot compile views of parameters made in inference mode)."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        mode = torch.no_grad() if torch.compiler.is_compiling() else torch.inference_mode()
+        with mode:
+            return fn(*args, **kwargs)
+
+    return call
+
+
+@functools.cache
+def compiled_plan(fn: Callable, mode: str, backend: str = "inductor") -> Callable:
+    """``torch.compile(fn, mode=mode, fullgraph=True)``: a planner's whole call as one graph
+    (a graph break is an error, not a slow path), made once per function, mode and backend;
+    it takes the planner as an argument. Called with Dynamo's ``allow_rnn`` on: the world
+    model's context warm-up is an ``nn.LSTM``, which Dynamo otherwise refuses to trace (its
+    own error names the switch ``torch._dynamo.config.allow_rnn``; there is no public one)."""
+    compiled = torch.compile(
+        fn, mode=None if backend != "inductor" else mode, fullgraph=True, backend=backend
+    )
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        with torch._dynamo.config.patch(allow_rnn=True):
+            return compiled(*args, **kwargs)
+
+    return call
+
+
 @dataclass
 class Prediction:
     """What the planning model predicts for ``K`` candidates of ``H`` steps.
@@ -464,8 +496,8 @@ class PlanningModel(nn.Module):
         batch_rows = int(observation.shape[:-1].numel())
         k = actions.shape[-3]
         predict = type(self)._predict
-        if self.compile_mode is not None:
-            predict = compiled_pass(predict, self.compile_mode)
+        if self.compile_mode is not None and not torch.compiler.is_compiling():
+            predict = compiled_pass(predict, self.compile_mode)  # (a planner's graph inlines it)
         if block_rows is None or batch_rows * k <= block_rows:
             return predict(self, context_obs, context_action, observation, actions, state)
         chunk = max(1, block_rows // batch_rows)

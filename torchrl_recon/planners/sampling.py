@@ -100,6 +100,8 @@ class SamplingPlanner(PlannerBase):
     iteration, among which (and whatever else a planner adds) the final choice is made.
     """
 
+    compiles_whole_call = True  # tests/planners/test_plan_graph.py
+
     def __init__(
         self,
         model: PlanningModel,

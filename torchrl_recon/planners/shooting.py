@@ -7,7 +7,7 @@ import torch
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, resolve_block_rows
+from torchrl_recon.planners.planning_model import PlanningModel, resolve_block_rows, without_grad
 
 
 class RandomShootingPlanner(PlannerBase):
@@ -35,6 +35,8 @@ class RandomShootingPlanner(PlannerBase):
         torch.Size([20, 4])
     """
 
+    compiles_whole_call = True  # tests/planners/test_plan_graph.py
+
     def __init__(
         self,
         model: PlanningModel,
@@ -50,7 +52,7 @@ class RandomShootingPlanner(PlannerBase):
         resolve_block_rows(block_rows, torch.device("cpu"))  # checked now, resolved per call
         self.num_candidates, self.block_rows = num_candidates, block_rows
 
-    @torch.inference_mode()
+    @without_grad
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         candidates = self._uniform(observation.shape[:-1], self.num_candidates, generator)
         prediction = self.model(

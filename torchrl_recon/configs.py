@@ -85,7 +85,8 @@ def target_config(
     fields.append(("_target_", str, dataclasses.field(default=path)))
     fields.append(("_partial_", bool, dataclasses.field(default=partial)))
     doc = f"Hydra config of :func:`~{path}` (``_target_``); its fields are the target's keywords."
-    return dataclasses.make_dataclass(name, fields, namespace={"__doc__": doc})
+    namespace = {"__doc__": doc, "__module__": __name__}
+    return dataclasses.make_dataclass(name, fields, namespace=namespace)
 
 
 def make_planning_model(
@@ -177,8 +178,10 @@ def make_online_trainer(
     explorer = None
     if explore_iterations:
         explorer = ExplorationPolicy(planner(model, exploration or exploration_objective()))
-    collector = OnlineCollector(
+    trainer = OnlineTrainer.from_env(
         env,
+        world,
+        uncertainty,
         policy(planner(model, objective)) if iterations > explore_iterations else None,
         iterations=iterations,
         steps_per_iteration=steps_per_iteration,
@@ -187,14 +190,7 @@ def make_online_trainer(
         explore_iterations=explore_iterations,
         seed=seed,
         progress=progress,
-    )
-    trainer = OnlineTrainer(
-        collector=collector,
-        world_model=world,
-        estimator=uncertainty,
         schedule=schedule,
-        seed=seed,
-        progress=progress,
         logger=logger,
     )
     for hook in hooks or []:
@@ -218,12 +214,14 @@ ESTIMATOR_CONFIGS = {
     kind: target_config(cls, f"{cls.__name__}Config", partial=True, given=("obs_dim", "action_dim"))
     for kind, cls in ESTIMATORS.items()
 }
+"""The config of each estimator of :data:`~torchrl_recon.modules.ESTIMATORS`, by its name."""
 ObjectiveConfig = target_config(Objective, "ObjectiveConfig")
 ExplorationObjectiveConfig = target_config(exploration_objective, "ExplorationObjectiveConfig")
 PLANNER_CONFIGS = {
     kind: target_config(cls, _planner_name(kind), partial=True, given=("model", "objective"))
     for kind, cls in PLANNERS.items()
 }
+"""The config of each planner of :data:`~torchrl_recon.planners.PLANNERS`, by its name."""
 ReconstructionUncertaintyConfig = ESTIMATOR_CONFIGS["reconstruction"]
 EnsembleUncertaintyConfig = ESTIMATOR_CONFIGS["ensemble"]
 MCDropoutUncertaintyConfig = ESTIMATOR_CONFIGS["mc_dropout"]

@@ -115,9 +115,48 @@ class OnlineTrainer(Trainer):
         if estimator is not None:
             self.register_module("uncertainty", estimator)
 
+    @classmethod
+    def from_env(
+        cls,
+        env: EnvBase,
+        world_model: LSTMWorldModel,
+        estimator: UncertaintyEstimator | None,
+        policy: MPCPolicy | None,
+        *,
+        iterations: int,
+        steps_per_iteration: int,
+        random_steps: int,
+        explorer: MPCPolicy | None = None,
+        explore_iterations: int = 0,
+        seed: int = 0,
+        progress: bool = True,
+        **kwargs: Any,
+    ) -> OnlineTrainer:
+        """The Trainer of an :class:`OnlineCollector` playing ``policy`` (``explorer`` in the
+        first ``explore_iterations``) on ``env``; ``kwargs``: this class's other keywords."""
+        collector = OnlineCollector(
+            env,
+            policy,
+            iterations=iterations,
+            steps_per_iteration=steps_per_iteration,
+            random_steps=random_steps,
+            explorer=explorer,
+            explore_iterations=explore_iterations,
+            seed=seed,
+            progress=progress,
+        )
+        return cls(
+            collector=collector,
+            world_model=world_model,
+            estimator=estimator,
+            seed=seed,
+            progress=progress,
+            **kwargs,
+        )
+
     @property
     def records(self) -> list[IterationRecord]:
-        """One record per batch collected so far (iteration 0: the random data)."""
+        """One record per batch collected so far, the random data's (iteration 0) first."""
         return self.log_iteration.records
 
     def data(self) -> TensorDictBase:
@@ -200,8 +239,10 @@ def learn_online(
         )
     explorer = ExplorationPolicy(make_explorer()) if explore_iterations else None
     controls = iterations > explore_iterations
-    collector = OnlineCollector(
+    trainer = OnlineTrainer.from_env(
         env,
+        world_model,
+        estimator,
         MPCPolicy(make_planner(), **(policy_kwargs or {})) if controls else None,
         iterations=iterations,
         steps_per_iteration=steps_per_iteration,
@@ -210,14 +251,7 @@ def learn_online(
         explore_iterations=explore_iterations,
         seed=seed,
         progress=progress,
-    )
-    trainer = OnlineTrainer(
-        collector=collector,
-        world_model=world_model,
-        estimator=estimator,
         schedule=schedule,
-        seed=seed,
-        progress=progress,
         logger=logger,
         on_iteration=on_iteration,
     )

@@ -6,7 +6,7 @@ PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-all test-faults lint bench mutation gpu-check gpu-check-quick
+.PHONY: setup demo test test-all test-faults lint docs bench mutation gpu-check gpu-check-quick
 
 setup: $(VENV)/.installed
 
@@ -38,6 +38,14 @@ lint: setup
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 
+# The Sphinx site: the guides and the API reference (docs/conf.py); warnings are errors. Open
+# docs/_build/html/index.html. No network is used (`make setup` installs the `docs` extra).
+DOCS_OUT ?= docs/_build
+
+docs: setup
+	$(PY) -m sphinx -W --keep-going -n -b html -d $(DOCS_OUT)/doctrees docs $(DOCS_OUT)/html
+	@echo "open $(DOCS_OUT)/html/index.html"
+
 bench: setup
 	$(PY) benchmarks/env_throughput.py
 	$(PY) benchmarks/uncertainty_overhead.py
@@ -46,6 +54,7 @@ bench: setup
 	$(PY) benchmarks/gradient_planning.py
 	$(PY) benchmarks/training_speed.py
 	$(PY) benchmarks/gemm_floor.py
+	$(PY) benchmarks/cpu_blocks.py
 
 # One command for a GPU machine (docs/benchmarks.md#gpu-check): the CUDA tests, every benchmark
 # with --device cuda and a smoke run of each experiment kind on device=cuda, within 8 minutes;

@@ -49,6 +49,12 @@ GEMM = r"^GEMM rate \(float32 [^)]+\): ([0-9.]+) GFLOP/s$"
     [
         ("gradient_planning.py", ["--rows", "2", "--horizon", "5", "--repeats", "2"], SPEED_UP, 2),
         (
+            "cpu_blocks.py",
+            ["--candidates", "20", "--horizon", "4", "--repeats", "1"],
+            r"speed-up +([0-9.]+)x",
+            6,  # each way's, then the CEM call's
+        ),
+        (
             "planner_speed.py",
             TINY_PLANNER,
             SPEED_UP,

@@ -3,6 +3,8 @@ asks for (the CLI maps them to exit code 2)."""
 
 from __future__ import annotations
 
+__all__ = ["CompilerNotFoundError", "DamagedFileError", "RecipeError"]
+
 
 class DamagedFileError(ValueError):
     """A file the library reads back is missing, truncated, altered or would run code.
@@ -29,7 +31,7 @@ class RecipeError(ValueError):
 
 class CompilerNotFoundError(RuntimeError):
     """``compile=True`` on the CPU, and torch.compile cannot build its kernels: no C++ compiler
-    on ``PATH`` (:func:`~torchrl_recon.devices.check_compile_support`).
+    on ``PATH`` (``torchrl_recon.devices.check_compile_support``).
 
     Examples:
         >>> issubclass(CompilerNotFoundError, RuntimeError)

@@ -17,10 +17,11 @@ from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.files import read_json
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
+"""Where TorchRL's collectors write each step's trajectory id; windows never cross a change of it."""
 FIT_KEYS: tuple[NestedKey, ...] = ("observation", "action", ("next", "observation"))
 """What the fits' losses read of a transition (with :data:`TRAJ_KEY`, which the sampler reads)."""
-# Where TorchRL's SliceSampler(pad_output=True) marks the real (True) and padded steps of a sample.
 MASK_KEY: tuple[str, str] = ("collector", "mask")
+"""Where TorchRL's ``SliceSampler(pad_output=True)`` marks a sample's real (True) and padded steps."""
 _PREFETCH_FILE = "prefetch.pkl"
 _TD_TYPE = "<class 'tensordict._td.TensorDict'>"
 _META_KEYS = ("shape", "device", "_type", "names")

@@ -10,6 +10,8 @@ from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
 WINDOW_SAMPLINGS: tuple[str, ...] = ("trajectory", "step")
+"""How training windows are drawn: ``"trajectory"`` (TorchRL's ``SliceSampler``: a trajectory, then
+a window in it) or ``"step"`` (:class:`StepUniformSliceSampler`: every window equally likely)."""
 
 
 class StepUniformSliceSampler(Sampler):

@@ -180,6 +180,7 @@ ENVS: dict[str, EnvEntry] = {
         ),
     )
 }
+"""The paper's three environments by short name (:func:`register_env` adds others beside them)."""
 
 
 def get_entry(name: str) -> EnvEntry:

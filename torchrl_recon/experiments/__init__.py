@@ -1,14 +1,14 @@
 """The paper's experiments (and the calibrate and online ones), resumable, run from YAML recipes.
 
-Reads top down: the CLI → :mod:`.registry` (every kind) → a kind (:mod:`.explore`, ...) → its
-stages (``*_stages``, each taking the run's :class:`~.context.RunContext`) → :mod:`.common`.
+Reads top down: the CLI → ``registry`` (every kind) → a kind (``explore``, ...) → its
+stages (``*_stages``, each taking the run's :class:`RunContext`) → ``common``.
 Importing this package imports nothing heavy: the names below load on first use.
 """
 
 import importlib
 
-_HOMES = {"ExperimentType": "experiment_type", "RunContext": "context", "get_type": "registry"}
-_HOMES.update(load_recipe="recipe", run="runner")
+_HOMES = {"ExperimentType": "experiment_type", "RecipeLoader": "context", "RunContext": "context"}
+_HOMES.update(get_type="registry", load_recipe="recipe", run="runner")
 __all__ = list(_HOMES)
 
 

@@ -24,7 +24,7 @@ class ExperimentType:
     Attributes:
         name: the command and the recipes' ``experiment`` value.
         help: one line for ``torchrl-recon --help``.
-        schema: the recipe's config dataclass (:mod:`~torchrl_recon.experiments.config`).
+        schema: the recipe's config dataclass (``torchrl_recon.experiments.config``).
         stages: stage name templates in run order; ``{x}`` stands for a value (``{n}`` a count).
         run: runs (or resumes) the experiment in a :class:`RunContext`; returns its results.
         check: the kind's own value checks ``check(cfg, errors, recipes)``.

@@ -23,7 +23,7 @@ _BAD_CHOICE = re.compile(r"Invalid value '(.*)', expected one of \[(.*)\]")  # a
 
 def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> DictConfig:
     """Compose the recipe file ``path`` with Hydra-syntax ``overrides`` (no sweeps) as the
-    CLI's jobs are, and :func:`validate` it; FileNotFoundError or RecipeError if it fails.
+    CLI's jobs are, and ``validate`` it; FileNotFoundError or RecipeError if it fails.
 
     Examples:
         >>> cfg = load_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", ["seed=3"])

@@ -17,6 +17,7 @@ ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
     "rnd": RNDUncertainty,
     "world_model_ensemble": WorldModelEnsembleUncertainty,
 }
+"""The shipped uncertainty estimators by the name a recipe gives (``estimator.kind``)."""
 
 
 def get_estimator_class(kind: str) -> type[UncertaintyEstimator]:

@@ -197,7 +197,7 @@ class FittedCheck:
     def __init__(self, role: str = WORLD_MODEL) -> None:
         self.role = role
         self.passed: tuple | None = None
-        """What passed: the module and its ``(fitted buffer, version)`` pairs; None until then."""
+        """The module that passed and its ``(fitted buffer, version)`` pairs; None until then."""
 
     def _seen(self, module: nn.Module) -> tuple:
         buffers = tuple(buf for _, buf in _fitted_buffers(module))

@@ -26,7 +26,7 @@ class ReconstructionUncertainty(UncertaintyEstimator):
     on the training data. Standardising makes every feature count equally whatever its
     units (IB states span 0–100, actions ±1); the paper does not state its normalisation.
     Training minimises the mean of u over windows (paper eq. 1), see
-    :class:`~torchrl_recon.objectives.ReconstructionLoss`.
+    :class:`~torchrl_recon.objectives.UncertaintyLoss`.
 
     Args:
         obs_dim: state size N.
@@ -107,7 +107,7 @@ def window_errors(
 
     Args:
         x: ``[R, L, D]`` for one autoencoder, or ``[P, R, L, D]`` for a population of P.
-        window: T.
+        window: T (steps per window).
         activation: the hidden layer's activation name.
         weights: ``enc_w, enc_b, dec_w, dec_b`` in ``nn.Linear`` layout, ``[P, ...]`` each
             for a population (its matmuls are batched over the members).

@@ -106,7 +106,7 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
 
         With ``mask`` ``[*B, L]`` (True at real steps, then padding: slices of episodes shorter
         than L) the mean runs over the windows that end at a real step, short episodes started
-        at rest (:func:`~torchrl_recon.modules.padding.windows_at_rest`); padding never counts.
+        at rest (``torchrl_recon.modules.padding.windows_at_rest``); padding never counts.
         """
         if mask is None:
             return self.score(obs, action).mean()

@@ -518,7 +518,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         slices are whole episodes): only real steps count. ``"one_step"``: the LSTM is causal,
         so padding after the real steps changes nothing. ``"multi_step"``: a row with at most
         ``window`` real steps is started at rest
-        (:func:`~torchrl_recon.modules.padding.start_at_rest`: the slots before the episode hold
+        (``torchrl_recon.modules.padding.start_at_rest``: the slots before the episode hold
         its first observation and the zero action, as ``MPCPolicy(warmup="plan")`` plans an
         episode's start), and the error counts at the real steps after the warm-up. No padded
         value is read into a counted error.

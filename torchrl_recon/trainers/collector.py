@@ -93,6 +93,7 @@ class IterationCollector(BaseCollector):
         self.iteration = 0  # the next one to collect
         self.next_traj_id = 0
         self.batch_info: dict[str, Any] = {}
+        """The last batch's ``iteration``, ``policy``, ``plan_s``, ``env_s`` and ``replans``."""
 
     def policy_name(self, iteration: int) -> str:
         """Which policy plays ``iteration``: ``"random"``, ``"explore"`` or ``"mpc"``."""

@@ -77,6 +77,7 @@ class ModelFitStepper(OptimizationStepper):
         self.fits = 0  # fits done
         self.fitted_steps = 0  # the buffer's steps at the last fit
         self.last_fit: dict[str, Any] = {}
+        """The last fit's ``index``, ``val_loss`` (per network) and ``fit_s``."""
 
     def register(self, trainer: Trainer, name: str = "optimization_stepper") -> None:
         if trainer.optim_steps_per_batch != 1:

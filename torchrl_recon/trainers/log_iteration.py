@@ -74,6 +74,7 @@ class LogIteration(TrainerHookBase):
         self.world_model, self.estimator, self.slice_len = world_model, estimator, slice_len
         self.on_iteration, self.timed_policy = on_iteration, timed_policy
         self.records: list[IterationRecord] = []
+        """One :class:`~torchrl_recon.training.IterationRecord` per batch, in order."""
         self._trainer: Trainer | None = None
         self._seen: dict[str, Any] = {}
         self._last_end = time.perf_counter()

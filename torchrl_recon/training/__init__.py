@@ -1,4 +1,4 @@
-"""Training entry points and self-contained checkpoints."""
+"""Training entry points, the online fit schedule and self-contained checkpoints."""
 
 from __future__ import annotations
 
@@ -12,9 +12,12 @@ from torchrl_recon.training.fit import (
     train_loss_module,
     world_model_fit,
 )
+from torchrl_recon.training.online import FitSchedule, IterationRecord
 
 __all__ = [
     "FitResult",
+    "FitSchedule",
+    "IterationRecord",
     "fit_population",
     "fit_uncertainty",
     "fit_world_members",

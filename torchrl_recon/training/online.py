@@ -38,13 +38,13 @@ class FitSchedule:
     (``refit_steps``). Windows of ``slice_len`` steps, ``num_slices`` a batch; ``val_fraction``
     of the trajectories held out for early stopping. ``refit_old_steps``: a refit trains on the
     training split's new steps (those of the last iteration) plus whole earlier trajectories of
-    it drawn at random until they hold ``refit_old_steps`` steps (:func:`recent_and_sampled`);
+    it drawn at random until they hold ``refit_old_steps`` steps (``recent_and_sampled()``);
     None: on the whole training split. ``refit_uncertainty``: False leaves the estimator as
     the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
     exploring rounds). ``compile``: the world model's fits under ``torch.compile``
     (:func:`~torchrl_recon.training.train_loss_module`; compiled once per process, reused by
     every refit). ``uncertainty``: the estimator's fits' own settings, any of
-    :data:`FIT_SETTINGS`: its first fit's ``steps``, and ``lr``, ``eval_every``, ``patience``
+    ``FIT_SETTINGS``: its first fit's ``steps``, and ``lr``, ``eval_every``, ``patience``
     (the world model's where not given) and ``compile`` (False where not given); its refits take
     ``refit_steps`` too.
 
@@ -102,11 +102,11 @@ class FitSchedule:
                 )
 
     def world_model_settings(self) -> dict[str, Any]:
-        """The world model's fit settings, those of :data:`FIT_SETTINGS`."""
+        """The world model's fit settings, those of ``FIT_SETTINGS``."""
         return {k: getattr(self, k) for k in FIT_SETTINGS}
 
     def estimator_settings(self) -> dict[str, Any]:
-        """The estimator's fit settings: the world model's uncompiled, then :attr:`uncertainty`'s."""
+        """The estimator's fit settings: the world model's uncompiled, then ``uncertainty``'s."""
         return self.world_model_settings() | {"compile": False} | dict(self.uncertainty)
 
 
@@ -121,8 +121,8 @@ class IterationRecord:
     iteration's steps. ``model_error``: the world model's one-step error (standardised Δs,
     mean square) on this iteration's new data before it was refitted on them (NaN for the
     random data; over whole episodes when none is ``slice_len`` steps long, see
-    :func:`model_error`). ``mean_uncertainty``: the estimator's mean u of the new data's
-    windows (:func:`mean_uncertainty`).
+    ``model_error()``). ``mean_uncertainty``: the estimator's mean u of the new data's
+    windows (``mean_uncertainty()``).
     ``policy``: what played the steps (``"random"``, ``"explore"`` or ``"mpc"``).
     """
 

@@ -26,6 +26,7 @@ from sphinx import addnodes
 from sphinx.ext import autosummary
 from sphinx.pycode import ModuleAnalyzer
 from sphinx.transforms.post_transforms import SphinxPostTransform
+from sphinx.util import inspect as sphinx_inspect
 from sphinx.util import logging
 
 DOCS = Path(__file__).resolve().parent
@@ -237,7 +238,6 @@ def _api_names() -> frozenset[str]:
     return frozenset(f"{pkg}.{name}" for pkg in API_PACKAGES for name in public_names(pkg))
 
 
-
 def process_docstring(app, what, name, obj, options, lines) -> None:
     """Fill in a re-exported constant's docstring; warn when a public name has none."""
     if name not in _api_names():
@@ -262,6 +262,22 @@ def dataclass_factories(app, what, name, obj, options, signature, return_annotat
             call = f"{call}()" if call.isidentifier() else "..."
             signature = signature.replace("<factory>", call, 1)
     return signature, return_annotation
+
+
+def init_signatures(app, what, name, obj, options, signature, return_annotation):
+    """A class whose base takes ``(*args, **kwargs)`` in ``__new__`` or in its metaclass's
+    ``__call__`` (tensordict's TensorDictModuleBase, TorchRL's EnvBase, Trainer, samplers) shows
+    its own ``__init__``'s parameters, as its docstring's ``Args:`` describe them."""
+    init = getattr(obj, "__init__", None)
+    if what != "class" or signature != "(*args, **kwargs)" or not _is_library(init):
+        return None
+    aliases = app.config.autodoc_type_aliases
+    own = sphinx_inspect.signature(init, bound_method=True, type_aliases=aliases)
+    short = app.config.autodoc_typehints_format == "short"
+    text = sphinx_inspect.stringify_signature(
+        own, show_return_annotation=False, unqualified_typehints=short
+    )
+    return text, None
 
 
 def _is_library(obj) -> bool:
@@ -413,6 +429,7 @@ def setup(app) -> None:
     app.connect("source-read", add_guides_toctree)
     app.connect("autodoc-process-docstring", process_docstring)
     app.connect("autodoc-process-signature", dataclass_factories)
+    app.connect("autodoc-process-signature", init_signatures)
     app.connect("autodoc-skip-member", skip_foreign_member)
     app.connect("autodoc-process-bases", public_bases)
     app.connect("missing-reference", resolve_by_object)

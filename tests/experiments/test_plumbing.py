@@ -143,7 +143,14 @@ def _own_settings(stem: str, settings: list[dict]) -> list[dict]:
     return [by_name["baseline"], *relative]
 
 
-@pytest.mark.parametrize("path", SWEEP_RECIPES, ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path",  # explore and control in make test; the three control variants in make test-all
+    [
+        p if p.stem in ("explore", "control") else pytest.param(p, marks=pytest.mark.slow)
+        for p in SWEEP_RECIPES
+    ],
+    ids=lambda p: p.name,
+)
 def test_all_envs_sweep_runs_each_env_recipe(path):
     """Every job of recipes/all_envs/<kind>.yaml is its env's own recipe with the job's seed;
     the control_* ones keep only some of its settings (see ``_own_settings``)."""

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 
 
@@ -18,6 +20,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
 
 
+@pytest.mark.slow  # 29 s of real submitit jobs; the sweeps' wiring runs in test_plumbing.py
 def test_two_seeds_through_submitit_local_then_summarize(tmp_path):
     recipe = RECIPES / "industrial_benchmark" / "explore_smoke.yaml"
     out = tmp_path / "explore"

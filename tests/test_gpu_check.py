@@ -73,7 +73,10 @@ def test_dry_run_finds_every_step_wired(tmp_path):
     assert len(sections) == len(_load().build_steps("cuda", tiny=False, out=tmp_path))
     assert all(status.startswith("dry run: wired") for status in sections.values()), sections
     kinds = [title.split(":")[0] for title in sections]
-    assert kinds.count("benchmark") == len(_load().BENCHMARK_STEPS) == 9 and kinds.count("experiment") == 4, sections
+    assert (
+        kinds.count("benchmark") == len(_load().BENCHMARK_STEPS) == 9
+        and kinds.count("experiment") == 4
+    ), sections
 
 
 def test_the_recorded_wall_time_of_each_results_layout():
@@ -95,6 +98,7 @@ def test_a_flag_a_benchmark_lacks_is_reported_unwired():
 
 
 @NO_CUDA
+@pytest.mark.slow  # 17 s; the dry run and the full-size argv test check the wiring in make test
 def test_without_cuda_the_tests_run_and_the_gpu_steps_skip(tmp_path):
     proc = _check(tmp_path, "--device", "cuda")
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -92,7 +92,9 @@ CALIBRATION_METRICS = (
 )
 
 
-@pytest.mark.parametrize("env", ("industrial_benchmark", "drone", "minitaur"))
+@pytest.mark.parametrize(  # IB's (19 s) in make test-all; the Drone's and Minitaur's here
+    "env", (pytest.param("industrial_benchmark", marks=pytest.mark.slow), "drone", "minitaur")
+)
 def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
     """All five estimators fitted, judged and timed; the outcome runs on IB only (time)."""
     out = tmp_path / "run"

@@ -22,7 +22,9 @@ from ..conftest import HORIZON, WINDOW, OffsetNoisePolicy
 LINEAR_MARGIN = {"industrial_benchmark": 0.6, "drone": 0.9}
 
 
-@pytest.fixture(scope="module", params=["industrial_benchmark", "drone"])
+@pytest.fixture(  # the Drone's (39 s to train) in make test-all
+    scope="module", params=["industrial_benchmark", pytest.param("drone", marks=pytest.mark.slow)]
+)
 def trained(request, trained_models):
     return trained_models(request.param)
 

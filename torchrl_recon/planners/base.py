@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import warnings
 from dataclasses import dataclass
 from typing import Literal
@@ -161,11 +160,15 @@ class PlannerBase(nn.Module):
             raise ValueError(
                 f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
             )
-        graph = self.plan_graph
         mode = self.model.compile_mode
-        if mode is not None and self.compiles_whole_call and generator is None:
-            graph = functools.partial(compiled_plan(type(self).plan_graph, mode), self)
-        return self._checked(*graph(context_obs, context_action, observation, init, generator))
+        if mode is None or not self.compiles_whole_call or generator is not None:
+            return self._checked(
+                *self.plan_graph(context_obs, context_action, observation, init, generator)
+            )
+        graph = compiled_plan(type(self).plan_graph, mode)
+        out = graph(self, context_obs, context_action, observation, init, None)
+        # a CUDA graph's outputs are overwritten by its next replay: the plan keeps copies
+        return self._checked(*(x.clone() if isinstance(x, torch.Tensor) else x for x in out))
 
     compiles_whole_call: bool = False
     """Whether ``planning_compile`` (the planning model's ``compile``) compiles :meth:`plan_graph`

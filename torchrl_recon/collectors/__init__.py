@@ -6,6 +6,7 @@ from torchrl_recon.collectors.datasets import (
     EpisodesTooShort,
     concat_trajectories,
     first_episodes,
+    renumber_trajectories,
     validation_trajectories,
 )
 from torchrl_recon.collectors.policies import OffsetNoisePolicy
@@ -17,6 +18,7 @@ __all__ = [
     "collect",
     "collect_random",
     "concat_trajectories",
+    "renumber_trajectories",
     "first_episodes",
     "validation_trajectories",
 ]

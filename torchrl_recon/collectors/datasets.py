@@ -25,15 +25,27 @@ def concat_trajectories(*datasets: TensorDictBase) -> TensorDictBase:
     for data in datasets:
         if data.numel() == 0:
             continue
-        data = data.clone()
-        ids = data.get(TRAJ_KEY)
-        _, dense = torch.unique(ids, return_inverse=True)
-        data.set(TRAJ_KEY, dense + offset)
-        offset += int(dense.max()) + 1
+        data, offset = renumber_trajectories(data.clone(), offset)
         parts.append(data)
     if not parts:
         raise ValueError("concat_trajectories got no non-empty dataset.")
     return torch.cat(parts, 0)
+
+
+def renumber_trajectories(data: TensorDictBase, offset: int) -> tuple[TensorDictBase, int]:
+    """``data`` (changed in place) with its trajectory ids made ``offset, offset + 1, ...`` in
+    their order, and the first id after them.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> a = TensorDict({("collector", "traj_ids"): torch.tensor([7, 7, 9])}, [3])
+        >>> out, following = renumber_trajectories(a, 4)
+        >>> out["collector", "traj_ids"].tolist(), following
+        ([4, 4, 5], 6)
+    """
+    _, dense = torch.unique(data.get(TRAJ_KEY), return_inverse=True)
+    data.set(TRAJ_KEY, dense + offset)
+    return data, offset + int(dense.max()) + 1
 
 
 class EpisodesTooShort(RuntimeError):

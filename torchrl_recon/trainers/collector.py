@@ -7,14 +7,12 @@ from collections import OrderedDict
 from collections.abc import Iterator
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase, TransformedEnv
 
-from torchrl_recon.collectors import collect, collect_random
-from torchrl_recon.data.buffers import TRAJ_KEY
+from torchrl_recon.collectors import collect, collect_random, renumber_trajectories
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
@@ -25,6 +23,7 @@ class TimedPolicy(TensorDictModuleBase):
     collection: the rest is the env's).
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictModule
         >>> timed = TimedPolicy(TensorDictModule(torch.nn.Linear(2, 1), ["x"], ["action"]))
@@ -114,9 +113,7 @@ class IterationCollector(BaseCollector):
     def renumber(self, data: TensorDictBase) -> TensorDictBase:
         """``data`` with trajectory ids ``0, 1, ...`` in their order, shifted past the ids of the
         batches before it (as :func:`~torchrl_recon.collectors.concat_trajectories` numbers them)."""
-        _, dense = torch.unique(data.get(TRAJ_KEY), return_inverse=True)
-        data = data.clone(False).set(TRAJ_KEY, dense + self.next_traj_id)
-        self.next_traj_id += int(dense.max()) + 1
+        data, self.next_traj_id = renumber_trajectories(data.clone(False), self.next_traj_id)
         return data
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:

@@ -204,10 +204,8 @@ def run(ctx: RunContext) -> dict:
     warmup = warmup_mode(cfg, data)  # from the random data only, once
     world, estimator = build_models(cfg, *dims(data), ctx.device)
     model = planning_model(cfg, world, estimator)
-    buffer = ReplayBuffer(
-        storage=LazyTensorStorage(cfg.random_steps + cfg.iterations * cfg.steps_per_iteration)
-    )
     collector = StagedCollector(ctx, model, data, warmup, lambda: buffer[:])
+    buffer = ReplayBuffer(storage=LazyTensorStorage(collector.total_frames))
     fits = StagedFit(ctx, model, buffer)
     trainer = OnlineTrainer(
         collector=collector,

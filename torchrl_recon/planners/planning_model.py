@@ -84,16 +84,21 @@ def resolve_block_rows(block_rows: int | str | None, device: torch.device) -> in
         ...
         ValueError: block_rows must be a positive int, None (one pass) or 'auto', got 'all'.
     """
+    check_block_rows(block_rows)
     if block_rows == "auto":
         return BLOCK_ROWS if device.type == "cpu" else None
-    if block_rows is None:
-        return None
+    return block_rows
+
+
+def check_block_rows(block_rows: int | str | None) -> None:
+    """Refuse a ``block_rows`` that is not a positive int, None or ``"auto"``."""
+    if block_rows is None or block_rows == "auto":
+        return
     if isinstance(block_rows, str):
         raise ValueError(
             f"block_rows must be a positive int, None (one pass) or 'auto', got {block_rows!r}."
         )
     check_int("block_rows", block_rows)
-    return block_rows
 
 
 def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

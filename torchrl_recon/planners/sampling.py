@@ -14,8 +14,8 @@ from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
     Prediction,
+    check_block_rows,
     gather_candidates,
-    resolve_block_rows,
 )
 
 WARM_START_STD = 0.25
@@ -115,7 +115,7 @@ class SamplingPlanner(PlannerBase):
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
-        resolve_block_rows(block_rows, torch.device("cpu"))  # checked now, resolved per call
+        check_block_rows(block_rows)  # resolved for the candidates' device at each call
         check_int("iterations", iterations)
         self.num_candidates, self.iterations, self.block_rows = (
             num_candidates,

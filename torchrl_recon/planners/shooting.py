@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import torch
-
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, resolve_block_rows, without_grad
+from torchrl_recon.planners.planning_model import PlanningModel, check_block_rows, without_grad
 
 
 class RandomShootingPlanner(PlannerBase):
@@ -25,6 +23,7 @@ class RandomShootingPlanner(PlannerBase):
         on_infeasible: ``"fallback"`` or ``"raise"`` (see :class:`PlannerBase`).
 
     Examples:
+        >>> import torch
         >>> from torchrl_recon.modules import LSTMWorldModel
         >>> from torchrl_recon.envs.drone import drone_cost
         >>> world_model = LSTMWorldModel(12, 4)
@@ -49,7 +48,7 @@ class RandomShootingPlanner(PlannerBase):
     ) -> None:
         super().__init__(model, objective, horizon=horizon, on_infeasible=on_infeasible)
         check_int("num_candidates", num_candidates)
-        resolve_block_rows(block_rows, torch.device("cpu"))  # checked now, resolved per call
+        check_block_rows(block_rows)  # resolved for the candidates' device at each call
         self.num_candidates, self.block_rows = num_candidates, block_rows
 
     @without_grad

@@ -119,7 +119,8 @@ class PlannerBase(nn.Module):
         return self._draw(torch.randn, batch, k, generator)
 
     def _clamp(self, actions: torch.Tensor) -> torch.Tensor:
-        return torch.maximum(torch.minimum(actions, self.model.action_high), self.model.action_low)
+        """``actions`` clipped to the bounds (one pass: ``maximum(minimum(...))``'s values)."""
+        return torch.clamp(actions, self.model.action_low, self.model.action_high)
 
     def _bounds(self, prediction: Prediction) -> tuple[torch.Tensor, torch.Tensor] | None:
         band = self.objective.band
@@ -149,7 +150,9 @@ class PlannerBase(nn.Module):
         ``"reduce-overhead"`` on a GPU, a CUDA graph) and its flags are read after it; a call
         with a ``generator`` runs uncompiled (the graph draws from the global RNG). Inductor
         draws its own random numbers unless ``torch._inductor.config.fallback_random`` is set,
-        so a compiled plan's candidates differ from eager's for the same seed.
+        so a compiled plan's candidates differ from eager's for the same seed. With the
+        planning model's ``threads`` above 1 on the CPU, only its pass is compiled, and its
+        row blocks run on that many threads (:class:`PlanningModel`).
         """
         self.model.check_context(context_obs, context_action, observation)
         if init is not None and init.shape != (
@@ -161,7 +164,8 @@ class PlannerBase(nn.Module):
                 f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
             )
         mode = self.model.compile_mode
-        if mode is None or not self.compiles_whole_call or generator is not None:
+        whole = self.compiles_whole_call and not self.model.blocks_in_threads
+        if mode is None or not whole or generator is not None:
             return self._checked(
                 *self.plan_graph(context_obs, context_action, observation, init, generator)
             )

@@ -17,6 +17,7 @@ from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
+from torchrl_recon.planners.cpu_threads import check_threads, run_blocks, threaded_pass
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 """``torch.compile``'s modes, for ``PlanningModel(compile=...)``."""
@@ -196,6 +197,11 @@ class Prediction:
         u = None if self.uncertainty is None else self.uncertainty.detach()
         return Prediction(self.states.detach(), self.cost.detach(), u)
 
+    def first(self, k: int) -> Prediction:
+        """The first ``k`` candidates."""
+        u = None if self.uncertainty is None else self.uncertainty[..., :k, :]
+        return Prediction(self.states[..., :k, :, :], self.cost[..., :k, :], u)
+
     def cat(self, other: Prediction) -> Prediction:
         """Candidates of ``self`` followed by those of ``other``."""
         return Prediction.concat([self, other])
@@ -281,6 +287,13 @@ class PlanningModel(nn.Module):
             new shape compiles (seconds). Off by default: on a 2-core CPU it was slower than
             eager, on an H200 1.1–1.3× faster a CEM call (``docs/benchmarks.md``). On the
             CPU it needs a C++ compiler (refused here without one).
+        threads: on the CPU, evaluate the candidates in ``threads`` row blocks (or a multiple)
+            on as many threads at once, one core each (:mod:`~torchrl_recon.planners.cpu_threads`):
+            each block is one call compiled with Inductor's C++ wrapper, which runs without
+            the GIL, so this needs ``compile``. The same predictions up to float rounding.
+            The planners then compile only this pass, not their whole call. A pass with
+            autograd (the gradient planner) and a pass on another device run in one thread.
+            Default 1: one thread.
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -305,6 +318,7 @@ class PlanningModel(nn.Module):
         action_low: float | torch.Tensor = -1.0,
         action_high: float | torch.Tensor = 1.0,
         compile: bool | str = False,
+        threads: int = 1,
     ) -> None:
         super().__init__()
         self.world_model, self.cost_fn, self.uncertainty = world_model, cost_fn, uncertainty
@@ -340,6 +354,14 @@ class PlanningModel(nn.Module):
         self.compile_mode = compile_mode(compile)
         if self.compile_mode is not None:
             check_compile_support(device)
+        self.threads = check_threads(threads)
+        self._threaded_shapes: set[tuple] = set()  # the block shapes run in threads so far
+        if self.threads > 1 and self.compile_mode is None:
+            raise ValueError(
+                f"threads={threads} runs the row blocks in parallel only as compiled calls "
+                "(eager ops hold Python's GIL between kernels: slower than one thread); pass "
+                "compile=True too, or threads=1."
+            )
         check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)
         if termination_fn is not None:
             check_step_fn(
@@ -364,6 +386,7 @@ class PlanningModel(nn.Module):
         uncertainty: UncertaintyEstimator | None = None,
         termination_fn: TerminationFn | None = None,
         compile: bool | str = False,
+        threads: int = 1,
     ) -> PlanningModel:
         """A planning model whose action bounds are the env's (its ``Bounded`` action spec).
 
@@ -393,7 +416,14 @@ class PlanningModel(nn.Module):
             action_low=low,
             action_high=high,
             compile=compile,
+            threads=threads,
         )
+
+    @property
+    def blocks_in_threads(self) -> bool:
+        """Whether a pass without autograd runs its row blocks on :attr:`threads` threads
+        (``threads > 1`` and the model on the CPU)."""
+        return self.threads > 1 and self.action_low.device.type == "cpu"
 
     @property
     def context_length(self) -> int:
@@ -500,32 +530,65 @@ class PlanningModel(nn.Module):
         block_rows = resolve_block_rows(block_rows, actions.device)
         batch_rows = int(observation.shape[:-1].numel())
         k = actions.shape[-3]
-        predict = type(self)._predict
-        if self.compile_mode is not None and not torch.compiler.is_compiling():
-            predict = compiled_pass(predict, self.compile_mode)  # (a planner's graph inlines it)
-        if block_rows is None or batch_rows * k <= block_rows:
-            return predict(self, context_obs, context_action, observation, actions, state)
-        chunk = max(1, block_rows // batch_rows)
+        context = (context_obs, context_action, observation)
         blocks_u = self._row_independent_u
-        prediction = Prediction.concat(
-            [
-                predict(
-                    self,
-                    context_obs,
-                    context_action,
-                    observation,
-                    actions[..., i : i + chunk, :, :],
-                    state,
-                    with_u=blocks_u,
-                )
-                for i in range(0, k, chunk)
-            ]
-        )
+        compiling = torch.compiler.is_compiling()
+        if self.blocks_in_threads and not (torch.is_grad_enabled() or compiling):
+            prediction = self._threaded(*context, actions, state, block_rows, blocks_u)
+        else:
+            predict = type(self)._predict
+            if self.compile_mode is not None and not compiling:
+                predict = compiled_pass(predict, self.compile_mode)  # (a plan's graph inlines it)
+            if block_rows is None or batch_rows * k <= block_rows:
+                return predict(self, *context, actions, state)
+            chunk = max(1, block_rows // batch_rows)
+            prediction = Prediction.concat(
+                [
+                    predict(self, *context, block, state, with_u=blocks_u)
+                    for block in actions.split(chunk, dim=-3)
+                ]
+            )
         if self.uncertainty is not None and not blocks_u:
             entering = _entering(observation, prediction.states)
             u = self._score_uncertainty(context_obs, context_action, entering, actions)
             prediction.uncertainty = self._until_end(u, entering, actions, prediction.states)
         return prediction
+
+    def _threaded(
+        self,
+        context_obs: torch.Tensor,
+        context_action: torch.Tensor,
+        observation: torch.Tensor,
+        actions: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor] | None,
+        block_rows: int | None,
+        with_u: bool,
+    ) -> Prediction:
+        """:meth:`forward`'s blocks on :attr:`threads` threads: a multiple of ``threads`` blocks
+        of equal size (each at most ``block_rows`` rows where it can be), the last padded with
+        copies of its last candidate so every block has the compiled shape."""
+        batch_rows, k = int(observation.shape[:-1].numel()), actions.shape[-3]
+        rows_per_block = block_rows or batch_rows * k
+        blocks = -(-batch_rows * k // rows_per_block)  # blocks the rows need, at least
+        blocks = min(k, -(-blocks // self.threads) * self.threads)
+        chunk = -(-k // blocks)
+        blocks = -(-k // chunk)
+        if chunk * blocks > k:
+            last = actions[..., -1:, :, :]
+            pad = last.expand(*last.shape[:-3], chunk * blocks - k, *last.shape[-2:])
+            actions = torch.cat([actions, pad], -3)
+        parts = [block.contiguous() for block in actions.split(chunk, dim=-3)]
+        predict = threaded_pass(type(self)._predict, self.compile_mode)
+        context = (context_obs, context_action, observation)
+        shapes = (*(tuple(x.shape) for x in (*context, parts[0])), with_u)
+        predictions = run_blocks(
+            lambda i: predict(self, *context, parts[i], state, with_u=with_u),
+            len(parts),
+            self.threads,
+            first_alone=shapes not in self._threaded_shapes,  # it compiles, once
+        )
+        self._threaded_shapes.add(shapes)
+        return Prediction.concat(predictions).first(k)
 
     @property
     def _row_independent_u(self) -> bool:

@@ -1,0 +1,140 @@
+"""``PlanningModel(threads=N)``: the row blocks of a pass on N CPU threads at once, each block one
+call compiled with Inductor's C++ wrapper (no GIL); the same predictions and plans as eager."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import torch
+
+from tests.compilers import needs_cpp_compiler
+from tests.fitting import fitted
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, base, cpu_threads
+from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
+
+
+def _cost(s, a, s2):
+    return s2.pow(2).sum(-1)
+
+
+def _model(**kwargs) -> PlanningModel:
+    torch.manual_seed(0)
+    world = fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8))
+    est = fitted(ReconstructionUncertainty(3, 2, window=4, hidden_size=8))
+    return PlanningModel(world, _cost, uncertainty=est, **kwargs)
+
+
+def _context(batch: tuple[int, ...] = ()) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(1)
+    return (
+        torch.randn(*batch, 4, 3, generator=g),
+        torch.rand(*batch, 4, 2, generator=g) * 2 - 1,
+        torch.randn(*batch, 3, generator=g),
+    )
+
+
+def test_run_blocks_runs_every_block_once_in_order_on_several_threads_at_one_intra_op_thread():
+    seen, lock = [], threading.Lock()
+
+    def block(i: int) -> int:
+        with lock:
+            seen.append(
+                (
+                    i,
+                    threading.get_ident(),
+                    torch.get_num_threads(),
+                    torch.is_inference_mode_enabled(),
+                )
+            )
+        return i * 10
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with torch.inference_mode():
+            assert run_blocks(block, blocks=5, threads=2) == [0, 10, 20, 30, 40]
+        assert torch.get_num_threads() == 2  # the process's count, restored
+    finally:
+        torch.set_num_threads(before)
+    assert sorted(i for i, *_ in seen) == [0, 1, 2, 3, 4]
+    assert len({ident for _, ident, *_ in seen}) == 2
+    assert all(n == 1 and inference for _, _, n, inference in seen)
+
+
+def test_run_blocks_can_finish_the_first_block_before_the_others_start():
+    events, lock = [], threading.Lock()
+
+    def block(i: int) -> int:
+        with lock:
+            events.append(("start", i))
+        with lock:
+            events.append(("end", i))
+        return i
+
+    assert run_blocks(block, blocks=4, threads=2, first_alone=True) == [0, 1, 2, 3]
+    assert events[:2] == [("start", 0), ("end", 0)]
+
+
+def test_run_blocks_propagates_a_blocks_error():
+    def block(i: int) -> int:
+        if i == 3:
+            raise ValueError("block 3 failed")
+        return i
+
+    with pytest.raises(ValueError, match="block 3 failed"):
+        run_blocks(block, blocks=4, threads=2)
+
+
+@pytest.mark.parametrize("threads", [0, -2, 1.5, "2", None])
+def test_threads_must_be_a_positive_int(threads):
+    with pytest.raises((ValueError, TypeError), match="threads"):
+        check_threads(threads)
+    with pytest.raises((ValueError, TypeError), match="threads"):
+        _model(compile=True, threads=threads)
+
+
+def test_threads_without_compile_is_refused_in_one_line_that_says_why():
+    with pytest.raises(ValueError, match=r"threads=2 .* GIL .* pass compile=True too"):
+        _model(threads=2)
+
+
+@needs_cpp_compiler
+def test_threads_predict_and_plan_what_one_eager_thread_does(monkeypatch):
+    eager, threaded = _model(), _model(compile=True, threads=2)
+    assert threaded.blocks_in_threads and not eager.blocks_in_threads
+    ctx = _context((2,))  # a batch of 2 contexts (one compiled shape: the plans' below)
+    g = torch.Generator().manual_seed(2)
+    actions = torch.rand(2, 15, 2, 2, generator=g) * 2 - 1  # 15 candidates: a padded block
+    with torch.inference_mode():
+        a, b = eager(*ctx, actions), threaded(*ctx, actions)
+    for x, y in ((a.states, b.states), (a.cost, b.cost), (a.uncertainty, b.uncertainty)):
+        assert y.shape == x.shape
+        torch.testing.assert_close(y, x, rtol=1e-5, atol=1e-6)
+
+    def whole_call(*args, **kwargs):
+        raise AssertionError("with threads the planner compiles its pass, not its whole call")
+
+    monkeypatch.setattr(base, "compiled_plan", whole_call)
+    plans = []
+    for model in (eager, threaded):
+        planner = CEMPlanner(
+            model, Objective(beta=0.1), horizon=2, num_candidates=15, num_elites=4, iterations=2
+        )
+        plans.append(planner.plan(*ctx, generator=torch.Generator().manual_seed(3)))
+    torch.testing.assert_close(plans[1].actions, plans[0].actions, rtol=0, atol=1e-6)
+    torch.testing.assert_close(plans[1].objective, plans[0].objective, rtol=1e-5, atol=1e-6)
+
+
+@needs_cpp_compiler
+def test_the_threaded_pass_is_compiled_with_the_cpp_wrapper_that_releases_the_gil(monkeypatch):
+    calls = []
+    monkeypatch.setattr(
+        cpu_threads.torch, "compile", lambda fn, **kw: calls.append(kw) or fn, raising=True
+    )
+    cpu_threads.threaded_pass.__wrapped__(lambda: None, "max-autotune")  # past its cache
+    (kwargs,) = calls
+    assert kwargs["fullgraph"] is True and kwargs["options"]["cpp_wrapper"] is True
+    assert kwargs["options"]["max_autotune"] is True
+    assert "triton.cudagraphs" not in kwargs["options"]

@@ -1,0 +1,120 @@
+"""Row blocks on several CPU cores at once: each block one compiled call that runs without the GIL.
+
+The candidates' rows are independent, so a planning pass splits into blocks that could run on
+every core. Eager PyTorch holds Python's GIL between its small kernels, so blocks in Python
+threads ran slower than one thread (0.65×, ``benchmarks/cpu_blocks.py``), and intra-op threads
+do not pay at these sizes. Inductor's C++ wrapper (``torch.compile`` option ``cpp_wrapper``)
+runs a whole compiled graph in C++ with the GIL released, so the blocks of such a graph, called
+from several threads, run in parallel. :func:`threaded_pass` compiles a pass that way and
+:func:`run_blocks` runs its blocks on a shared thread pool, one intra-op thread each.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import TypeVar
+
+import torch
+
+from torchrl_recon.modules.checks import check_int
+
+T = TypeVar("T")
+
+
+def check_threads(threads: object) -> int:
+    """``threads`` as a positive int, or a ``ValueError`` naming it.
+
+    Examples:
+        >>> check_threads(2)
+        2
+        >>> check_threads(0)
+        Traceback (most recent call last):
+        ...
+        ValueError: threads must be a positive int, got 0.
+    """
+    check_int("threads", threads)
+    return int(threads)
+
+
+@functools.cache
+def threaded_pass(fn: Callable, mode: str) -> Callable:
+    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options, one graph
+    (``fullgraph=True``), made once per function and mode.
+
+    The C++ wrapper releases the GIL for the whole compiled call (Inductor's
+    ``cpp_wrapper_cpu``), which is what lets :func:`run_blocks` run blocks in parallel. Called
+    with Dynamo's ``allow_rnn`` on (see :func:`~torchrl_recon.planners.planning_model.compiled_plan`).
+    """
+    options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
+    options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs
+    compiled = torch.compile(fn, fullgraph=True, options=options)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        with torch._dynamo.config.patch(allow_rnn=True):
+            return compiled(*args, **kwargs)
+
+    return call
+
+
+@functools.cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The process's pool of ``workers`` block threads (shared by every planning model)."""
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchrl_recon-block")
+
+
+@contextmanager
+def one_intra_op_thread() -> Iterator[None]:
+    """Run the body at one intra-op thread, the process's count restored after.
+
+    ``torch.set_num_threads`` is process-wide: while blocks run, every thread's ops use one
+    core each, so ``threads`` blocks use ``threads`` cores.
+    """
+    before = torch.get_num_threads()
+    if before == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def run_blocks(
+    fn: Callable[[int], T], blocks: int, threads: int, *, first_alone: bool = False
+) -> list[T]:
+    """``[fn(0), ..., fn(blocks - 1)]``, the blocks spread over ``threads`` threads (the
+    calling one included), each thread's blocks one after another, at one intra-op thread.
+
+    ``fn`` must be safe to call from several threads at once (a compiled pass is; so is
+    reading shared tensors). The caller's grad and inference modes, which are per thread, hold
+    in every block thread too. ``first_alone``: run ``fn(0)`` before the others start (a call
+    that compiles: Dynamo compiles under a process-wide lock, but a thread that looked up its
+    cache before the first compile ended compiles the same graph again).
+
+    Examples:
+        >>> run_blocks(lambda i: i * i, blocks=5, threads=2)
+        [0, 1, 4, 9, 16]
+    """
+    threads = min(check_threads(threads), blocks)
+    if threads == 1:
+        return [fn(i) for i in range(blocks)]
+    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
+
+    def run_group(group: Sequence[int]) -> list[tuple[int, T]]:
+        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+            return [(i, fn(i)) for i in group]
+
+    with one_intra_op_thread():
+        done = run_group([0]) if first_alone else []
+        rest = range(len(done), blocks)
+        groups = [rest[g::threads] for g in range(threads)]
+        futures = [_pool(threads - 1).submit(run_group, g) for g in groups[1:]]
+        done += run_group(groups[0])
+        for future in futures:
+            done += future.result()
+    return [out for _, out in sorted(done, key=lambda pair: pair[0])]

@@ -97,6 +97,7 @@ def make_planning_model(
     uncertainty: Any = None,
     termination: str | None = None,
     compile: bool | str = False,
+    threads: int = 1,
 ) -> PlanningModel:
     """:meth:`PlanningModel.from_env` with the cost (and termination) named ``module:function``.
 
@@ -114,6 +115,7 @@ def make_planning_model(
         uncertainty=uncertainty,
         termination_fn=termination_fn,
         compile=compile,
+        threads=threads,
     )
 
 
@@ -132,6 +134,7 @@ def make_online_trainer(
     estimator: Callable[[int, int], Any] | None = None,
     termination: str | None = None,
     planning_compile: bool | str = False,
+    planning_threads: int = 1,
     explore_iterations: int = 0,
     exploration: Objective | None = None,
     seed: int = 0,
@@ -174,6 +177,7 @@ def make_online_trainer(
         uncertainty=uncertainty,
         termination=termination,
         compile=planning_compile,
+        threads=planning_threads,
     )
     explorer = None
     if explore_iterations:

@@ -97,6 +97,9 @@ def test_planning_compile_reaches_the_planning_model(kind, tmp_path):
         cfg = _ctx(tmp_path, kind, f"planning_compile={str(value).lower()}").cfg
         world, estimator = build_models(cfg, 6, 3)
         assert planning_model(cfg, world, estimator).compile_mode == mode
+    cfg = _ctx(tmp_path, kind, "planning_compile=true", "planning_threads=2").cfg
+    model = planning_model(cfg, *build_models(cfg, 6, 3))
+    assert model.threads == 2 and model.blocks_in_threads
 
 
 def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):

@@ -122,6 +122,8 @@ BAD = [
     ("drone/control_smoke", "planning_compile=maybe", ["'planning_compile'", "reduce-overhead"]),
     ("gym/online_smoke", "planning_compile=1", ["'planning_compile'", "got 1"]),
     ("drone/calibrate_smoke", "planning_compile=true", ["unknown key 'planning_compile'"]),
+    ("drone/control_smoke", "planning_threads=0", ["'planning_threads'", ">= 1", "got 0"]),
+    ("gym/online_smoke", "planning_threads=2", ["'planning_compile'", "planning_threads above 1"]),
     ("drone/calibrate_smoke", "random_steps=60", ["'random_steps'", "two trajectories"]),
     (
         "drone/calibrate_smoke",

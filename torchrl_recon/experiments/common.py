@@ -106,7 +106,7 @@ def planning_model(
 ) -> PlanningModel:
     """The recipe's :class:`PlanningModel`: its cost, ``env.termination`` and the action bounds
     of its env (built and closed without stepping), its pass compiled as ``planning_compile``
-    says."""
+    says, its row blocks on ``planning_threads`` threads."""
     path = cfg.env.get("termination")
     termination = None if path is None else import_cost(path, what="termination")
     with closing_env(build_env(cfg, seed=0, episode_steps=1)) as env:
@@ -117,6 +117,7 @@ def planning_model(
             uncertainty=uncertainty,
             termination_fn=termination,
             compile=cfg.get("planning_compile", False),
+            threads=cfg.get("planning_threads", 1),
         )
 
 

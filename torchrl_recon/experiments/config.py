@@ -256,9 +256,12 @@ class PlanningRunConfig(RunConfig):
     """What every run that plans has too. ``planning_compile``: the planning model's pass
     (rollout, cost, u) under ``torch.compile`` (``PlanningModel(compile=...)``: ``true`` or a
     mode such as ``reduce-overhead``, CUDA graphs); the same plans up to float rounding after a
-    compile of seconds per new batch shape. Off by default: see ``docs/planning.md``."""
+    compile of seconds per new batch shape. Off by default: see ``docs/planning.md``.
+    ``planning_threads``: on the CPU, the pass's row blocks on this many threads at once
+    (``PlanningModel(threads=...)``; above 1 it needs ``planning_compile``)."""
 
     planning_compile: Any = checked(False, _compile_choice)
+    planning_threads: int = count(1)
 
 
 @dataclass

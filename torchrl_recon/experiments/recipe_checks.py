@@ -130,6 +130,13 @@ def _run_errors(errors: RecipeErrors) -> None:
         except (ValueError, TypeError) as e:
             errors.append(f"'models.world_model': {e}")
     estimator_errors(errors, "models.uncertainty", m.uncertainty)
+    if cfg.get("planning_threads", 1) > 1:
+        errors.need(
+            "planning_compile",
+            cfg.planning_compile is not False,
+            "true or a torch.compile mode with planning_threads above 1 (the blocks run in "
+            "parallel only as compiled calls)",
+        )
 
 
 def _part_errors(

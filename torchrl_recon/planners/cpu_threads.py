@@ -33,7 +33,7 @@ def check_threads(threads: object) -> int:
         >>> check_threads(0)
         Traceback (most recent call last):
         ...
-        ValueError: threads must be a positive int, got 0.
+        ValueError: threads must be an int >= 1, got 0.
     """
     check_int("threads", threads)
     return int(threads)
@@ -46,7 +46,7 @@ def threaded_pass(fn: Callable, mode: str) -> Callable:
 
     The C++ wrapper releases the GIL for the whole compiled call (Inductor's
     ``cpp_wrapper_cpu``), which is what lets :func:`run_blocks` run blocks in parallel. Called
-    with Dynamo's ``allow_rnn`` on (see :func:`~torchrl_recon.planners.planning_model.compiled_plan`).
+    with Dynamo's ``allow_rnn`` on (as ``planning_model.compiled_plan``).
     """
     options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
     options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs

@@ -288,9 +288,9 @@ class PlanningModel(nn.Module):
             eager, on an H200 1.1–1.3× faster a CEM call (``docs/benchmarks.md``). On the
             CPU it needs a C++ compiler (refused here without one).
         threads: on the CPU, evaluate the candidates in ``threads`` row blocks (or a multiple)
-            on as many threads at once, one core each (:mod:`~torchrl_recon.planners.cpu_threads`):
+            on as many threads at once, one core each (:func:`~torchrl_recon.planners.run_blocks`):
             each block is one call compiled with Inductor's C++ wrapper, which runs without
-            the GIL, so this needs ``compile``. The same predictions up to float rounding.
+            the GIL (:func:`~torchrl_recon.planners.threaded_pass`), so this needs ``compile``. The same predictions up to float rounding.
             The planners then compile only this pass, not their whole call. A pass with
             autograd (the gradient planner) and a pass on another device run in one thread.
             Default 1: one thread.
@@ -421,7 +421,7 @@ class PlanningModel(nn.Module):
 
     @property
     def blocks_in_threads(self) -> bool:
-        """Whether a pass without autograd runs its row blocks on :attr:`threads` threads
+        """Whether a pass without autograd runs its row blocks on ``threads`` threads
         (``threads > 1`` and the model on the CPU)."""
         return self.threads > 1 and self.action_low.device.type == "cpu"
 
@@ -564,7 +564,7 @@ class PlanningModel(nn.Module):
         block_rows: int | None,
         with_u: bool,
     ) -> Prediction:
-        """:meth:`forward`'s blocks on :attr:`threads` threads: a multiple of ``threads`` blocks
+        """:meth:`forward`'s blocks on ``threads`` threads: a multiple of ``threads`` blocks
         of equal size (each at most ``block_rows`` rows where it can be), the last padded with
         copies of its last candidate so every block has the compiled shape."""
         batch_rows, k = int(observation.shape[:-1].numel()), actions.shape[-3]

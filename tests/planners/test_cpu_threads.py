@@ -3,6 +3,7 @@ call compiled with Inductor's C++ wrapper (no GIL); the same predictions and pla
 
 from __future__ import annotations
 
+import multiprocessing
 import threading
 
 import pytest
@@ -138,3 +139,17 @@ def test_the_threaded_pass_is_compiled_with_the_cpp_wrapper_that_releases_the_gi
     assert kwargs["fullgraph"] is True and kwargs["options"]["cpp_wrapper"] is True
     assert kwargs["options"]["max_autotune"] is True
     assert "triton.cudagraphs" not in kwargs["options"]
+
+
+def _blocks_in_child() -> None:
+    assert run_blocks(lambda i: i + 1, blocks=3, threads=2) == [1, 2, 3]
+
+
+def test_a_forked_child_runs_blocks_on_threads_of_its_own():
+    assert run_blocks(lambda i: i, blocks=2, threads=2) == [0, 1]  # the parent's pool exists
+    child = multiprocessing.get_context("fork").Process(target=_blocks_in_child)
+    child.start()
+    child.join(timeout=20)
+    if child.exitcode is None:
+        child.kill()
+    assert child.exitcode == 0  # None: it hung on the parent's pool, which has no threads here

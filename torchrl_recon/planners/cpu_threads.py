@@ -12,6 +12,7 @@ from several threads, run in parallel. :func:`threaded_pass` compiles a pass tha
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -61,8 +62,9 @@ def threaded_pass(fn: Callable, mode: str) -> Callable:
 
 
 @functools.cache
-def _pool(workers: int) -> ThreadPoolExecutor:
-    """The process's pool of ``workers`` block threads (shared by every planning model)."""
+def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
+    """Process ``pid``'s pool of ``workers`` block threads (shared by every planning model; a
+    forked child, whose copy of its parent's pool has no threads, makes its own)."""
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchrl_recon-block")
 
 
@@ -113,7 +115,8 @@ def run_blocks(
         done = run_group([0]) if first_alone else []
         rest = range(len(done), blocks)
         groups = [rest[g::threads] for g in range(threads)]
-        futures = [_pool(threads - 1).submit(run_group, g) for g in groups[1:]]
+        pool = _pool(threads - 1, os.getpid())
+        futures = [pool.submit(run_group, g) for g in groups[1:]]
         done += run_group(groups[0])
         for future in futures:
             done += future.result()

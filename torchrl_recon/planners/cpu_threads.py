@@ -16,13 +16,11 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import TypeVar
+from typing import Any
 
 import torch
 
 from torchrl_recon.modules.checks import check_int
-
-T = TypeVar("T")
 
 
 def check_threads(threads: object) -> int:
@@ -87,8 +85,8 @@ def one_intra_op_thread() -> Iterator[None]:
 
 
 def run_blocks(
-    fn: Callable[[int], T], blocks: int, threads: int, *, first_alone: bool = False
-) -> list[T]:
+    fn: Callable[[int], Any], blocks: int, threads: int, *, first_alone: bool = False
+) -> list[Any]:
     """``[fn(0), ..., fn(blocks - 1)]``, the blocks spread over ``threads`` threads (the
     calling one included), each thread's blocks one after another, at one intra-op thread.
 
@@ -107,7 +105,7 @@ def run_blocks(
         return [fn(i) for i in range(blocks)]
     grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
 
-    def run_group(group: Sequence[int]) -> list[tuple[int, T]]:
+    def run_group(group: Sequence[int]) -> list[tuple[int, Any]]:
         with torch.inference_mode(inference), torch.set_grad_enabled(grad):
             return [(i, fn(i)) for i in group]
 

@@ -536,7 +536,7 @@ class PlanningModel(nn.Module):
         blocks_u = self._row_independent_u
         compiling = torch.compiler.is_compiling()
         if self.blocks_in_threads and not (torch.is_grad_enabled() or compiling):
-            prediction = self._threaded(*context, actions, state, block_rows, blocks_u)
+            prediction = self._threaded(context, actions, state, block_rows, blocks_u)
         else:
             predict = type(self)._predict
             if self.compile_mode is not None and not compiling:
@@ -558,9 +558,7 @@ class PlanningModel(nn.Module):
 
     def _threaded(
         self,
-        context_obs: torch.Tensor,
-        context_action: torch.Tensor,
-        observation: torch.Tensor,
+        context: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         actions: torch.Tensor,
         state: tuple[torch.Tensor, torch.Tensor] | None,
         block_rows: int | None,
@@ -568,8 +566,9 @@ class PlanningModel(nn.Module):
     ) -> Prediction:
         """:meth:`forward`'s blocks on ``threads`` threads: a multiple of ``threads`` blocks
         of equal size (each at most ``block_rows`` rows where it can be), the last padded with
-        copies of its last candidate so every block has the compiled shape."""
-        batch_rows, k = int(observation.shape[:-1].numel()), actions.shape[-3]
+        copies of its last candidate so every block has the compiled shape. ``context``: the
+        context observations and actions and the current observation."""
+        batch_rows, k = int(context[2].shape[:-1].numel()), actions.shape[-3]
         rows_per_block = block_rows or batch_rows * k
         blocks = -(-batch_rows * k // rows_per_block)  # blocks the rows need, at least
         blocks = min(k, -(-blocks // self.threads) * self.threads)
@@ -581,7 +580,6 @@ class PlanningModel(nn.Module):
             actions = torch.cat([actions, pad], -3)
         parts = [block.contiguous() for block in actions.split(chunk, dim=-3)]
         predict = threaded_pass(type(self)._predict, self.compile_mode)
-        context = (context_obs, context_action, observation)
         shapes = (*(tuple(x.shape) for x in (*context, parts[0])), with_u)
         predictions = run_blocks(
             lambda i: predict(self, *context, parts[i], state, with_u=with_u),

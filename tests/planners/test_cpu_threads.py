@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import multiprocessing
 import threading
+import time
 
 import pytest
 import torch
@@ -70,12 +71,16 @@ def test_run_blocks_can_finish_the_first_block_before_the_others_start():
     def block(i: int) -> int:
         with lock:
             events.append(("start", i))
+        time.sleep(0.05)  # the GIL is free: another thread would start its block now
         with lock:
             events.append(("end", i))
         return i
 
     assert run_blocks(block, blocks=4, threads=2, first_alone=True) == [0, 1, 2, 3]
     assert events[:2] == [("start", 0), ("end", 0)]
+    events.clear()
+    run_blocks(block, blocks=4, threads=2)  # without: block 1 starts while block 0 sleeps
+    assert events[:2] != [("start", 0), ("end", 0)]
 
 
 def test_run_blocks_propagates_a_blocks_error():

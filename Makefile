@@ -6,7 +6,7 @@ PYTHON ?= python3
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-all test-faults lint docs bench mutation gpu-check gpu-check-quick
+.PHONY: setup demo test test-all test-faults lint docs bench cpu-cores mutation gpu-check gpu-check-quick
 
 setup: $(VENV)/.installed
 
@@ -55,6 +55,12 @@ bench: setup
 	$(PY) benchmarks/training_speed.py
 	$(PY) benchmarks/gemm_floor.py
 	$(PY) benchmarks/cpu_blocks.py
+
+# PlanningModel(threads=N) on a machine with more cores (docs/benchmarks.md#row-blocks-on-two-cpu-cores):
+# the pass and a CEM call at N = 2, 4, 8 and 16 threads, each against one eager call and against
+# N processes (the machine's ceiling). A few minutes; the first compile of each N takes ~30 s.
+cpu-cores: setup
+	for n in 2 4 8 16; do $(PY) benchmarks/cpu_blocks.py --block-threads $$n --repeats 10 || exit 1; done
 
 # One command for a GPU machine (docs/benchmarks.md#gpu-check): the CUDA tests, every benchmark
 # with --device cuda and a smoke run of each experiment kind on device=cuda, within 8 minutes;

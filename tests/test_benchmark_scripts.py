@@ -215,3 +215,13 @@ def test_gemm_floor_counts_backward_and_out_products():
     assert sum(recorder.calls.values()) == 4
     ms, count = gemm_floor.gemm_floor_ms(recorder.calls, torch.device("cpu"), repeats=1, inner=2)
     assert count == 4 and ms > 0
+
+
+@pytest.mark.parametrize("threads", ["2", "16"])
+def test_cpu_blocks_accepts_make_cpu_cores_arguments(threads, monkeypatch):
+    """``make cpu-cores``' arguments reach the end of cpu_blocks' setup (its full run compiles
+    three graphs: in the slow set, above)."""
+    monkeypatch.setenv("TORCHRL_RECON_SETUP_ONLY", "1")
+    with pytest.raises(SystemExit) as stop:
+        _run("cpu_blocks.py", "--block-threads", threads, "--repeats", "10")
+    assert stop.value.code == 0

@@ -13,7 +13,7 @@ import torch
 from tests.compilers import needs_cpp_compiler
 from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, base, cpu_threads
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, base, planning_model
 from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
 
 
@@ -137,9 +137,9 @@ def test_threads_predict_and_plan_what_one_eager_thread_does(monkeypatch):
 def test_the_threaded_pass_is_compiled_with_the_cpp_wrapper_that_releases_the_gil(monkeypatch):
     calls = []
     monkeypatch.setattr(
-        cpu_threads.torch, "compile", lambda fn, **kw: calls.append(kw) or fn, raising=True
+        planning_model.torch, "compile", lambda fn, **kw: calls.append(kw) or fn, raising=True
     )
-    cpu_threads.threaded_pass.__wrapped__(lambda: None, "max-autotune")  # past its cache
+    planning_model.threaded_pass.__wrapped__(lambda: None, "max-autotune")  # past its cache
     (kwargs,) = calls
     assert kwargs["fullgraph"] is True and kwargs["options"]["cpp_wrapper"] is True
     assert kwargs["options"]["max_autotune"] is True

@@ -2,11 +2,12 @@
 
 The candidates' rows are independent, so a planning pass splits into blocks that could run on
 every core. Eager PyTorch holds Python's GIL between its small kernels, so blocks in Python
-threads ran slower than one thread (0.65×, ``benchmarks/cpu_blocks.py``), and intra-op threads
-do not pay at these sizes. Inductor's C++ wrapper (``torch.compile`` option ``cpp_wrapper``)
-runs a whole compiled graph in C++ with the GIL released, so the blocks of such a graph, called
-from several threads, run in parallel. :func:`threaded_pass` compiles a pass that way and
-:func:`run_blocks` runs its blocks on a shared thread pool, one intra-op thread each.
+threads ran slower than one thread (0.65–0.79×, ``benchmarks/cpu_blocks.py``), and intra-op
+threads do not pay at these sizes. Inductor's C++ wrapper (``torch.compile`` option
+``cpp_wrapper``) runs a whole compiled graph in C++ with the GIL released, so the blocks of such
+a graph, called from several threads, run in parallel. ``planning_model.threaded_pass``
+compiles a pass that way and :func:`run_blocks` runs its blocks on a shared thread pool, one
+intra-op thread each.
 """
 
 from __future__ import annotations
@@ -36,27 +37,6 @@ def check_threads(threads: object) -> int:
     """
     check_int("threads", threads)
     return int(threads)
-
-
-@functools.cache
-def threaded_pass(fn: Callable, mode: str) -> Callable:
-    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options, one graph
-    (``fullgraph=True``), made once per function and mode.
-
-    The C++ wrapper releases the GIL for the whole compiled call (Inductor's
-    ``cpp_wrapper_cpu``), which is what lets :func:`run_blocks` run blocks in parallel. Called
-    with Dynamo's ``allow_rnn`` on (as ``planning_model.compiled_plan``).
-    """
-    options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
-    options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs
-    compiled = torch.compile(fn, fullgraph=True, options=options)
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        with torch._dynamo.config.patch(allow_rnn=True):
-            return compiled(*args, **kwargs)
-
-    return call
 
 
 @functools.cache

@@ -17,7 +17,7 @@ from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import bounds_from_spec
-from torchrl_recon.planners.cpu_threads import check_threads, run_blocks, threaded_pass
+from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 """``torch.compile``'s modes, for ``PlanningModel(compile=...)``."""
@@ -162,6 +162,26 @@ def compiled_plan(fn: Callable, mode: str, backend: str = "inductor") -> Callabl
     compiled = torch.compile(
         fn, mode=None if backend != "inductor" else mode, fullgraph=True, backend=backend
     )
+    return _allowing_rnn(fn, compiled)
+
+
+@functools.cache
+def threaded_pass(fn: Callable, mode: str) -> Callable:
+    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options, one graph
+    (``fullgraph=True``), made once per function and mode.
+
+    The C++ wrapper releases the GIL for the whole compiled call (Inductor's
+    ``cpp_wrapper_cpu``), which is what lets :func:`~torchrl_recon.planners.run_blocks` run a
+    pass's blocks in parallel (``PlanningModel(threads=...)``). Called with Dynamo's
+    ``allow_rnn`` on, as ``compiled_plan``.
+    """
+    options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
+    options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs
+    return _allowing_rnn(fn, torch.compile(fn, fullgraph=True, options=options))
+
+
+def _allowing_rnn(fn: Callable, compiled: Callable) -> Callable:
+    """``compiled`` (``fn`` under ``torch.compile``) called with Dynamo's ``allow_rnn`` on."""
 
     @functools.wraps(fn)
     def call(*args, **kwargs):

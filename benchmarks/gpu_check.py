@@ -18,7 +18,8 @@ comes when less than ``MIN_STEP_S`` is left is reported as not run):
 2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
    GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
    run), the same at K = 10,000 candidates (1,000 elites), population fits (with
-   ``--compile``: the fits with ``compile=True`` against eager),
+   ``--compile``: the fits with ``compile=True`` against eager; with ``--cuda-graph``: the
+   shared fit with each step one replayed CUDA graph, and its sampling alone),
    episode batching, window scoring, uncertainty overhead, gradient planning and control
    batching;
 3. a smoke run of each experiment kind with ``device=cuda``: ``explore``, ``control``,
@@ -108,11 +109,11 @@ BENCHMARK_STEPS = [
         ["--candidates", "40", "--elites", "4", "--horizons", "5", "--repeats", "1"],
     ),
     benchmark(
-        "population fits (eager and torch.compile)",
+        "population fits (eager, torch.compile and CUDA graph)",
         "training_speed.py",
         150,
         # R = 1 and the sequential compile left out for time: 136 s with both on an H200
-        ["--members", "20", "--steps", "5", "--compile", "shared"],
+        ["--members", "20", "--steps", "5", "--compile", "shared", "--cuda-graph"],
         ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
         + ["--steps", "1", "--repeats", "1", "--members", "3", "--compile"],
     ),

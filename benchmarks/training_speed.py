@@ -24,6 +24,13 @@ ones after a first, untimed call that compiles (its seconds are printed), and a 
 compiles the shared population fit only (one compile fewer: the gpu-check's choice, to stay in
 its time budget).
 
+``--cuda-graph`` (on a CUDA device; elsewhere it says so and times the rest) adds, for each R, the shared population fit with
+``cuda_graph=True`` (each step one replayed CUDA graph, ``fit_population``), whose calls run
+``--graph-steps`` steps (its first two are eager and the capture comes after them, so a call
+needs many steps to show the replays' time), a line ``CUDA graph vs eager, R=..: X.XXx``, and
+a row ``sampling alone``: one shared sample of R members' slices moved to the device, the part
+of every step that stays on the host.
+
 Run: python benchmarks/training_speed.py [--device auto] [--threads 1] [--members 1 10 20]
 [--compile [sequential] [shared]]
 Its last line is ``speed-up of R vectorised retrainings vs sequential: X.Xx`` for the largest R
@@ -114,8 +121,19 @@ def main() -> None:
         choices=COMPILED_FITS,
         help="also time these fits with compile=True (no names: both)",
     )
+    parser.add_argument(
+        "--cuda-graph",
+        action="store_true",
+        help="also time the shared population fit with cuda_graph=True (a CUDA device)",
+    )
+    parser.add_argument(
+        "--graph-steps", type=int, default=50, help="fit steps per timed --cuda-graph call"
+    )
     args, device = parse_device_args(parser)
     setup_done()
+    if args.cuda_graph and device.type != "cuda":
+        print(f"--cuda-graph: not timed (cuda_graph=True needs a CUDA device, this is {device})")
+        args.cuda_graph = False
     compiled_fits = () if args.compile is None else tuple(args.compile) or COMPILED_FITS
     rb = random_buffer(args)
     fit = dict(
@@ -157,11 +175,20 @@ def main() -> None:
         def run_population(ms=population, seeds=seeds, shared=False, compile=False):
             fit_population(ms, rb, seeds=seeds, shared_sampling=shared, compile=compile, **fit)
 
+        def run_graph(ms=population, seeds=seeds):
+            graph_fit = fit | dict(steps=args.graph_steps, eval_every=args.graph_steps)
+            fit_population(ms, rb, seeds=seeds, shared_sampling=True, cuda_graph=True, **graph_fit)
+
+        def sample(count=count):
+            rb.sample(count * rb.batch_size).to(device)
+
         calls = {
             "sequential": run_sequential,
             "population": run_population,
             "shared": lambda: run_population(shared=True),
         }
+        if args.cuda_graph:
+            calls |= {"shared, CUDA graph": run_graph, "sampling alone": sample}
         if compiled_fits:
             compiled = {
                 f"{kind}, torch.compile": call
@@ -178,8 +205,9 @@ def main() -> None:
                     f"R={count:3d}  {name}: first call (compiles) {time.perf_counter() - start:.1f} s"
                 )
             calls |= compiled
+        per_call = {"shared, CUDA graph": args.graph_steps, "sampling alone": 1}
         ms = {
-            k: v / args.steps
+            k: v / per_call.get(k, args.steps)
             for k, v in interleaved_median_ms(calls, args.repeats, device=device).items()
         }
         seq, pop, shared = (ms[k] for k in ("sequential", "population", "shared"))
@@ -196,6 +224,10 @@ def main() -> None:
         if shared_c is not None:
             ratio = "" if seq_c is None else f", speed-up {seq_c / shared_c:.2f}x"
             rows.append(("shared, torch.compile", shared_c, ratio))
+        if args.cuda_graph:
+            graph_ms = ms["shared, CUDA graph"]
+            rows.append(("shared, CUDA graph", graph_ms, f", speed-up {seq / graph_ms:.2f}x"))
+            rows.append(("sampling alone", ms["sampling alone"], ""))
         for name, step, ratio in rows:
             per_member = f"({step / count:6.2f} per member{ratio})"
             print(
@@ -212,6 +244,8 @@ def main() -> None:
                 if compiled is not None
             ]
             print(f"torch.compile vs eager, R={count}: {', '.join(against)}")
+        if args.cuda_graph:
+            print(f"CUDA graph vs eager, R={count}: {shared / ms['shared, CUDA graph']:.2f}x")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     largest = max(args.members)
     print(f"speed-up of {largest} vectorised retrainings vs sequential: {speed_up[largest]:.1f}x")

@@ -644,6 +644,76 @@ def test_compiled_fits_on_cuda_match_eager():
         assert apart <= 0.01 * total, f"{apart} of {total} weights differ beyond rounding"
 
 
+def _graph_fits(monkeypatch, poison_after: int | None = None):
+    """The shared population fit of three world models on CUDA, eager and with ``cuda_graph``,
+    and the graph fit's :class:`CapturedStep`. ``poison_after``: from that sample on, the
+    buffer's batches hold NaN observations."""
+    import torchrl_recon.training.fit as fit_module
+
+    steps: list = []
+
+    class Recorded(fit_module.CapturedStep):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            steps.append(self)
+
+    monkeypatch.setattr(fit_module, "CapturedStep", Recorded)
+    fit = dict(steps=30, eval_every=2, patience=1, lr=0.05, val_batches=1, progress=False)
+    results, weights = {}, {}
+    for graph in (False, True):
+        rb = _buffer()
+        if poison_after is not None:
+            drawn, sample = [0], rb.sample
+
+            def poisoned(*args, _sample=sample, _drawn=drawn, **kwargs):
+                _drawn[0] += 1
+                batch = _sample(*args, **kwargs)
+                if _drawn[0] > poison_after:
+                    batch["observation"] = torch.full_like(batch["observation"], float("nan"))
+                return batch
+
+            monkeypatch.setattr(rb, "sample", poisoned)
+        members = [_world_model().to("cuda") for _ in range(3)]
+        try:
+            results[graph] = fit_population(
+                members, rb, shared_sampling=True, cuda_graph=graph, **fit
+            )
+        except ValueError as err:
+            results[graph] = err
+        weights[graph] = members
+    return results, weights, steps
+
+
+@NEEDS_CUDA
+def test_cuda_graph_fits_on_cuda_match_eager(monkeypatch):
+    """``fit_population(cuda_graph=True)``: two eager steps, one capture, a replay for every
+    later step; the same fit as eager on the GPU up to float rounding (Adam ``capturable``
+    with a tensor learning rate rounds as float32), members stopping at the same steps."""
+    results, weights, captured = _graph_fits(monkeypatch)
+    eager, graphed = results[False], results[True]
+    assert [r.steps for r in graphed] == [r.steps for r in eager]
+    for a, b in zip(eager, graphed, strict=True):
+        assert b.best_val_loss == pytest.approx(a.best_val_loss, rel=1e-3)
+    (step,) = captured
+    assert step.graph is not None and step.replays == max(r.steps for r in eager) - 2
+    for member in weights[True]:
+        assert {p.device.type for p in member.state_dict().values()} == {"cuda"}
+
+
+@NEEDS_CUDA
+def test_cuda_graph_fit_names_a_bad_input_after_capture(monkeypatch):
+    """NaN observations from the 11th sample on (after the capture, whose steps do not check
+    their inputs): the graph fit stops with the eager fit's error, naming the input, and the
+    members' weights stay finite."""
+    results, weights, _ = _graph_fits(monkeypatch, poison_after=10)
+    eager, graphed = results[False], results[True]
+    assert isinstance(eager, ValueError) and isinstance(graphed, ValueError), results
+    assert "contains NaN or inf" in str(graphed)
+    assert str(graphed) == str(eager)
+    for member in weights[True]:
+        assert all(bool(torch.isfinite(p).all()) for p in member.parameters())
+
+
 # ---------------------------------------------------------------- evaluation
 
 

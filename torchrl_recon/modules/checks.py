@@ -11,6 +11,7 @@ import torch
 from torchrl_recon.modules.activations import ACTIVATIONS
 
 __all__ = [
+    "capturing_cuda_graph",
     "check_activation",
     "check_features",
     "check_finite",
@@ -37,12 +38,24 @@ def check_features(name: str, x: torch.Tensor, dim: int, *, min_ndim: int = 1) -
         )
 
 
+def capturing_cuda_graph() -> bool:
+    """True while a CUDA graph is being captured on the current stream (a fit's
+    ``cuda_graph=True`` step): a check that reads a tensor's values on the host would fail the
+    capture, so such checks are left out then (the fit checks each step's loss after it).
+
+    Examples:
+        >>> capturing_cuda_graph()
+        False
+    """
+    return torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
+
+
 def check_finite(name: str, x: torch.Tensor) -> None:
     """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad).
 
-    Not checked while ``torch.compile`` traces (a fit's ``compile=True`` training step): a
-    data-dependent branch would cut its graph; the fit's check of each step's loss stops on
-    the same NaN or inf and runs the eager step, this check included, on that batch.
+    Not checked while a graph is built (a fit's ``compile=True`` or
+    ``cuda_graph=True`` training step): the fit's check of each step's loss stops on the same
+    NaN or inf and runs the eager step, this check included, on that batch.
 
     Examples:
         >>> check_finite("obs", torch.tensor([0.0, float("nan")]))
@@ -50,7 +63,7 @@ def check_finite(name: str, x: torch.Tensor) -> None:
         ...
         ValueError: obs contains NaN or inf (first at index [1]); expected finite values.
     """
-    if torch.compiler.is_compiling():
+    if torch.compiler.is_compiling() or capturing_cuda_graph():
         return
     if not torch.isfinite(x).all():
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()

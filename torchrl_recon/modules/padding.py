@@ -7,6 +7,8 @@ from typing import Any
 
 import torch
 
+from torchrl_recon.modules.checks import capturing_cuda_graph
+
 
 def check_prefix_mask(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
     """``mask`` ``[*B, L]`` as bool, checked: the sequences' shape ``[*B, L]`` and each row a run of
@@ -22,6 +24,8 @@ def check_prefix_mask(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
             "batch and time dims."
         )
     mask = mask.bool()
+    if capturing_cuda_graph():  # a host read fails the capture: the eager steps checked it
+        return mask
     if bool((mask[..., 1:] & ~mask[..., :-1]).any()):
         raise ValueError(
             "mask has a real step after a padded one; expected each row's real steps first, "
@@ -80,7 +84,8 @@ def start_at_rest(
     for i, x in enumerate(sequences):
         y = x.gather(-2, source[..., None].expand(*source.shape, x.shape[-1]))
         if rest is not None and i in rest:
-            y = torch.where(before[..., None], torch.as_tensor(rest[i]).to(y), y)
+            value = rest[i]  # a number stays on the host: no copy to y's device
+            y = torch.where(before[..., None], value.to(y) if torch.is_tensor(value) else value, y)
         out.append(y)
     return shifted_mask, out
 

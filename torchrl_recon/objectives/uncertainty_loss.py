@@ -6,6 +6,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
+from torchrl_recon.modules.checks import capturing_cuda_graph
 from torchrl_recon.modules.fitted import ESTIMATOR, warn_unfitted
 from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -68,7 +69,7 @@ class UncertaintyLoss(LossModule):
                 "than slice_len): its loss takes no mask. Use the reconstruction or rnd estimator, "
                 "or slices no longer than the episodes."
             )
-        if not torch.isfinite(loss):
+        if not capturing_cuda_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
             raise FloatingPointError(
                 f"uncertainty loss is {loss.item()}; check the data and the learning rate."
             )

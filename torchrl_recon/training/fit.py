@@ -33,6 +33,12 @@ from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss, as_sequences
 from torchrl_recon.training.checkpoint import save_checkpoint
+from torchrl_recon.training.fit_graph import (
+    CapturedStep,
+    capturable_adam,
+    check_cuda_graph,
+    restore_frozen,
+)
 
 
 @dataclass
@@ -535,6 +541,19 @@ def _fill_masks(batches: list[TensorDictBase]) -> None:
             b.set(MASK_KEY, torch.ones(b.shape, dtype=torch.bool, device=b.device))
 
 
+GRAPH_KEYS = ("observation", "action", ("next", "observation"), MASK_KEY)
+"""What a population's training loss reads from a batch (a captured step's static inputs)."""
+
+
+def _graph_inputs(batches: list[TensorDictBase] | TensorDictBase) -> TensorDictBase:
+    """The members' batches as one ``[R, B·L]`` tensordict of :data:`GRAPH_KEYS` (the layout of
+    a shared sample, which the population losses read alike): a captured step's inputs."""
+    if not isinstance(batches, TensorDictBase):
+        _fill_masks(batches)
+        batches = torch.stack([b.select(*GRAPH_KEYS, strict=False) for b in batches])
+    return batches.select(*GRAPH_KEYS, strict=False)
+
+
 def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
     """``clip_grad_norm_`` applied to each member's slice ``[r]`` of every gradient on its own."""
     norms = torch.stack([torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads])
@@ -625,6 +644,7 @@ def fit_population(
     progress: bool = True,
     shared_sampling: bool = False,
     compile: bool = False,
+    cuda_graph: bool = False,
 ) -> list[FitResult]:
     """Train R models of one kind at once, as R independent fits run as one batch.
 
@@ -647,6 +667,14 @@ def fit_population(
     not their exact data order. Sampling a ``SliceSampler`` costs about as much as a member's
     step, so this is the faster mode for many members on one buffer. ``compile=True`` runs
     the members' training loss under ``torch.compile`` (see :func:`train_loss_module`).
+
+    ``cuda_graph=True`` (models on a CUDA device) runs each training step, forward, backward,
+    clip, Adam (``capturable``, its learning rate a tensor) and the stopped members' restore,
+    as one CUDA graph: eager for its first two steps, then captured once and replayed
+    (:class:`~torchrl_recon.training.fit_graph.CapturedStep`), so a step costs one launch
+    instead of hundreds. The same fit up to float rounding; a non-finite loss stops it with
+    the same messages (its step is applied, then every member is restored to its best weights,
+    as the eager fit ends too).
 
     Returns:
         One :class:`FitResult` per member.
@@ -693,6 +721,7 @@ def fit_population(
             f"Every member's buffer must sample one shape (slice_len, batch_size); got {sorted(shapes)}."
         )
     _check_compile(compile, models[0])
+    check_cuda_graph(cuda_graph, module_device(models[0]), compile)
     world = isinstance(models[0], LSTMWorldModel)
     if fit_normalization:
         for model, buffer in zip(models, buffers, strict=True):
@@ -730,6 +759,7 @@ def fit_population(
             log_prefix=log_prefix,
             progress=progress,
             compile=compile,
+            cuda_graph=cuda_graph,
         )
     if count > 1:
         for i, model in enumerate(models):
@@ -758,11 +788,17 @@ def _train_members(
     progress: bool,
     shared_sampling: bool = False,
     compile: bool = False,
+    cuda_graph: bool = False,
 ) -> list[FitResult]:
-    """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``."""
+    """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``.
+    With ``cuda_graph`` each step is one :class:`~torchrl_recon.training.fit_graph.CapturedStep`."""
     stacked = count > 1  # else: one plain model, no member dim
     params = [p for p in module.parameters() if p.requires_grad]
-    optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    optimizer = (
+        capturable_adam(params, lr, weight_decay)
+        if cuda_graph
+        else torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    )
     schedule = (
         torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05)
         if lr_decay
@@ -796,6 +832,28 @@ def _train_members(
             else:
                 value.copy_(best_state[key])
 
+    frozen_mask = torch.zeros(count, dtype=torch.bool, device=device)
+
+    def whole_step(inputs: TensorDictBase) -> torch.Tensor:
+        """Losses, backward, clip, Adam and the stopped members' restore, with no host sync."""
+        step_losses = losses_of(inputs)
+        optimizer.zero_grad(set_to_none=True)
+        step_losses.sum().backward()
+        clip_gradients()
+        optimizer.step()
+        if stacked:
+            restore_frozen(state, best_state, frozen_mask)
+        return step_losses.detach()
+
+    def clip_gradients() -> None:
+        if clip_norm is None:
+            return
+        if stacked:
+            _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
+        else:
+            torch.nn.utils.clip_grad_norm_(params, clip_norm)
+
+    captured = CapturedStep(whole_step, device) if cuda_graph else None
     bar = _fit_bar(steps, log_prefix, progress, compile)
     for step in bar:
         if shared_sampling and count > 1:
@@ -805,7 +863,10 @@ def _train_members(
                 if active[r]:  # a stopped member's batch stays: it is frozen anyway
                     batches[r] = rng.sample(r, buffers[r], device)
         try:
-            losses = train_losses(batches)
+            if captured is not None:  # the whole step: checked after it, restored below if bad
+                losses = captured(_graph_inputs(batches))
+            else:
+                losses = train_losses(batches)
             finite = torch.isfinite(losses.detach())
             bad = (
                 []
@@ -817,23 +878,22 @@ def _train_members(
                     f"the loss of member(s) {bad} is not finite; check the data and the learning rate"
                 )
         except FloatingPointError as err:
-            if compile and (named := _input_error(losses_of, batches)) is not None:
+            if cuda_graph:  # the captured step applied its update: undo it before anything else
+                restore(list(range(count)))
+            if (compile or cuda_graph) and (named := _input_error(losses_of, batches)) is not None:
                 raise named from None
             restore(list(range(count)))
             raise FloatingPointError(f"Training stopped at step {step}: {err}.") from err
-        optimizer.zero_grad(set_to_none=True)
-        losses.sum().backward()
-        if clip_norm is not None:
-            if stacked:
-                _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
-            else:
-                torch.nn.utils.clip_grad_norm_(params, clip_norm)
-        optimizer.step()
+        if captured is None:
+            optimizer.zero_grad(set_to_none=True)
+            losses.sum().backward()
+            clip_gradients()
+            optimizer.step()
+            frozen = [r for r in range(count) if not active[r]]
+            if frozen:
+                restore(frozen)
         if schedule is not None:
             schedule.step()
-        frozen = [r for r in range(count) if not active[r]]
-        if frozen:
-            restore(frozen)
         if compile and step == 1:
             bar.set_postfix_str("")
         if step % eval_every == 0 or step == steps:
@@ -863,6 +923,7 @@ def _train_members(
                     since_best[r] += 1
                     if patience is not None and since_best[r] >= patience:
                         active[r] = False
+                        frozen_mask[r] = True  # restored from the next step on, as eagerly
             bar.set_postfix(active=sum(active), val=f"{min(best_loss):.4g}")
             if not any(active):
                 break

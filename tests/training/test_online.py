@@ -342,3 +342,27 @@ def test_a_schedule_may_stop_early_never_and_refit_on_new_data_only():
     schedule = FitSchedule(patience=None, refit_old_steps=0, uncertainty={"patience": None})
     assert schedule.world_model_settings()["patience"] is None
     assert schedule.estimator_settings()["patience"] is None
+
+
+def test_a_schedule_with_cuda_graph_fits_the_world_models_members_with_it(monkeypatch):
+    """``FitSchedule(cuda_graph=True)``: the world model's (members') fits and refits take
+    ``cuda_graph=True``, the estimator's not; a world model without members is refused before
+    any fit, and so is a value that is not a bool."""
+    import torchrl_recon.training.fit as fit_module
+
+    data = _eight_step_episodes(48)
+    schedule = replace(TINY_FIT, val_fraction=0.34, cuda_graph=True)
+    monkeypatch.setattr(fit_module, "check_cuda_graph", lambda *args: None)  # a CPU run
+    built = []
+    monkeypatch.setattr(
+        fit_module, "CapturedStep", lambda *args: built.append(args) or args[0]
+    )  # the step, uncaptured
+    members = LSTMWorldModel(3, 1, window=4, num_members=2)
+    estimator = ReconstructionUncertainty(3, 1, window=4)
+    fit_models(members, estimator, data, schedule, seed=0, warm=False)
+    fit_models(members, estimator, data, schedule, seed=1, warm=True)
+    assert len(built) == 2  # the world model's fit and refit; not the estimator's
+    with pytest.raises(ValueError, match=r"must hold members \(num_members=R\)"):
+        fit_models(LSTMWorldModel(3, 1, window=4), None, data, schedule, seed=0, warm=False)
+    with pytest.raises(TypeError, match="cuda_graph must be True or False, got 1"):
+        replace(TINY_FIT, cuda_graph=1)

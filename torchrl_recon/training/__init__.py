@@ -12,9 +12,11 @@ from torchrl_recon.training.fit import (
     train_loss_module,
     world_model_fit,
 )
+from torchrl_recon.training.fit_graph import CapturedStep
 from torchrl_recon.training.online import FitSchedule, IterationRecord
 
 __all__ = [
+    "CapturedStep",
     "FitResult",
     "FitSchedule",
     "IterationRecord",

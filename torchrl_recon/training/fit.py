@@ -671,7 +671,7 @@ def fit_population(
     ``cuda_graph=True`` (models on a CUDA device) runs each training step, forward, backward,
     clip, Adam (``capturable``, its learning rate a tensor) and the stopped members' restore,
     as one CUDA graph: eager for its first two steps, then captured once and replayed
-    (:class:`~torchrl_recon.training.fit_graph.CapturedStep`), so a step costs one launch
+    (:class:`~torchrl_recon.training.CapturedStep`), so a step costs one launch
     instead of hundreds. The same fit up to float rounding; a non-finite loss stops it with
     the same messages (its step is applied, then every member is restored to its best weights,
     as the eager fit ends too).
@@ -791,7 +791,7 @@ def _train_members(
     cuda_graph: bool = False,
 ) -> list[FitResult]:
     """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``.
-    With ``cuda_graph`` each step is one :class:`~torchrl_recon.training.fit_graph.CapturedStep`."""
+    With ``cuda_graph`` each step is one :class:`~torchrl_recon.training.CapturedStep`."""
     stacked = count > 1  # else: one plain model, no member dim
     params = [p for p in module.parameters() if p.requires_grad]
     optimizer = (

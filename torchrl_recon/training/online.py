@@ -46,7 +46,8 @@ class FitSchedule:
     every refit). ``uncertainty``: the estimator's fits' own settings, any of
     ``FIT_SETTINGS``: its first fit's ``steps``, and ``lr``, ``eval_every``, ``patience``
     (the world model's where not given) and ``compile`` (False where not given); its refits take
-    ``refit_steps`` too.
+    ``refit_steps`` too. ``cuda_graph``: a world model of members on a CUDA device fits with
+    each training step one replayed CUDA graph (``fit_population(cuda_graph=True)``).
 
     Examples:
         >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_settings()["lr"]
@@ -69,6 +70,7 @@ class FitSchedule:
     val_fraction: float = 0.1
     mode: str = "multi_step"
     compile: bool = False
+    cuda_graph: bool = False
     uncertainty: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -89,6 +91,8 @@ class FitSchedule:
         if self.refit_old_steps is not None:
             check_int("refit_old_steps", self.refit_old_steps, minimum=0)
         check_val_fraction(self.val_fraction)
+        if not isinstance(self.cuda_graph, bool):
+            raise TypeError(f"cuda_graph must be True or False, got {self.cuda_graph!r}.")
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
         for prefix, settings in (
@@ -165,6 +169,12 @@ def fit_models(
     ``new_steps``: how many of ``data``'s last steps are new, for a refit with
     ``schedule.refit_old_steps``; the validation split is drawn from all ``data`` either way."""
     s = schedule
+    graph = {"cuda_graph": True} if s.cuda_graph else {}
+    if graph and getattr(world_model, "num_members", None) is None:
+        raise ValueError(
+            "FitSchedule(cuda_graph=True) captures a population fit's step: the world model "
+            "must hold members (num_members=R)."
+        )
     parts = split_by_trajectory(data, s.val_fraction, seed=seed)
     if warm and s.refit_old_steps is not None:
         if new_steps is None:
@@ -194,6 +204,7 @@ def fit_models(
             log_prefix=f"{log_prefix}world_model/",
             **common,
             **fits["world_model"],
+            **graph,
         ).best_val_loss
     }
     if estimator is not None and (s.refit_uncertainty or not warm):

@@ -834,6 +834,14 @@ def _train_members(
 
     frozen_mask = torch.zeros(count, dtype=torch.bool, device=device)
 
+    def clip_gradients() -> None:
+        if clip_norm is None:
+            return
+        if stacked:
+            _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
+        else:
+            torch.nn.utils.clip_grad_norm_(params, clip_norm)
+
     def whole_step(inputs: TensorDictBase) -> torch.Tensor:
         """Losses, backward, clip, Adam and the stopped members' restore, with no host sync."""
         step_losses = losses_of(inputs)
@@ -844,14 +852,6 @@ def _train_members(
         if stacked:
             restore_frozen(state, best_state, frozen_mask)
         return step_losses.detach()
-
-    def clip_gradients() -> None:
-        if clip_norm is None:
-            return
-        if stacked:
-            _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
-        else:
-            torch.nn.utils.clip_grad_norm_(params, clip_norm)
 
     captured = CapturedStep(whole_step, device) if cuda_graph else None
     bar = _fit_bar(steps, log_prefix, progress, compile)

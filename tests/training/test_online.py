@@ -12,13 +12,13 @@ from tensordict import TensorDict
 
 import torchrl_recon.training.online as online
 from torchrl_recon.collectors import collect_random
-from torchrl_recon.data import split_by_trajectory
+from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import exploration_objective
-from torchrl_recon.trainers import learn_online
+from torchrl_recon.trainers import ModelFitStepper, learn_online
 from torchrl_recon.training.fit import FitResult
 from torchrl_recon.training.online import (
     FitSchedule,
@@ -346,13 +346,15 @@ def test_a_schedule_may_stop_early_never_and_refit_on_new_data_only():
 
 def test_a_schedule_with_cuda_graph_fits_the_world_models_members_with_it(monkeypatch):
     """``FitSchedule(cuda_graph=True)``: the world model's (members') fits and refits take
-    ``cuda_graph=True``, the estimator's not; a world model without members is refused before
-    any fit, and so is a value that is not a bool."""
+    ``cuda_graph=True``, the estimator's not; a world model without members or off CUDA is
+    refused before any fit (a ``ModelFitStepper``: when it is built), and so is a value that is
+    not a bool."""
     import torchrl_recon.training.fit as fit_module
 
     data = _eight_step_episodes(48)
     schedule = replace(TINY_FIT, val_fraction=0.34, cuda_graph=True)
-    monkeypatch.setattr(fit_module, "check_cuda_graph", lambda *args: None)  # a CPU run
+    for module in (fit_module, online):  # a CPU run
+        monkeypatch.setattr(module, "check_cuda_graph", lambda *args: None)
     built = []
     monkeypatch.setattr(
         fit_module, "CapturedStep", lambda *args: built.append(args) or args[0]
@@ -364,5 +366,15 @@ def test_a_schedule_with_cuda_graph_fits_the_world_models_members_with_it(monkey
     assert len(built) == 2  # the world model's fit and refit; not the estimator's
     with pytest.raises(ValueError, match=r"must hold members \(num_members=R\)"):
         fit_models(LSTMWorldModel(3, 1, window=4), None, data, schedule, seed=0, warm=False)
+    monkeypatch.undo()  # the device check back
+    with pytest.raises(ValueError, match="must be on a CUDA device, got cpu"):
+        schedule.check_world_model(members)
+    with pytest.raises(ValueError, match="must be on a CUDA device, got cpu"):
+        ModelFitStepper(
+            members,
+            estimator,
+            make_sequence_buffer(10, slice_len=8, num_slices=4),
+            schedule=schedule,
+        )
     with pytest.raises(TypeError, match="cuda_graph must be True or False, got 1"):
         replace(TINY_FIT, cuda_graph=1)

@@ -73,6 +73,7 @@ class ModelFitStepper(OptimizationStepper):
             )
         self.world_model, self.estimator = world_model, estimator
         self.replay_buffer, self.schedule = replay_buffer, schedule or FitSchedule()
+        self.schedule.check_world_model(world_model)  # before any data is collected
         self.seed, self.progress, self.logger = seed, progress, logger
         self.fits = 0  # fits done
         self.fitted_steps = 0  # the buffer's steps at the last fit

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.record.loggers import Logger
 
 from torchrl_recon.data import (
@@ -26,9 +27,11 @@ from torchrl_recon.data import (
 from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.device import module_device
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import window_uncertainty
 from torchrl_recon.training.fit import check_fit_settings, fit_uncertainty, world_model_fit
+from torchrl_recon.training.fit_graph import check_cuda_graph
 
 
 @dataclass
@@ -105,6 +108,25 @@ class FitSchedule:
                     f"{prefix}compile must be True or False, got {settings['compile']!r}."
                 )
 
+    def check_world_model(self, world_model: nn.Module) -> None:
+        """Refuse a world model these fits cannot run on: with ``cuda_graph``, one without
+        members (``num_members=R``) or off a CUDA device.
+
+        Examples:
+            >>> FitSchedule(cuda_graph=True).check_world_model(LSTMWorldModel(3, 1))
+            Traceback (most recent call last):
+            ...
+            ValueError: FitSchedule(cuda_graph=True) captures a population fit's step: the world model must hold members (num_members=R).
+        """
+        if not self.cuda_graph:
+            return
+        if getattr(world_model, "num_members", None) is None:
+            raise ValueError(
+                "FitSchedule(cuda_graph=True) captures a population fit's step: the world "
+                "model must hold members (num_members=R)."
+            )
+        check_cuda_graph(True, module_device(world_model), self.compile)
+
     def world_model_settings(self) -> dict[str, Any]:
         """The world model's fit settings, those of ``FIT_SETTINGS``."""
         return {k: getattr(self, k) for k in FIT_SETTINGS}
@@ -169,12 +191,8 @@ def fit_models(
     ``new_steps``: how many of ``data``'s last steps are new, for a refit with
     ``schedule.refit_old_steps``; the validation split is drawn from all ``data`` either way."""
     s = schedule
+    s.check_world_model(world_model)
     graph = {"cuda_graph": True} if s.cuda_graph else {}
-    if graph and getattr(world_model, "num_members", None) is None:
-        raise ValueError(
-            "FitSchedule(cuda_graph=True) captures a population fit's step: the world model "
-            "must hold members (num_members=R)."
-        )
     parts = split_by_trajectory(data, s.val_fraction, seed=seed)
     if warm and s.refit_old_steps is not None:
         if new_steps is None:

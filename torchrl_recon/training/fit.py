@@ -670,7 +670,7 @@ def fit_population(
 
     ``cuda_graph=True`` (models on a CUDA device) runs each training step, forward, backward,
     clip, Adam (``capturable``, its learning rate a tensor) and the stopped members' restore,
-    as one CUDA graph: eager for its first two steps, then captured once and replayed
+    as one CUDA graph: eager for its first three steps, then captured once and replayed
     (:class:`~torchrl_recon.training.CapturedStep`), so a step costs one launch
     instead of hundreds. The same fit up to float rounding; a non-finite loss stops it with
     the same messages (its step is applied, then every member is restored to its best weights,

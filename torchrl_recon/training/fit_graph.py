@@ -26,9 +26,9 @@ from tensordict import TensorDictBase
 
 __all__ = ["WARMUP_STEPS", "CapturedStep", "capturable_adam", "check_cuda_graph", "restore_frozen"]
 
-WARMUP_STEPS = 2
-"""Eager steps before the capture (the first builds Adam's state; the second runs with it, as
-every replay will)."""
+WARMUP_STEPS = 3
+"""Eager steps before the capture, as PyTorch's whole-network capture example runs (the first
+builds Adam's state; the later ones run as every replay will)."""
 
 
 def check_cuda_graph(cuda_graph: object, device: torch.device, compile: bool) -> None:

@@ -9,6 +9,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+import torch
 
 from tests.experiments.tiny import short_env
 from torchrl_recon.cli import main
@@ -240,3 +241,36 @@ def test_random_data_with_fewer_than_two_episodes_are_one_error_before_any_fit(
     assert "env.episode_steps + training.slice_len = 35" in err[0], err
     assert (out / "stages" / "random_data.json").exists()  # collected and kept
     assert not (out / "checkpoints").exists()  # refused before the first fit
+
+
+def test_fit_cuda_graph_needs_members_a_cuda_device_and_no_compile(tmp_path, capsys):
+    """``fit_cuda_graph: true``: refused before the run directory without members, on the CPU
+    or beside the world model's ``compile``; with them, the fits' schedule takes it."""
+    from torchrl_recon.experiments.online import recipe_schedule
+
+    out = tmp_path / "run"
+    base = [
+        "online",
+        "industrial_benchmark/online_smoke",
+        f"output_dir={out}",
+        "fit_cuda_graph=true",
+    ]
+    cases = [
+        ([], "'world_model_members' must be at least 2 with fit_cuda_graph"),
+        (["world_model_members=2", "device=cpu"], "'device' must be a CUDA device"),
+        (
+            ["world_model_members=2", "device=cuda", "training.world_model.compile=true"],
+            "'training.world_model.compile' must be false with fit_cuda_graph",
+        ),
+    ]
+    if not torch.cuda.is_available():
+        cases.append((["world_model_members=2"], "'fit_cuda_graph' needs a CUDA device"))
+    for extra, words in cases:
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err
+    assert not out.exists()
+    recipe = RECIPES / "industrial_benchmark" / "online_smoke.yaml"
+    graph = ["fit_cuda_graph=true", "world_model_members=2", "device=cuda"]
+    assert recipe_schedule(load_recipe(recipe, graph)).cuda_graph is True
+    assert recipe_schedule(load_recipe(recipe, [])).cuda_graph is False

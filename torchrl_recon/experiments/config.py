@@ -317,7 +317,8 @@ class OnlineConfig(PlanningRunConfig):
     whole trajectories, or on all data when null; the estimator too when the plans read u,
     ``refit_uncertainty: auto``, or always) planning for Σ(α·r − β·u);
     ``world_model_members``: 1 world model, or R members (an ensemble, PETS's: each refitted
-    as one batch, a plan's cost their mean);
+    as one batch, a plan's cost their mean); ``fit_cuda_graph``: with R ≥ 2 members on a CUDA
+    device, each step of their fits one replayed CUDA graph (``FitSchedule(cuda_graph=True)``);
     ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
     the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
     explore instead."""
@@ -331,6 +332,7 @@ class OnlineConfig(PlanningRunConfig):
     refit_old_steps: int | None = count(None)
     refit_uncertainty: RefitUncertainty = RefitUncertainty.auto
     world_model_members: int = count(1)
+    fit_cuda_graph: bool = False
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     alpha: float = checked(1.0, at_least(0, " (the weight of reward)"))
     beta: float = 0.0

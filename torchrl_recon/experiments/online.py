@@ -107,6 +107,7 @@ def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSc
         mode=str(t.world_model_mode),
         refit_uncertainty=refit_uncertainty,
         uncertainty=dict(t.uncertainty),
+        cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
         **sizes,
     )
 
@@ -250,8 +251,9 @@ def run(ctx: RunContext) -> dict:
 def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
     """The online recipe's own checks: episodes long enough for a training slice and, where
     they never end early (no ``env.termination``), random data that holds two of them (else the
-    data are checked once collected, :func:`~.common.check_random_data`), the planner built with
-    the recipe's objective (and the exploration objective when the first rounds explore)."""
+    data are checked once collected, :func:`~.common.check_random_data`), ``fit_cuda_graph``
+    only with members off the CPU and without ``compile``, the planner built with the recipe's
+    objective (and the exploration objective when the first rounds explore)."""
     ends_early = cfg.env.termination is not None
     data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
     planner_errors(
@@ -260,6 +262,18 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
         lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
         f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
     )
+    if cfg.get("fit_cuda_graph", False):
+        errors.need(
+            "world_model_members",
+            cfg.world_model_members >= 2,
+            "at least 2 with fit_cuda_graph (it captures a population fit's step)",
+        )
+        errors.need("device", str(cfg.device) != "cpu", "a CUDA device with fit_cuda_graph")
+        errors.need(
+            "training.world_model.compile",
+            not cfg.training.world_model.compile,
+            "false with fit_cuda_graph (one graph or the other)",
+        )
     e = cfg.exploration
     errors.need(
         "exploration.iterations",

@@ -31,11 +31,16 @@ FITS = ("world_model", "uncertainty")
 def run_device(cfg: DictConfig) -> torch.device:
     """The device ``cfg`` runs on, checked on this machine: it exists (``ValueError``), and where
     a fit asks for ``compile`` or the planning model for ``planning_compile``, torch.compile can
-    build kernels there (:class:`~torchrl_recon.errors.CompilerNotFoundError`)."""
+    build kernels there (:class:`~torchrl_recon.errors.CompilerNotFoundError`), and where a recipe
+    asks for ``fit_cuda_graph`` it is a CUDA device (``ValueError``)."""
     device = resolve_device(cfg.device)
     fits = [OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS]
     if any(fits) or cfg.get("planning_compile", False):
         check_compile_support(device)
+    if cfg.get("fit_cuda_graph", False) and device.type != "cuda":
+        raise ValueError(
+            f"'fit_cuda_graph' needs a CUDA device; device={cfg.device} is {device} here."
+        )
     return device
 
 

@@ -162,10 +162,15 @@ def test_all_envs_sweep_runs_each_env_recipe(path):
     expected_jobs = {"explore": 15, "control": 3, "control_bands": 15}
     expected_jobs.update(control_relative_beta=15, control_gradient=9)
     assert len(jobs) == expected_jobs[path.stem]
+    checked = set()
     for job in jobs:
         values = dict(o.split("=") for o in job)
         env, seed = values[f"{kind}_env"], values["seed"]
+        assert set(values) == {f"{kind}_env", "seed"}, job  # a job is its env and its seed
         envs.discard(env)
+        if env in checked:  # one job per env is loaded: the others differ in the seed only
+            continue
+        checked.add(env)
         cfg = OmegaConf.to_container(load_recipe(path, job))
         own = OmegaConf.to_container(load_recipe(RECIPES / env / f"{kind}.yaml", [f"seed={seed}"]))
         if path.stem.startswith("control_"):

@@ -291,11 +291,19 @@ def test_each_plant_is_live(run, tmp_path, kind):
     assert marker.exists()
 
 
+def test_every_loader_reads_the_clean_run(run):
+    """Control: every loader works on the clean copy the plants start from, and writes nothing."""
+    snapshot = _snapshot(run)
+    for load in LOADERS.values():
+        load(run)
+    assert _snapshot(run) == snapshot
+
+
 @pytest.mark.parametrize("kind", sorted(PLANTS))
 def test_a_planted_payload_is_refused_by_every_loader_and_never_runs(run, tmp_path, kind):
+    """On a clean copy (which every loader reads, see above) one planted file: each loader
+    that reads it refuses it, naming the file, the others still work, and nothing runs."""
     plant, refusing, _ = PLANTS[kind]
-    for load in LOADERS.values():  # all loaders work on the clean copy
-        load(run)
     marker = tmp_path / "marker"
     touched = plant(run, marker)
     snapshot = _snapshot(run)

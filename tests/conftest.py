@@ -93,7 +93,17 @@ def _train_once(name: str, folder: Path) -> dict:
     }
 
 
+# (world model, estimator) fit steps per env. The Industrial Benchmark's (make test's) are
+# shorter: with 1000 / 1500 its models keep every asserted margin (50-step MSE 0.042 against
+# the linear model's 0.095, OOD AUROC 1.0, Spearman 0.69, re-plans falling with the threshold
+# for CEM, MPPI and iCEM) and the fixture takes ~18 s instead of ~35 s. The Drone's (slow
+# set) stay long: at 1000 / 1500 its held-at-a-bound AUROC fell to 0.81 against a 0.8 floor.
+FIT_STEPS = {"industrial_benchmark": (1000, 1500)}
+DEFAULT_FIT_STEPS = (1500, 3000)
+
+
 def _train(name: str) -> dict:
+    world_steps, estimator_steps = FIT_STEPS.get(name, DEFAULT_FIT_STEPS)
     torch.manual_seed(0)
     train = collect_random(make_env(name, seed=0, max_episode_steps=500), frames=3000, seed=0)
     held_out = collect_random(make_env(name, seed=1, max_episode_steps=500), frames=1500, seed=1)
@@ -106,14 +116,21 @@ def _train(name: str) -> dict:
     obs_dim, action_dim = train["observation"].shape[-1], train["action"].shape[-1]
     model = LSTMWorldModel(obs_dim, action_dim, window=WINDOW)
     fit_world_model(
-        model, rb, val_buffer=val_rb, steps=1500, lr=3e-3, eval_every=100, progress=False, seed=0
+        model,
+        rb,
+        val_buffer=val_rb,
+        steps=world_steps,
+        lr=3e-3,
+        eval_every=100,
+        progress=False,
+        seed=0,
     )
     estimator = ReconstructionUncertainty(obs_dim, action_dim, window=WINDOW)
     fit_uncertainty(
         estimator,
         rb,
         val_buffer=val_rb,
-        steps=3000,
+        steps=estimator_steps,
         lr=3e-3,
         eval_every=250,
         progress=False,

@@ -115,27 +115,10 @@ def _train(name: str) -> dict:
     rb.extend(fit_part), val_rb.extend(val_part)
     obs_dim, action_dim = train["observation"].shape[-1], train["action"].shape[-1]
     model = LSTMWorldModel(obs_dim, action_dim, window=WINDOW)
-    fit_world_model(
-        model,
-        rb,
-        val_buffer=val_rb,
-        steps=world_steps,
-        lr=3e-3,
-        eval_every=100,
-        progress=False,
-        seed=0,
-    )
+    fit = dict(val_buffer=val_rb, lr=3e-3, progress=False, seed=0)
+    fit_world_model(model, rb, steps=world_steps, eval_every=100, **fit)
     estimator = ReconstructionUncertainty(obs_dim, action_dim, window=WINDOW)
-    fit_uncertainty(
-        estimator,
-        rb,
-        val_buffer=val_rb,
-        steps=estimator_steps,
-        lr=3e-3,
-        eval_every=250,
-        progress=False,
-        seed=0,
-    )
+    fit_uncertainty(estimator, rb, steps=estimator_steps, eval_every=250, **fit)
     std = train["observation"].std(0)
     scale = torch.where(std < 1e-6, torch.ones_like(std), std)
     return {

@@ -43,10 +43,15 @@ def capturing_cuda_graph() -> bool:
     ``cuda_graph=True`` step): a check that reads a tensor's values on the host would fail the
     capture, so such checks are left out then (the fit checks each step's loss after it).
 
+    While ``torch.compile`` traces it is False without asking CUDA (Dynamo need not trace the
+    query; a compiled region is not a capture).
+
     Examples:
         >>> capturing_cuda_graph()
         False
     """
+    if torch.compiler.is_compiling():
+        return False
     return torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
 
 

@@ -102,6 +102,26 @@ def test_planning_compile_reaches_the_planning_model(kind, tmp_path):
     assert model.threads == 2 and model.blocks_in_threads
 
 
+def test_fit_cuda_graph_reaches_the_retrainings(tmp_path, monkeypatch):
+    """``fit_cuda_graph`` is the retrainings' ``fit_population(cuda_graph=...)`` (here the fit
+    runs without it: the CPU has no CUDA graph; its CUDA test is in tests/test_device.py)."""
+    seen = []
+    real = explore.fit_population
+
+    def spy(*args, cuda_graph, **kwargs):
+        seen.append(cuda_graph)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(explore, "fit_population", spy)
+    for value in (False, True):
+        ctx = _ctx(tmp_path / str(value), "explore", f"fit_cuda_graph={str(value).lower()}")
+        data = explore.random_data_stage(ctx, "initial_random", frames=40, keys=explore.DATA_KEYS)
+        scale = torch.ones(data["observation"].shape[-1])
+        arms = {"random": data, "active": data}
+        explore.retrain_stage(ctx, 0, [0], arms, data.reshape(4, -1)[:, :12], scale)
+    assert seen == [False, True]
+
+
 def test_calibrate_stages_one_by_one(tmp_path, monkeypatch):
     ctx = _ctx(
         tmp_path,

@@ -222,3 +222,23 @@ def test_interrupted_message_names_the_last_finished_stage(tmp_path):
     assert interrupted_message(tmp_path) == (
         f"interrupted after stage 'models' of {tmp_path}; run the same command to resume"
     )
+
+
+@pytest.mark.parametrize("recipe", ["industrial_benchmark/explore_smoke", "gym/online_smoke"])
+def test_fit_cuda_graph_off_cuda_or_beside_compile_is_refused_before_any_work(
+    recipe, tmp_path, capsys
+):
+    out = tmp_path / "run"
+    kind = Path(recipe).name.split("_")[0]
+    graph = ["fit_cuda_graph=true"] + (["world_model_members=2"] if kind == "online" else [])
+    for extra, words in (
+        (["device=cpu"], "'device' must be a CUDA device with fit_cuda_graph"),
+        (
+            ["device=cuda", "training.world_model.compile=true"],
+            "'training.world_model.compile' must be false with fit_cuda_graph",
+        ),
+    ):
+        code = run_recipe(kind, RECIPES / f"{recipe}.yaml", [f"output_dir={out}", *graph, *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and words in err and "Traceback" not in err, err
+    assert not out.exists()

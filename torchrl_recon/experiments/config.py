@@ -266,7 +266,9 @@ class PlanningRunConfig(RunConfig):
 
 @dataclass
 class ExploreConfig(PlanningRunConfig):
-    """Active vs random exploration (paper §3.2, Table 1): one repeat per seed."""
+    """Active vs random exploration (paper §3.2, Table 1): one repeat per seed.
+    ``fit_cuda_graph``: on a CUDA device, each step of the retrainings' population fits one
+    replayed CUDA graph (``fit_population(cuda_graph=True)``)."""
 
     experiment: str = "explore"
     output_dir: str = checked("outputs/explore", _directory)
@@ -276,6 +278,7 @@ class ExploreConfig(PlanningRunConfig):
     random_steps: int = count(15000)
     retrainings: int = count(10)
     retrainings_per_fit: int | None = count(None)
+    fit_cuda_graph: bool = False
 
 
 @dataclass

@@ -36,7 +36,12 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    cuda_graph_errors,
+    data_errors,
+    planner_errors,
+)
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
@@ -167,6 +172,7 @@ def retrain_stage(
             val_buffers=[val_rb for _, val_rb in splits for _ in retrainings],
             mode=cfg.training.world_model_mode,
             shared_sampling=True,
+            cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
             **fit_kwargs(ctx, cfg.training.world_model, f"{name}/"),
         )
         population = WorldModelPopulation.from_members(members)
@@ -243,9 +249,10 @@ def run(ctx: RunContext) -> dict:
 
 
 def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
-    """The explore recipe's own checks."""
+    """The explore recipe's own checks (``fit_cuda_graph``: :func:`cuda_graph_errors`)."""
     g = cfg.guided
     data_errors(errors, "env.episode_steps", "initial_random_steps")
+    cuda_graph_errors(errors)
     planner_errors(
         errors,
         "guided.planner",

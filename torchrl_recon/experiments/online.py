@@ -31,7 +31,12 @@ from torchrl_recon.experiments.common import (
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
+from torchrl_recon.experiments.recipe_checks import (
+    RecipeErrors,
+    cuda_graph_errors,
+    data_errors,
+    planner_errors,
+)
 from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import REPLANNED
@@ -262,17 +267,12 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
         lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
         f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
     )
+    cuda_graph_errors(errors)
     if cfg.get("fit_cuda_graph", False):
         errors.need(
             "world_model_members",
             cfg.world_model_members >= 2,
             "at least 2 with fit_cuda_graph (it captures a population fit's step)",
-        )
-        errors.need("device", str(cfg.device) != "cpu", "a CUDA device with fit_cuda_graph")
-        errors.need(
-            "training.world_model.compile",
-            not cfg.training.world_model.compile,
-            "false with fit_cuda_graph (one graph or the other)",
         )
     e = cfg.exploration
     errors.need(

@@ -139,6 +139,20 @@ def _run_errors(errors: RecipeErrors) -> None:
         )
 
 
+def cuda_graph_errors(errors: RecipeErrors) -> None:
+    """``fit_cuda_graph: true`` (explore, online): a device other than the CPU (the machine's
+    is checked at the start, ``run_device``) and no ``training.world_model.compile``."""
+    cfg = errors.cfg
+    if not cfg.get("fit_cuda_graph", False):
+        return
+    errors.need("device", str(cfg.device) != "cpu", "a CUDA device with fit_cuda_graph")
+    errors.need(
+        "training.world_model.compile",
+        not cfg.training.world_model.compile,
+        "false with fit_cuda_graph (one graph or the other)",
+    )
+
+
 def _part_errors(
     errors: RecipeErrors,
     key: str,

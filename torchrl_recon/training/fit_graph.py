@@ -144,6 +144,12 @@ class CapturedStep:
         """Record ``step`` on a copy of ``inputs`` (recorded, not run: the eager call just ran)."""
         self.inputs = inputs.clone()
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            self.output = self.step(self.inputs)
+        try:
+            with torch.cuda.graph(graph):
+                self.output = self.step(self.inputs)
+        except RuntimeError as err:  # an op the capture does not allow: name the way out
+            raise RuntimeError(
+                f"cuda_graph=True: the fit step could not be captured as a CUDA graph ({err}); "
+                "fit with cuda_graph=False."
+            ) from err
         self.graph = graph

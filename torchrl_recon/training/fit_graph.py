@@ -148,8 +148,9 @@ class CapturedStep:
             with torch.cuda.graph(graph):
                 self.output = self.step(self.inputs)
         except RuntimeError as err:  # an op the capture does not allow: name the way out
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
             raise RuntimeError(
-                f"cuda_graph=True: the fit step could not be captured as a CUDA graph ({err}); "
+                f"cuda_graph=True: the fit step could not be captured as a CUDA graph ({first}); "
                 "fit with cuda_graph=False."
             ) from err
         self.graph = graph

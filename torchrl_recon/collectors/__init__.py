@@ -18,7 +18,7 @@ __all__ = [
     "collect",
     "collect_random",
     "concat_trajectories",
-    "renumber_trajectories",
     "first_episodes",
+    "renumber_trajectories",
     "validation_trajectories",
 ]

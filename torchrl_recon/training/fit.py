@@ -548,10 +548,10 @@ GRAPH_KEYS = ("observation", "action", ("next", "observation"), MASK_KEY)
 def _graph_inputs(batches: list[TensorDictBase] | TensorDictBase) -> TensorDictBase:
     """The members' batches as one ``[R, B·L]`` tensordict of :data:`GRAPH_KEYS` (the layout of
     a shared sample, which the population losses read alike): a captured step's inputs."""
-    if not isinstance(batches, TensorDictBase):
-        _fill_masks(batches)
-        batches = torch.stack([b.select(*GRAPH_KEYS, strict=False) for b in batches])
-    return batches.select(*GRAPH_KEYS, strict=False)
+    if isinstance(batches, TensorDictBase):
+        return batches.select(*GRAPH_KEYS, strict=False)
+    _fill_masks(batches)
+    return torch.stack([b.select(*GRAPH_KEYS, strict=False) for b in batches])
 
 
 def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
@@ -824,15 +824,11 @@ def _train_members(
             )
 
     @torch.no_grad()
-    def restore(members: list[int]) -> None:
-        index = torch.tensor(members, device=device) if stacked else None
+    def restore_all() -> None:
         for key, value in state.items():
-            if stacked:  # all the members at once: frozen ones are restored every step
-                value[index] = best_state[key][index]
-            else:
-                value.copy_(best_state[key])
+            value.copy_(best_state[key])
 
-    frozen_mask = torch.zeros(count, dtype=torch.bool, device=device)
+    frozen_mask = torch.zeros(count, dtype=torch.bool, device=device)  # the stopped members
 
     def clip_gradients() -> None:
         if clip_norm is None:
@@ -879,19 +875,19 @@ def _train_members(
                 )
         except FloatingPointError as err:
             if cuda_graph:  # the captured step applied its update: undo it before anything else
-                restore(list(range(count)))
+                restore_all()
             if (compile or cuda_graph) and (named := _input_error(losses_of, batches)) is not None:
                 raise named from None
-            restore(list(range(count)))
+            if not cuda_graph:  # (restored above)
+                restore_all()
             raise FloatingPointError(f"Training stopped at step {step}: {err}.") from err
         if captured is None:
             optimizer.zero_grad(set_to_none=True)
             losses.sum().backward()
             clip_gradients()
             optimizer.step()
-            frozen = [r for r in range(count) if not active[r]]
-            if frozen:
-                restore(frozen)
+            if stacked and not all(active):
+                restore_frozen(state, best_state, frozen_mask)
         if schedule is not None:
             schedule.step()
         if compile and step == 1:
@@ -923,7 +919,7 @@ def _train_members(
                     since_best[r] += 1
                     if patience is not None and since_best[r] >= patience:
                         active[r] = False
-                        frozen_mask[r] = True  # restored from the next step on, as eagerly
+                        frozen_mask[r] = True  # restored after each step from the next on
             bar.set_postfix(active=sum(active), val=f"{min(best_loss):.4g}")
             if not any(active):
                 break
@@ -931,7 +927,7 @@ def _train_members(
             for r in range(count):
                 if active[r]:
                     last_step[r] = step
-    restore(list(range(count)))
+    restore_all()
     return [
         FitResult(steps=last_step[r], best_val_loss=best_loss[r], history=histories[r])
         for r in range(count)

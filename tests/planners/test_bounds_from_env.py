@@ -70,6 +70,7 @@ def test_unusable_specs_are_refused(spec, match):
 
 
 def test_from_env_reads_pendulum_bounds_on_the_models_device_and_dtype():
+    torch.manual_seed(0)  # the models' weights: unseeded, the test failed ~1 run in 10
     env = GymEnv("Pendulum-v1")
     pm = PlanningModel.from_env(
         _world(), pendulum_cost, env, uncertainty=fitted(ReconstructionUncertainty(3, 1, window=2))
@@ -81,7 +82,13 @@ def test_from_env_reads_pendulum_bounds_on_the_models_device_and_dtype():
     assert in_double.action_high.dtype == torch.float64
     # Candidates are drawn in the env's box.
     planner = RandomShootingPlanner(pm, Objective(), horizon=4, num_candidates=64)
-    result = planner.plan(torch.randn(2, 3), torch.rand(2, 1), torch.randn(3))
+    g = torch.Generator().manual_seed(0)
+    context = (
+        torch.randn(2, 3, generator=g),
+        torch.rand(2, 1, generator=g),
+        torch.randn(3, generator=g),
+    )
+    result = planner.plan(*context, generator=g)
     assert result.actions.abs().max() <= 2.0 and result.actions.abs().max() > 1.0
 
 

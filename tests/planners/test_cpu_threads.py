@@ -13,8 +13,16 @@ import torch
 from tests.compilers import needs_cpp_compiler
 from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, base, planning_model
-from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
+from torchrl_recon.planners import (
+    CEMPlanner,
+    ICEMPlanner,
+    MPPIPlanner,
+    Objective,
+    PlanningModel,
+    base,
+    planning_model,
+)
+from torchrl_recon.planners.cpu_threads import check_threads, run_aside, run_blocks
 
 
 def _cost(s, a, s2):
@@ -93,6 +101,21 @@ def test_run_blocks_propagates_a_blocks_error():
         run_blocks(block, blocks=4, threads=2)
 
 
+def test_run_aside_runs_on_a_block_thread_under_the_callers_modes_and_returns_its_value():
+    def where() -> tuple[int, bool, bool]:
+        return (
+            threading.get_ident(),
+            torch.is_inference_mode_enabled(),
+            torch.is_grad_enabled(),
+        )
+
+    with torch.inference_mode():
+        ident, inference, grad = run_aside(where, threads=2).result()
+    assert ident != threading.get_ident() and inference and not grad
+    with pytest.raises(ValueError, match="aside failed"):
+        run_aside(lambda: (_ for _ in ()).throw(ValueError("aside failed")), 2).result()
+
+
 @pytest.mark.parametrize("threads", [0, -2, 1.5, "2", None])
 def test_threads_must_be_a_positive_int(threads):
     with pytest.raises((ValueError, TypeError), match="threads"):
@@ -107,7 +130,7 @@ def test_threads_without_compile_is_refused_in_one_line_that_says_why():
 
 
 @needs_cpp_compiler
-def test_threads_predict_and_plan_what_one_eager_thread_does(monkeypatch):
+def test_threads_predict_what_one_eager_thread_does():
     eager, threaded = _model(), _model(compile=True, threads=2)
     assert threaded.blocks_in_threads and not eager.blocks_in_threads
     ctx = _context((2,))  # a batch of 2 contexts (one compiled shape: the plans' below)
@@ -119,18 +142,49 @@ def test_threads_predict_and_plan_what_one_eager_thread_does(monkeypatch):
         assert y.shape == x.shape
         torch.testing.assert_close(y, x, rtol=1e-5, atol=1e-6)
 
+
+@needs_cpp_compiler
+@pytest.mark.parametrize("planner_class", [CEMPlanner, MPPIPlanner, ICEMPlanner])
+def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_the_same(
+    planner_class, monkeypatch
+):
+    """With threads the planner compiles its pass, not its whole call. The next iteration's
+    noise is drawn on a block thread while the last one is ranked; the generator gives the same
+    draws in the same order, so the same plans as one eager thread, and nothing more (its next
+    draw after the plan is the same too)."""
+    draws = []
+    draw = base.PlannerBase._draw_shape
+
+    def recording(self, sample, shape, generator):
+        draws.append(threading.current_thread() is not threading.main_thread())
+        return draw(self, sample, shape, generator)
+
     def whole_call(*args, **kwargs):
         raise AssertionError("with threads the planner compiles its pass, not its whole call")
 
+    monkeypatch.setattr(base.PlannerBase, "_draw_shape", recording)
     monkeypatch.setattr(base, "compiled_plan", whole_call)
-    plans = []
-    for model in (eager, threaded):
-        planner = CEMPlanner(
-            model, Objective(beta=0.1), horizon=2, num_candidates=15, num_elites=4, iterations=2
+    ctx = _context((2,))  # the compiled shapes of the prediction test above (15: a padded block)
+    plans, after, aside = [], [], []
+    for model in (_model(), _model(compile=True, threads=2)):
+        draws.clear()
+        planner = planner_class(
+            model,
+            Objective(beta=0.1),
+            horizon=2,
+            num_candidates=15,
+            iterations=3,
+            **({} if planner_class is MPPIPlanner else {"num_elites": 4}),
         )
-        plans.append(planner.plan(*ctx, generator=torch.Generator().manual_seed(3)))
+        g = torch.Generator().manual_seed(3)
+        plans.append(planner.plan(*ctx, generator=g))
+        after.append(torch.rand(4, generator=g))
+        aside.append(list(draws))
+    # eager: every draw on the caller; threaded: the first batch there, the next two aside
+    assert aside == [[False] * 3, [False, True, True]]
     torch.testing.assert_close(plans[1].actions, plans[0].actions, rtol=0, atol=1e-6)
     torch.testing.assert_close(plans[1].objective, plans[0].objective, rtol=1e-5, atol=1e-6)
+    assert torch.equal(after[1], after[0])
 
 
 @needs_cpp_compiler

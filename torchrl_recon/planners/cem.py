@@ -138,15 +138,17 @@ class CEMPlanner(SamplingPlanner):
         batch = observation.shape[:-1]
         mean = std = bounds = None
         seen = BestSeen()
+        next_noise = None  # drawn after each pass (see _noise_later)
         for it in range(self.iterations):
             if mean is None:
                 candidates, uniform = self._first_candidates(
                     batch, init, WARM_START_STD, self._normal, generator, self.warm_start_uniform
                 )
             else:
-                noise = self._normal(batch, self.num_candidates, generator)
-                candidates = self._clamp(mean + std * noise)
+                candidates = self._clamp(mean + std * next_noise())
             prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it + 1 < self.iterations:
+                next_noise = self._noise_later(self._normal, batch, self.num_candidates, generator)
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
@@ -99,3 +99,23 @@ def run_blocks(
         for future in futures:
             done += future.result()
     return [out for _, out in sorted(done, key=lambda pair: pair[0])]
+
+
+def run_aside(fn: Callable[[], Any], threads: int) -> Future:
+    """Start ``fn()`` on the block threads' pool (of ``threads``), under the caller's grad and
+    inference modes, while the calling thread goes on; ``.result()`` waits for it.
+
+    For serial work between two threaded passes that two things can share: a sampling
+    planner draws its next iteration's noise this way while it ranks the last one.
+
+    Examples:
+        >>> run_aside(lambda: 6 * 7, threads=2).result()
+        42
+    """
+    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
+
+    def run() -> Any:
+        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+            return fn()
+
+    return _pool(max(1, check_threads(threads) - 1), os.getpid()).submit(run)

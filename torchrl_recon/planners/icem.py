@@ -180,7 +180,9 @@ class ICEMPlanner(CEMPlanner):
         std = (WARM_START_STD * self._span).expand(shape)
         bounds = kept = None
         seen = BestSeen()
-        for it, size in enumerate(self.population_sizes()):
+        sizes = self.population_sizes()
+        next_noise = None  # drawn after each pass (see _noise_later)
+        for it in range(self.iterations):
             if it == 0:
                 candidates, uniform = self._first_candidates(
                     batch, init, WARM_START_STD, self._colored, generator
@@ -191,13 +193,14 @@ class ICEMPlanner(CEMPlanner):
                     else [self._carried(init, batch, generator)]
                 )
             else:
-                noise = self._colored(batch, size, generator)
-                candidates = self._clamp(mean + std * noise)
+                candidates = self._clamp(mean + std * next_noise())
                 extra = [kept] if self.num_kept else []
                 if it == self.iterations - 1:
                     extra.append(self._clamp(mean))
             candidates = torch.cat([candidates, *extra], -3)
             prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it + 1 < self.iterations:
+                next_noise = self._noise_later(self._colored, batch, sizes[it + 1], generator)
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, elites = self._elite_update(candidates, prediction, bounds, mean, std, seen)

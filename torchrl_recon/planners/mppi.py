@@ -109,15 +109,17 @@ class MPPIPlanner(SamplingPlanner):
         batch = observation.shape[:-1]
         bounds = mean = None
         seen = BestSeen()
+        next_noise = None  # drawn after each pass (see _noise_later)
         for it in range(self.iterations):
             if mean is None:
                 candidates, uniform = self._first_candidates(
                     batch, init, self.noise_std, self._normal, generator
                 )
             else:
-                noise = self._normal(batch, self.num_candidates, generator)
-                candidates = self._clamp(mean + self.noise_std * self._span * noise)
+                candidates = self._clamp(mean + self.noise_std * self._span * next_noise())
             prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
+            if it + 1 < self.iterations:
+                next_noise = self._noise_later(self._normal, batch, self.num_candidates, generator)
             if it == 0:
                 bounds = self._reference_bounds(prediction, uniform, batch)
             weights = self._weights(prediction, bounds)

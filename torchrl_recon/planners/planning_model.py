@@ -587,7 +587,13 @@ class PlanningModel(nn.Module):
         """:meth:`forward`'s blocks on ``threads`` threads: a multiple of ``threads`` blocks
         of equal size (each at most ``block_rows`` rows where it can be), the last padded with
         copies of its last candidate so every block has the compiled shape. ``context``: the
-        context observations and actions and the current observation."""
+        context observations and actions and the current observation.
+
+        Each block thread also copies its block's prediction into its rows of one prediction
+        made beforehand (``copy_`` releases the GIL), so joining the blocks is no serial
+        ``torch.cat`` on the calling thread: what stays serial between passes bounds the gain
+        from more cores.
+        """
         batch_rows, k = int(context[2].shape[:-1].numel()), actions.shape[-3]
         rows_per_block = block_rows or batch_rows * k
         blocks = -(-batch_rows * k // rows_per_block)  # blocks the rows need, at least
@@ -598,17 +604,37 @@ class PlanningModel(nn.Module):
             last = actions[..., -1:, :, :]
             pad = last.expand(*last.shape[:-3], chunk * blocks - k, *last.shape[-2:])
             actions = torch.cat([actions, pad], -3)
-        parts = [block.contiguous() for block in actions.split(chunk, dim=-3)]
+        parts = actions.split(chunk, dim=-3)
+        joined = self._empty_prediction(actions, with_u)
         predict = threaded_pass(type(self)._predict, self.compile_mode)
+
+        def block(i: int) -> None:
+            part = predict(self, *context, parts[i].contiguous(), state, with_u=with_u)
+            rows = slice(i * chunk, (i + 1) * chunk)
+            joined.states[..., rows, :, :].copy_(part.states)
+            joined.cost[..., rows, :].copy_(part.cost)
+            if joined.uncertainty is not None:
+                joined.uncertainty[..., rows, :].copy_(part.uncertainty)
+
         shapes = (*(tuple(x.shape) for x in (*context, parts[0])), with_u)
-        predictions = run_blocks(
-            lambda i: predict(self, *context, parts[i], state, with_u=with_u),
+        run_blocks(
+            block,
             len(parts),
             self.threads,
             first_alone=shapes not in self._threaded_shapes,  # it compiles, once
         )
         self._threaded_shapes.add(shapes)
-        return Prediction.concat(predictions).first(k)
+        return joined.first(k)
+
+    def _empty_prediction(self, actions: torch.Tensor, with_u: bool) -> Prediction:
+        """An uninitialised prediction for ``actions`` ``[*B, K, H, M]`` (u only if scored)."""
+        *rows, horizon, _ = actions.shape
+        scored = with_u and self.uncertainty is not None
+        return Prediction(
+            actions.new_empty(*rows, horizon, self.obs_dim),
+            actions.new_empty(*rows, horizon),
+            actions.new_empty(*rows, horizon) if scored else None,
+        )
 
     @property
     def _row_independent_u(self) -> bool:

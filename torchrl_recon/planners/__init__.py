@@ -11,7 +11,7 @@ from torchrl_recon.planners.base import (
 from torchrl_recon.planners.beta import cost_to_u_ratio, relative_beta, window_uncertainty
 from torchrl_recon.planners.bounds import bounds_from_spec, check_bounds_match
 from torchrl_recon.planners.cem import CEMPlanner
-from torchrl_recon.planners.cpu_threads import run_blocks
+from torchrl_recon.planners.cpu_threads import run_aside, run_blocks
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.icem import ICEMPlanner
@@ -65,6 +65,7 @@ __all__ = [
     "get_planner_class",
     "make_planner",
     "relative_beta",
+    "run_aside",
     "run_blocks",
     "threaded_pass",
     "window_uncertainty",

@@ -7,7 +7,8 @@ threads do not pay at these sizes. Inductor's C++ wrapper (``torch.compile`` opt
 ``cpp_wrapper``) runs a whole compiled graph in C++ with the GIL released, so the blocks of such
 a graph, called from several threads, run in parallel. ``planning_model.threaded_pass``
 compiles a pass that way and :func:`run_blocks` runs its blocks on a shared thread pool, one
-intra-op thread each.
+intra-op thread each; :func:`run_aside` starts serial work between two passes (a sampling
+planner's next noise draw) on the same pool while the caller goes on.
 """
 
 from __future__ import annotations

@@ -144,6 +144,22 @@ def test_threads_predict_what_one_eager_thread_does():
 
 
 @needs_cpp_compiler
+def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members():
+    """The blocks' joined prediction has the members' mean states, not one per member."""
+    torch.manual_seed(0)
+    members = [fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)) for _ in "ab"]
+    world = LSTMWorldModel.from_members(members)
+    eager = PlanningModel(world, _cost)
+    threaded = PlanningModel(world, _cost, compile=True, threads=2)
+    actions = torch.rand(7, 2, 2) * 2 - 1  # 7 candidates: a padded block
+    with torch.inference_mode():
+        a, b = eager(*_context(), actions), threaded(*_context(), actions)
+    assert b.states.shape == a.states.shape == (7, 2, 3) and b.uncertainty is None
+    torch.testing.assert_close(b.states, a.states, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(b.cost, a.cost, rtol=1e-5, atol=1e-6)
+
+
+@needs_cpp_compiler
 @pytest.mark.parametrize("planner_class", [CEMPlanner, MPPIPlanner, ICEMPlanner])
 def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_the_same(
     planner_class, monkeypatch

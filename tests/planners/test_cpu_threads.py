@@ -147,7 +147,9 @@ def test_threads_predict_what_one_eager_thread_does():
 def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members():
     """The blocks' joined prediction has the members' mean states, not one per member."""
     torch.manual_seed(0)
-    members = [fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)) for _ in "ab"]
+    members = [
+        fitted(LSTMWorldModel(3, 2, window=4, hidden_size=8, dense_size=8)) for _ in range(2)
+    ]
     world = LSTMWorldModel.from_members(members)
     eager = PlanningModel(world, _cost)
     threaded = PlanningModel(world, _cost, compile=True, threads=2)

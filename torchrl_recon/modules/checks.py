@@ -15,6 +15,7 @@ __all__ = [
     "check_activation",
     "check_features",
     "check_finite",
+    "check_flag",
     "check_int",
     "check_real",
     "check_window",
@@ -75,6 +76,19 @@ def check_finite(name: str, x: torch.Tensor) -> None:
         raise ValueError(
             f"{name} contains NaN or inf (first at index {bad}); expected finite values."
         )
+
+
+def check_flag(name: str, value: object) -> None:
+    """Raise unless ``value`` is True or False (a switch such as ``compile``).
+
+    Examples:
+        >>> check_flag("cuda_graph", "yes")
+        Traceback (most recent call last):
+        ...
+        TypeError: cuda_graph must be True or False, got 'yes'.
+    """
+    if not isinstance(value, bool):
+        raise TypeError(f"{name} must be True or False, got {value!r}.")
 
 
 def check_int(name: str, value: object, minimum: int = 1) -> None:

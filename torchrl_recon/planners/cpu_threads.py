@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
@@ -65,6 +65,18 @@ def one_intra_op_thread() -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+def _in_callers_modes(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` to be called from another thread under the calling thread's grad and inference
+    modes (they are per thread)."""
+    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
+
+    def call(*args: Any) -> Any:
+        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+            return fn(*args)
+
+    return call
+
+
 def run_blocks(
     fn: Callable[[int], Any], blocks: int, threads: int, *, first_alone: bool = False
 ) -> list[Any]:
@@ -84,12 +96,7 @@ def run_blocks(
     threads = min(check_threads(threads), blocks)
     if threads == 1:
         return [fn(i) for i in range(blocks)]
-    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
-
-    def run_group(group: Sequence[int]) -> list[tuple[int, Any]]:
-        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
-            return [(i, fn(i)) for i in group]
-
+    run_group = _in_callers_modes(lambda group: [(i, fn(i)) for i in group])
     with one_intra_op_thread():
         done = run_group([0]) if first_alone else []
         rest = range(len(done), blocks)
@@ -113,10 +120,5 @@ def run_aside(fn: Callable[[], Any], threads: int) -> Future:
         >>> run_aside(lambda: 6 * 7, threads=2).result()
         42
     """
-    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
-
-    def run() -> Any:
-        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
-            return fn()
-
-    return _pool(max(1, check_threads(threads) - 1), os.getpid()).submit(run)
+    pool = _pool(max(1, check_threads(threads) - 1), os.getpid())
+    return pool.submit(_in_callers_modes(fn))

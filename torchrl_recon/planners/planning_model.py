@@ -315,7 +315,7 @@ class PlanningModel(nn.Module):
             same predictions up to float rounding. The planners then compile only this pass,
             not their whole call. A pass with autograd (the gradient planner) and a pass on
             another device run in one thread. Default 1: one thread. On the 2-core development
-            machine a CEM call ran 1.24–1.57× faster at 2 (``docs/benchmarks.md``).
+            machine a CEM call ran 1.52–1.70× faster at 2 (``docs/benchmarks.md``).
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost

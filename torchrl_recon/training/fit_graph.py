@@ -24,6 +24,8 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
+from torchrl_recon.modules.checks import check_flag
+
 __all__ = ["WARMUP_STEPS", "CapturedStep", "capturable_adam", "check_cuda_graph", "restore_frozen"]
 
 WARMUP_STEPS = 3
@@ -41,8 +43,7 @@ def check_cuda_graph(cuda_graph: object, device: torch.device, compile: bool) ->
         ...
         ValueError: cuda_graph=True captures the fit step as a CUDA graph: the models must be on a CUDA device, got cpu.
     """
-    if not isinstance(cuda_graph, bool):
-        raise TypeError(f"cuda_graph must be True or False, got {cuda_graph!r}.")
+    check_flag("cuda_graph", cuda_graph)
     if not cuda_graph:
         return
     if device.type != "cuda":

@@ -26,7 +26,7 @@ from torchrl_recon.data import (
 )
 from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
-from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.checks import check_flag, check_int
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import window_uncertainty
@@ -94,8 +94,7 @@ class FitSchedule:
         if self.refit_old_steps is not None:
             check_int("refit_old_steps", self.refit_old_steps, minimum=0)
         check_val_fraction(self.val_fraction)
-        if not isinstance(self.cuda_graph, bool):
-            raise TypeError(f"cuda_graph must be True or False, got {self.cuda_graph!r}.")
+        check_flag("cuda_graph", self.cuda_graph)
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
         for prefix, settings in (
@@ -103,10 +102,8 @@ class FitSchedule:
             ("uncertainty.", self.uncertainty),
         ):
             check_fit_settings(prefix, **settings)
-            if "compile" in settings and not isinstance(settings["compile"], bool):
-                raise TypeError(
-                    f"{prefix}compile must be True or False, got {settings['compile']!r}."
-                )
+            if "compile" in settings:
+                check_flag(f"{prefix}compile", settings["compile"])
 
     def check_world_model(self, world_model: nn.Module) -> None:
         """Refuse a world model these fits cannot run on: with ``cuda_graph``, one without

@@ -14,6 +14,7 @@ import tempfile
 import threading
 import traceback
 from collections.abc import Sequence
+from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 from unittest import mock
@@ -30,6 +31,7 @@ from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
 from torchrl_recon.experiments.runner import interrupted_message, run, run_device
+from torchrl_recon.interrupts import redeliver_dropped_interrupts
 from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
 from torchrl_recon.reports.tables import render
 
@@ -311,11 +313,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (0, 2 user error, 130 interrupted, 1 bug)."""
     args = build_parser().parse_args(argv)
     # SIGTERM interrupts as Ctrl-C does (unless it is ignored or handled)
-    sigterm = threading.current_thread() is threading.main_thread()
-    sigterm = sigterm and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    in_main = threading.current_thread() is threading.main_thread()
+    sigterm = in_main and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     if sigterm:
         signal.signal(signal.SIGTERM, signal.default_int_handler)
-    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1"} if args.debug else {}):
+    # an interrupt that lands in a finaliser stops the run all the same
+    redelivery = redeliver_dropped_interrupts() if in_main else nullcontext()
+    with mock.patch.dict(os.environ, {_DEBUG_ENV: "1"} if args.debug else {}), redelivery:
         try:
             torch.set_num_threads(min(2, torch.get_num_threads()))
             return args.func(args)

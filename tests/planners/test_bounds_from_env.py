@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torchrl.data import Bounded, Categorical, Unbounded
+from torchrl.data import Bounded, Categorical, OneHot, Unbounded
 from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 
 from tests.fitting import fitted
@@ -17,6 +17,7 @@ from torchrl_recon.planners import (
     Objective,
     PlanningModel,
     RandomShootingPlanner,
+    WorldModelPlanningEnv,
     bounds_from_spec,
 )
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
@@ -57,7 +58,8 @@ def test_bounds_from_spec(spec, low, high):
     [
         (Unbounded(shape=(2,)), r"Unbounded.*pass action_low= / action_high="),
         (Bounded(-float("inf"), float("inf"), shape=(2,)), r"unbounded.*pass action_low="),
-        (Categorical(3), r"Categorical.*pass action_low="),
+        (Categorical(3), r"discrete action space \(Categorical.*need a bounded continuous vector"),
+        (OneHot(2), r"discrete action space \(OneHot of shape \[2\]\); the planners need"),
         (
             Bounded(torch.tensor([[-1.0], [-2.0]]), torch.tensor([[1.0], [2.0]]), shape=(2, 1)),
             "differ between the envs of its batch",
@@ -90,6 +92,47 @@ def test_from_env_reads_pendulum_bounds_on_the_models_device_and_dtype():
     )
     result = planner.plan(*context, generator=g)
     assert result.actions.abs().max() <= 2.0 and result.actions.abs().max() > 1.0
+
+
+def test_a_discrete_env_says_the_planners_need_continuous_actions_not_action_low():
+    """TorchRL's own GymEnv of CartPole: no bounds can make a discrete action space plannable,
+    so neither from_env nor the policy's primer advises passing action_low= / action_high=."""
+    env = GymEnv("CartPole-v1")
+    with pytest.raises(ValueError, match="discrete action space") as info:
+        PlanningModel.from_env(LSTMWorldModel(4, 1), pendulum_cost, env)
+    assert "action_low" not in str(info.value)
+    policy = _policy(PlanningModel(fitted(LSTMWorldModel(4, 1)), pendulum_cost))
+    with pytest.raises(ValueError, match="continuous vector of floats") as info:
+        TransformedEnv(env, policy.make_tensordict_primer())
+    assert "action_low" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "low, high, error, match",
+    [
+        (
+            torch.tensor([-1.0, -1.0]),
+            1.0,
+            ValueError,
+            r"^action_low has shape \[2\]; expected a float or a tensor of 1 value, shape \[1\]\.$",
+        ),
+        (torch.tensor([[-1.0]]), 1.0, ValueError, r"^action_low has shape \[1, 1\]; expected"),
+        (-1.0, [[1.0], [1.0]], ValueError, r"^action_high has shape \[2, 1\]; expected"),
+        ("low", 1.0, TypeError, r"^action_low must be a float or a tensor of 1 value"),
+        (-1.0, None, TypeError, r"^action_high must be a float or a tensor"),
+        (torch.tensor([True]), 1.0, TypeError, r"^action_low must be .*dtype torch.bool"),
+        (float("nan"), 1.0, ValueError, r"^action bounds must be finite"),
+        (1.0, 1.0, ValueError, r"^action_low must be below action_high"),
+    ],
+)
+def test_bounds_of_a_wrong_shape_or_value_are_one_line_naming_the_argument(low, high, error, match):
+    for make in (
+        lambda: PlanningModel(_world(), pendulum_cost, action_low=low, action_high=high),
+        lambda: WorldModelPlanningEnv(_world(), pendulum_cost, action_low=low, action_high=high),
+    ):
+        with pytest.raises(error, match=match) as info:
+            make()
+        assert "\n" not in str(info.value)
 
 
 def test_from_env_refuses_a_world_model_of_another_action_size():

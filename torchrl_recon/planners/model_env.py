@@ -10,10 +10,11 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
 from torchrl_recon.modules.activations import ACTIVATIONS
-from torchrl_recon.modules.device import module_device
+from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
+from torchrl_recon.planners.bounds import action_bounds
 from torchrl_recon.planners.planning_model import CostFn, TerminationFn, check_step_fn
 
 H_KEY, C_KEY, U_HISTORY, ENDED = "wm_h", "wm_c", "u_history", "wm_ended"
@@ -99,7 +100,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         uncertainty: optional estimator; with it the reward is penalised by ``beta·u``.
         beta: uncertainty weight.
         termination_fn: optional ``termination(obs, action, next_obs) -> bool [...]``.
-        action_low, action_high: action bounds.
+        action_low, action_high: action bounds (floats or ``[M]`` tensors); finite, low < high.
 
     Examples:
         >>> from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
@@ -121,10 +122,11 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         uncertainty: UncertaintyEstimator | None = None,
         beta: float = 0.0,
         termination_fn: TerminationFn | None = None,
-        action_low: float = -1.0,
-        action_high: float = 1.0,
+        action_low: float | torch.Tensor = -1.0,
+        action_high: float | torch.Tensor = 1.0,
     ) -> None:
         n, m = world_model.obs_dim, world_model.action_dim
+        low, high = action_bounds(action_low, action_high, m, dtype=module_dtype(world_model))
         check_step_fn("cost_fn", cost_fn, n, m, device=module_device(world_model))
         if termination_fn is not None:
             check_step_fn(
@@ -164,7 +166,7 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
             observation[ENDED] = Categorical(2, (1,), dtype=torch.bool, device=device)
         self.observation_spec = Composite(observation, device=device)
         self.state_spec = self.observation_spec.clone()
-        self.action_spec = Bounded(action_low, action_high, (m,), device=device)
+        self.action_spec = Bounded(low.to(device), high.to(device), (m,), device=device)
         self.reward_spec = Unbounded((1,), device=device)
 
     def initial_state(

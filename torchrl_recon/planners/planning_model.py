@@ -16,7 +16,7 @@ from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.planners.bounds import bounds_from_spec
+from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
@@ -359,20 +359,9 @@ class PlanningModel(nn.Module):
         dtype, device = torch.float32, torch.device("cpu")
         if isinstance(world_model, nn.Module):
             dtype, device = module_dtype(world_model), module_device(world_model)
-        low, high = (
-            torch.as_tensor(value, dtype=dtype, device="cpu").expand(self.action_dim)
-            for value in (action_low, action_high)
-        )
-        if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
-            raise ValueError(
-                f"action bounds must be finite, got low={low.tolist()}, high={high.tolist()}."
-            )
-        if not (low < high).all():
-            raise ValueError(
-                f"action_low must be below action_high, got low={low.tolist()}, high={high.tolist()}."
-            )
-        self.register_buffer("action_low", low.to(device).clone())
-        self.register_buffer("action_high", high.to(device).clone())
+        low, high = action_bounds(action_low, action_high, self.action_dim, dtype=dtype)
+        self.register_buffer("action_low", low.to(device))
+        self.register_buffer("action_high", high.to(device))
         self.compile_mode = compile_mode(compile)
         if self.compile_mode is not None:
             check_compile_support(device)
@@ -413,9 +402,10 @@ class PlanningModel(nn.Module):
         """A planning model whose action bounds are the env's (its ``Bounded`` action spec).
 
         Raises:
-            ValueError: the env's action spec is unbounded or not continuous (pass
-                ``action_low`` / ``action_high`` to the constructor instead), or its size is
-                not the world model's ``action_dim``.
+            ValueError: the env's actions are discrete (the planners need continuous bounded
+                actions), its action spec is unbounded (pass ``action_low`` / ``action_high``
+                to the constructor instead), or its size is not the world model's
+                ``action_dim``.
 
         Examples:
             >>> from torchrl.envs import GymEnv

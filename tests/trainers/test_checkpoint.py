@@ -1,6 +1,7 @@
 """An OnlineTrainer stopped after an iteration and restored from TorchRL's own checkpoint
-(either format) goes on to the same records and data as an uninterrupted run; no checkpoint
-file is a pickle."""
+(either format; the unified one as a directory or an archive) goes on to the same records and
+data as an uninterrupted run; the checkpoint carries a manifest its load checked; no checkpoint
+file is a pickle. Damaged checkpoints: test_verified_checkpoint.py."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from torchrl_recon.envs.gym_costs import pendulum
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import MPCPolicy
-from torchrl_recon.trainers import OnlineCollector, OnlineTrainer
+from torchrl_recon.trainers import OnlineCollector, OnlineTrainer, verify_checkpoint
 from torchrl_recon.training.online import FitSchedule
 
 SCHEDULE = FitSchedule(
@@ -23,8 +24,14 @@ SCHEDULE = FitSchedule(
 )
 
 
-def _trainer(path=None, unified: bool = True) -> OnlineTrainer:
-    torch.manual_seed(0)
+FORMATS = {"directory": "torchrl.checkpoint", "archive": "torchrl.checkpoint archive"}
+FORMATS |= {"legacy": "legacy torch"}
+
+
+def _trainer(path=None, fmt: str = "directory", seed: int = 0) -> OnlineTrainer:
+    """The small Trainer of these tests; with ``path``, saving there after every batch in
+    ``fmt``: a unified ``Checkpoint`` (``"directory"``, ``"archive"``) or ``"legacy"``."""
+    torch.manual_seed(seed)
     env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
     world = LSTMWorldModel(3, 1, window=4)
     estimator = ReconstructionUncertainty(3, 1, window=4)
@@ -36,7 +43,7 @@ def _trainer(path=None, unified: bool = True) -> OnlineTrainer:
     saving = {}
     if path is not None:
         saving = dict(save_trainer_file=path, save_trainer_interval=0)
-        saving |= {"checkpoint": Checkpoint()} if unified else {}
+        saving |= {"checkpoint": Checkpoint(format=fmt)} if fmt != "legacy" else {}
     return OnlineTrainer(
         collector=collector,
         world_model=world,
@@ -54,23 +61,26 @@ def _numbers(trainer: OnlineTrainer) -> list[tuple]:
     ]
 
 
-@pytest.mark.parametrize("unified", [True, False], ids=["torchrl.checkpoint", "legacy torch"])
-def test_a_stopped_trainer_resumes_from_its_checkpoint_to_the_same_numbers(tmp_path, unified):
+@pytest.mark.parametrize("fmt", list(FORMATS), ids=list(FORMATS.values()))
+def test_a_stopped_trainer_resumes_from_its_checkpoint_to_the_same_numbers(tmp_path, fmt):
     whole = _trainer()
     whole.train()
     path = tmp_path / "trainer.pt"
-    stopped = _trainer(path, unified)
+    stopped = _trainer(path, fmt)
     stop = lambda: stopped.collected_frames >= 80 and stopped.request_stop("killed")  # noqa: E731
     stopped.register_op("post_steps", stop)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the legacy format's FutureWarning
         stopped.train()
     assert len(stopped.records) == 3  # iterations 0-2 of 0-3
-    resumed = _trainer(path, unified)
-    resumed.load_from_file(path)
+    assert verify_checkpoint(path) is True  # checked against the manifest saved with it
+    resumed = _trainer(path, fmt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "loaded without checking" warning
+        resumed.load_from_file(path)
     assert resumed.collector.iteration == 3 and len(resumed.buffer) == 80
     resumed.train()
     assert _numbers(resumed) == _numbers(whole)
     assert (resumed.data() == whole.data()).all()
-    if unified:
+    if fmt == "directory":
         assert not [p for p in path.rglob("*") if p.suffix in (".pkl", ".pickle", ".pt")]

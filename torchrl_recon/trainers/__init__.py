@@ -5,6 +5,7 @@ agent's own Trainer and loop built from them (docs/torchrl_trainer.md)."""
 from __future__ import annotations
 
 from torchrl_recon.trainers.buffer import ReplayBufferSteps
+from torchrl_recon.trainers.checkpoint import VerifiedCheckpoint, VerifiedTrainer, verify_checkpoint
 from torchrl_recon.trainers.collector import (
     IterationCollector,
     OnlineCollector,
@@ -26,7 +27,10 @@ __all__ = [
     "OnlineTrainer",
     "ReplayBufferSteps",
     "TimedPolicy",
+    "VerifiedCheckpoint",
+    "VerifiedTrainer",
     "env_keys",
     "learn_online",
     "play",
+    "verify_checkpoint",
 ]

@@ -6,7 +6,7 @@ TorchRL's unified ``torchrl.checkpoint.Checkpoint`` and the legacy ``torch.save`
 checkpoint loads without complaint and gives different weights. Here:
 
 - :class:`VerifiedCheckpoint` is a ``Checkpoint`` that, once TorchRL has written its files,
-  adds :data:`FILES` (relative path → size and SHA-256 of every other file) inside the
+  adds ``files.json`` (relative path → size and SHA-256 of every other file) inside the
   checkpoint, in the same atomic publish; its ``load`` checks the files first.
 - :class:`VerifiedTrainer` is a ``torchrl.trainers.Trainer`` that checkpoints through a
   :class:`VerifiedCheckpoint` (a plain ``Checkpoint`` given is upgraded), writes a sidecar
@@ -26,6 +26,7 @@ import sys
 import uuid
 import warnings
 import zipfile
+import zlib
 from collections.abc import Collection, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -173,10 +174,11 @@ def _verify_directory(path: Path) -> bool:
         return False
     files = _read_manifest(manifest)
     present = {p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()} - {FILES}
-    for rel in sorted(present - set(files)):
+    planted = sorted(present - set(files))
+    if planted:
         raise DamagedFileError(
-            f"{path / rel} is not one of the {len(files)} files {manifest} lists (planted, or "
-            f"left by another save); expected only those; {_REMEDY}"
+            f"{path / planted[0]} is not one of the {len(files)} files {manifest} lists (planted, "
+            f"or left by another save); expected only those; {_REMEDY}"
         )
     verify_files(path, files, owner=str(manifest), remedy=_REMEDY)
     return True
@@ -194,7 +196,7 @@ def _torchrl_metadata(path: Path) -> Mapping[str, Any]:
 
 
 def _verify_zip(path: Path) -> bool:
-    """A unified archive (with or without :data:`FILES`) or a legacy ``torch.save`` file."""
+    """A unified archive (with or without ``files.json``) or a legacy ``torch.save`` file."""
     expected = "an intact zip archive, as torch.save and TorchRL's Checkpoint write"
     try:
         with zipfile.ZipFile(path) as archive:
@@ -213,10 +215,11 @@ def _verify_zip(path: Path) -> bool:
                     )
                 return False
             files = _read_manifest_member(archive, path)
-            for name in sorted(set(names) - set(files) - {FILES}):
+            planted = sorted(set(names) - set(files) - {FILES})
+            if planted:
                 raise DamagedFileError(
-                    f"{path}: member {name!r} is not one of the {len(files)} its {FILES} lists "
-                    f"(planted); expected only those; {_REMEDY}"
+                    f"{path}: member {planted[0]!r} is not one of the {len(files)} its {FILES} "
+                    f"lists (planted); expected only those; {_REMEDY}"
                 )
             for name, entry in files.items():
                 if name not in names:
@@ -234,7 +237,7 @@ def _verify_zip(path: Path) -> bool:
                         f"records; {_REMEDY}"
                     )
             return True
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as err:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, OSError, EOFError) as err:
         raise DamagedFileError(
             f"{path} is not a readable zip archive ({_first_line(err)}); expected {expected}; "
             f"{_REMEDY}"
@@ -272,7 +275,7 @@ def _first_line(err: BaseException) -> str:
 class VerifiedCheckpoint(Checkpoint):
     """TorchRL's ``Checkpoint`` with a manifest of every file's size and SHA-256, checked on load.
 
-    Saving is TorchRL's (same components, adapters and layout); the manifest :data:`FILES`
+    Saving is TorchRL's (same components, adapters and layout); the manifest ``files.json``
     is added inside the directory (or archive) before it is published, in the same atomic
     rename. :meth:`load` first runs :func:`verify_checkpoint`: a truncated, altered, swapped,
     missing or extra file is one :class:`~torchrl_recon.errors.DamagedFileError` naming it,

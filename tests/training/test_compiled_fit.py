@@ -53,20 +53,21 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
 
 @needs_cpp_compiler
 def test_a_compiled_fit_still_stops_on_non_finite_data():
-    """NaN inputs: the eager fit's ValueError naming the input (the compiled step leaves the
-    input checks out; its non-finite loss sends the batch through the eager checks)."""
+    """NaN inputs: the eager fit's ValueError naming the key and its buffer row (the compiled
+    step leaves the input checks out; its non-finite loss has the batch checked as eager)."""
     data = _buffer(0)[:]
     data["observation"][:] = float("nan")  # eager, the world model's input check refuses it
     rb = make_sequence_buffer(200, slice_len=8, num_slices=4)
     rb.extend(data)
     messages = []
     for compile in (False, True):  # the same error as eager: the input named
-        with pytest.raises(ValueError, match="observation contains NaN or inf") as info:
+        named = r"^Training stopped at step 1: 'observation' in the replay buffer holds NaN or inf"
+        with pytest.raises(ValueError, match=named) as info:
             fit_population(
                 [_world(r) for r in range(2)], rb, fit_normalization=False, compile=compile, **FIT
             )
         messages.append(str(info.value))
-        with pytest.raises(ValueError, match="observation contains NaN or inf"):
+        with pytest.raises(ValueError, match=named):
             fit_world_model(_world(0), rb, fit_normalization=False, compile=compile, **FIT)
     assert messages[0] == messages[1]
     diverging = FIT | {"lr": 1e30}  # finite inputs, a loss that blows up: as before

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
 
 import torch
+from tensordict import NestedKey, TensorDictBase
 
 from torchrl_recon.modules.activations import ACTIVATIONS
 
@@ -15,6 +17,7 @@ __all__ = [
     "check_activation",
     "check_features",
     "check_finite",
+    "check_finite_keys",
     "check_flag",
     "check_int",
     "check_real",
@@ -76,6 +79,93 @@ def check_finite(name: str, x: torch.Tensor) -> None:
         raise ValueError(
             f"{name} contains NaN or inf (first at index {bad}); expected finite values."
         )
+
+
+CLEAN_DATA = "clean the data first (drop or repair those steps)"
+"""What to do about NaN or inf in collected data."""
+FIX_ENV = (
+    "the env returned it: fix the env (or the reward or cost it computes) so that every step "
+    "is finite"
+)
+"""What to do about NaN or inf that an env returned while collecting."""
+
+
+def nonfinite_key(
+    data: TensorDictBase, keys: Iterable[NestedKey] | None = None
+) -> tuple[NestedKey, int, int] | None:
+    """The first of ``keys`` (default: every floating-point entry) whose values in ``data`` hold
+    NaN or inf, with the first such row (over ``data``'s batch dims flattened) and feature
+    (over the rest flattened): ``(key, row, feature)``, or None when all are finite. A key
+    ``data`` lacks is skipped.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.zeros(4, 2), ("next", "reward"): torch.zeros(4, 1)}, [4])
+        >>> td["next", "reward"][2] = float("nan")
+        >>> nonfinite_key(td)
+        (('next', 'reward'), 2, 0)
+    """
+    if keys is None:
+        keys = [
+            k
+            for k in data.keys(True, True)
+            if isinstance(data.get(k), torch.Tensor) and data.get(k).is_floating_point()
+        ]
+    rows = max(1, int(data.batch_size.numel()))
+    for key in keys:
+        x = data.get(key, None)
+        if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.numel() == 0:
+            continue
+        bad = ~torch.isfinite(x.detach().reshape(rows, -1))
+        if bool(bad.any()):
+            row, feature = bad.nonzero()[0].tolist()
+            return key, row, feature
+    return None
+
+
+def check_finite_keys(
+    data: TensorDictBase,
+    keys: Iterable[NestedKey] | None = None,
+    *,
+    where: str = "the data",
+    rows: torch.Tensor | None = None,
+    remedy: str = CLEAN_DATA,
+) -> None:
+    """Raise if one of ``keys`` (default: every floating-point entry) of ``data`` holds NaN or
+    inf, naming the key, its first bad row (an index over the batch dims where ``data`` has
+    several) and what to do (see :func:`nonfinite_key`).
+
+    Args:
+        data: the transitions (a replay buffer's contents, a collected or sampled batch).
+        keys: the entries to check, in order.
+
+    Keyword Args:
+        where: what ``data`` is, for the message (``"the replay buffer"``).
+        rows: the row each of ``data``'s (flattened) rows stands for, ``[*batch]`` or
+            ``[*batch, 1]``, e.g. a sample's buffer ``"index"``; the message then names that row.
+        remedy: what the message says to do (default :data:`CLEAN_DATA`).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"observation": torch.zeros(4, 2), "action": torch.zeros(4, 1)}, [4])
+        >>> td["action"][3, 0] = float("inf")
+        >>> check_finite_keys(td, ["observation", "action"], where="the replay buffer")
+        Traceback (most recent call last):
+        ...
+        ValueError: 'action' in the replay buffer holds NaN or inf (first at row 3, feature 0); clean the data first (drop or repair those steps).
+    """
+    found = nonfinite_key(data, keys)
+    if found is None:
+        return
+    key, row, feature = found
+    if rows is not None:
+        at = rows.reshape(max(1, int(data.batch_size.numel())), -1)[row].tolist()
+        row = at[0] if len(at) == 1 else at
+    elif data.batch_dims > 1:  # e.g. [envs, steps]: the index in the batch dims
+        row = [int(i) for i in torch.unravel_index(torch.tensor(row), data.batch_size)]
+    raise ValueError(
+        f"{key!r} in {where} holds NaN or inf (first at row {row}, feature {feature}); {remedy}."
+    )
 
 
 def check_flag(name: str, value: object) -> None:

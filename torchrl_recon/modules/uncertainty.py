@@ -84,7 +84,8 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
 
         The default fits ``self.input_norm``, a :class:`~torchrl_recon.modules.Normalizer`
         over the N + M features, which every built-in estimator has; an estimator without one
-        overrides this.
+        overrides this. NaN or inf in ``obs`` or ``action`` is refused (``ValueError`` naming
+        the argument and the first bad index).
         """
         norm = getattr(self, "input_norm", None)
         if norm is None:
@@ -93,6 +94,13 @@ class UncertaintyEstimator(TensorDictModuleBase, abc.ABC):
             )
         check_features("obs", obs, self.obs_dim)
         check_features("action", action, self.action_dim)
+        if obs.shape[:-1] != action.shape[:-1]:
+            raise ValueError(
+                f"obs {tuple(obs.shape)} and action {tuple(action.shape)} disagree on batch dims; "
+                "expected one action per observation."
+            )
+        check_finite("obs", obs)
+        check_finite("action", action)
         norm.fit(torch.cat([obs, action], -1))
 
     @abc.abstractmethod

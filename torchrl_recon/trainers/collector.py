@@ -13,7 +13,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_recon.collectors import collect, collect_random, renumber_trajectories
-from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.checks import FIX_ENV, check_finite_keys, check_int
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
 
@@ -67,7 +67,9 @@ class IterationCollector(BaseCollector):
     (:meth:`collect_iteration`); this class numbers the trajectories on from the earlier
     batches' (a ``SliceSampler`` never joins two iterations' episodes), counts iterations
     (``state_dict``) and sets ``init_random_frames`` to ``random_steps``, so the Trainer fits
-    after the random batch and after every later one. :attr:`batch_info` describes the last
+    after the random batch and after every later one. A batch holding NaN or inf (an
+    observation, action or reward) is refused before the Trainer sees it (:func:`check_batch`).
+    :attr:`batch_info` describes the last
     batch (``iteration``, ``policy``, ``plan_s``, ``env_s``, ``replans``) for
     :class:`~torchrl_recon.trainers.LogIteration`.
     """
@@ -107,6 +109,7 @@ class IterationCollector(BaseCollector):
     def iterator(self) -> Iterator[TensorDictBase]:
         while self.iteration <= self.iterations:
             data = self.renumber(self.collect_iteration(self.iteration))
+            check_batch(data, f"iteration {self.iteration}'s batch")
             self.iteration += 1  # before the yield: a Trainer checkpoints while it holds the batch
             yield data
 
@@ -227,6 +230,28 @@ class OnlineCollector(IterationCollector):
         """Seed iteration ``i`` with ``seed + i`` from now on."""
         self.seed = seed
         return seed
+
+
+COLLECTED_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"))
+"""What the online agent's fits and records read of a collected step (checked finite)."""
+
+
+def check_batch(data: TensorDictBase, where: str = "the collected batch") -> None:
+    """Refuse a collected batch whose observation, action, next observation or reward holds
+    NaN or inf, before any fit or record reads it: one ``ValueError`` naming the key and the
+    first row (a key the batch lacks is skipped).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> batch = TensorDict({("next", "reward"): torch.zeros(5, 1)}, [5])
+        >>> batch["next", "reward"][3] = float("nan")
+        >>> check_batch(batch)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: ('next', 'reward') in the collected batch holds NaN or inf (first at row 3, feature 0); the env returned it: ...
+    """
+    check_finite_keys(data, COLLECTED_KEYS, where=where, remedy=FIX_ENV)
 
 
 def check_schedule(

@@ -12,6 +12,7 @@ from torchrl.trainers import Trainer, TrainerHookBase
 
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
 from torchrl_recon.policies.mpc import REPLANNED
+from torchrl_recon.trainers.collector import check_batch
 from torchrl_recon.training.online import (
     IterationRecord,
     episode_returns,
@@ -35,7 +36,8 @@ class LogIteration(TrainerHookBase):
     and re-plans (:attr:`~torchrl_recon.trainers.OnlineCollector.batch_info`); with another
     collector the collection's wall time is the env's, and a
     :class:`~torchrl_recon.trainers.TimedPolicy` given as ``timed_policy`` splits the planning
-    time off.
+    time off. A batch holding NaN or inf (an observation, action or reward: no return or model
+    error is made of it) is refused with one ``ValueError`` naming the key and the first row.
 
     Args:
         world_model: the planner's world model.
@@ -96,6 +98,7 @@ class LogIteration(TrainerHookBase):
             planned = getattr(self.timed_policy, "seconds", 0.0)
             info["plan_s"], self._planned_s = planned - self._planned_s, planned
             info["env_s"] = arrived - self._last_end - info["plan_s"]
+        check_batch(batch)  # a NaN reward: no return is made of it
         flat = batch.reshape(-1)
         stepper = self._stepper()
         info["fits_before"] = stepper.fits if stepper is not None else 0

@@ -8,6 +8,7 @@ from tensordict import TensorDictBase
 from torchrl.trainers import Trainer, TrainerHookBase
 
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
+from torchrl_recon.modules.checks import check_finite_keys
 
 
 class FitNormalization(TrainerHookBase):
@@ -22,7 +23,8 @@ class FitNormalization(TrainerHookBase):
     :class:`~torchrl_recon.trainers.ModelFitStepper` needs no such hook: its first fit fits the
     normalisation from its training split. Registered at ``batch_process``; give it the
     random batch (``init_random_frames``) so the statistics cover the env's range. A world
-    model of members fits every member from the same batch.
+    model of members fits every member from the same batch. A batch holding NaN or inf is
+    refused (``ValueError`` naming the key and its first row).
 
     Examples:
         >>> import torch
@@ -46,16 +48,25 @@ class FitNormalization(TrainerHookBase):
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
         if self.done:
             return batch
+        world_unfitted = bool(unfitted_normalizers(self.world_model))
+        estimator_unfitted = self.estimator is not None and bool(
+            unfitted_normalizers(self.estimator)
+        )
+        keys = ["observation", "action"]
+        if world_unfitted:
+            keys.append(("next", "observation"))
+        if world_unfitted or estimator_unfitted:
+            check_finite_keys(batch, keys, where="the collected batch")
         flat = batch.reshape(-1)
         obs, action = flat["observation"], flat["action"]
-        if unfitted_normalizers(self.world_model):
+        if world_unfitted:
             world = self.world_model
             members = [world] if world.num_members is None else world.split()
             for member in members:
                 member.fit_normalization(obs, action, flat["next", "observation"])
             for r, member in enumerate(members if world.num_members is not None else []):
                 world.load_member(r, member)
-        if self.estimator is not None and unfitted_normalizers(self.estimator):
+        if estimator_unfitted:
             self.estimator.fit_normalization(obs, action)
         self.done = True
         return batch

@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
 from torchrl_recon.devices import check_compile_support
-from torchrl_recon.modules.checks import check_int, check_real
+from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.population import ReconstructionPopulation
@@ -81,6 +81,49 @@ def _input_error(eager_fn: Callable[..., torch.Tensor], batch) -> ValueError | N
     except FloatingPointError:
         pass
     return None
+
+
+WORLD_MODEL_KEYS: tuple = ("observation", "action", ("next", "observation"))
+"""What a world model's fit reads of a transition."""
+ESTIMATOR_KEYS: tuple = ("observation", "action")
+"""What an uncertainty estimator's fit reads of a transition."""
+
+
+def _checked_contents(buffer: TensorDictReplayBuffer, keys: Sequence) -> TensorDictBase:
+    """``buffer``'s contents (:func:`~torchrl_recon.data.buffer_contents`) for a normalisation
+    fit, refused with one line naming the first of ``keys`` that holds NaN or inf and its row."""
+    data = buffer_contents(buffer)
+    check_finite_keys(data, keys, where="the replay buffer")
+    return data
+
+
+def _loss_keys(loss_module: nn.Module) -> list | None:
+    """The entries ``loss_module`` reads (its ``*_key`` attributes), or None (every one)."""
+    keys = [
+        getattr(loss_module, name)
+        for name in ("obs_key", "action_key", "next_obs_key", "reward_key", "done_key")
+        if getattr(loss_module, name, None) is not None
+    ]
+    return keys or None
+
+
+def _data_error(batches: TensorDictBase | list, keys: Sequence | None) -> ValueError | None:
+    """After a training step failed (a non-finite loss, an input check): the ``ValueError``
+    naming the first of ``keys`` that holds NaN or inf in the sampled batch(es) and its buffer
+    row (the sample's ``"index"``), or None when they are finite (the loss itself diverged)."""
+    for batch in batches if isinstance(batches, list) else [batches]:
+        if batch is None:
+            continue
+        try:
+            check_finite_keys(batch, keys, where="the replay buffer", rows=batch.get("index", None))
+        except ValueError as err:
+            return err
+    return None
+
+
+def _stopped(step: int, err: BaseException, where: str = "") -> str:
+    """``"Training stopped at step N: <err><where>."`` (one full stop)."""
+    return f"Training stopped at step {step}: {str(err).rstrip('.')}{where}."
 
 
 COMPILING = "torch.compile: the first step compiles"
@@ -265,6 +308,7 @@ def _train_loss_module(
     device = module_device(loss_module)  # the buffers' storage may stay on the CPU
     eager_loss = partial(_loss_value, loss_module)
     train_loss = _training_loss(eager_loss, compile)
+    data_keys = _loss_keys(loss_module)
     fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
     best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
     history: list[dict] = []
@@ -274,12 +318,17 @@ def _train_loss_module(
         batch = buffer.sample().to(device)
         try:
             loss = train_loss(batch)
-        except FloatingPointError as err:
+        except (FloatingPointError, ValueError) as err:
+            if (data := _data_error(batch, data_keys)) is not None:  # NaN or inf in the data
+                loss_module.load_state_dict(best_state)
+                raise ValueError(_stopped(step, data)) from err
+            if isinstance(err, ValueError):
+                raise
             if compile and (named := _input_error(eager_loss, batch)) is not None:
                 raise named from None
             loss_module.load_state_dict(best_state)
             where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""
-            raise FloatingPointError(f"Training stopped at step {step}: {err}{where}.") from err
+            raise FloatingPointError(_stopped(step, err, where)) from err
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if clip_norm is not None:
@@ -371,7 +420,7 @@ def fit_world_model(
         )
     _check_train_keywords(kwargs, model)
     if fit_normalization:
-        data = buffer_contents(buffer)
+        data = _checked_contents(buffer, WORLD_MODEL_KEYS)
         model.fit_normalization(data["observation"], data["action"], data["next", "observation"])
     loss = WorldModelPredictionLoss(model, mode=mode, slice_len=_slice_len(buffer))
     kwargs.setdefault("log_prefix", "world_model/")
@@ -464,7 +513,7 @@ def fit_uncertainty(
     """
     _check_train_keywords(kwargs, estimator)
     if fit_normalization:
-        data = buffer_contents(buffer)
+        data = _checked_contents(buffer, ESTIMATOR_KEYS)
         estimator.fit_normalization(data["observation"], data["action"])
     loss = UncertaintyLoss(estimator, slice_len=_slice_len(buffer))
     kwargs.setdefault("log_prefix", "uncertainty/")
@@ -723,9 +772,10 @@ def fit_population(
     _check_compile(compile, models[0])
     check_cuda_graph(cuda_graph, module_device(models[0]), compile)
     world = isinstance(models[0], LSTMWorldModel)
+    data_keys = WORLD_MODEL_KEYS if world else ESTIMATOR_KEYS
     if fit_normalization:
         for model, buffer in zip(models, buffers, strict=True):
-            data = buffer_contents(buffer)
+            data = _checked_contents(buffer, data_keys)
             if world:
                 model.fit_normalization(
                     data["observation"], data["action"], data["next", "observation"]
@@ -760,6 +810,7 @@ def fit_population(
             progress=progress,
             compile=compile,
             cuda_graph=cuda_graph,
+            data_keys=data_keys,
         )
     if count > 1:
         for i, model in enumerate(models):
@@ -789,6 +840,7 @@ def _train_members(
     shared_sampling: bool = False,
     compile: bool = False,
     cuda_graph: bool = False,
+    data_keys: Sequence | None = None,
 ) -> list[FitResult]:
     """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``.
     With ``cuda_graph`` each step is one :class:`~torchrl_recon.training.CapturedStep`."""
@@ -873,14 +925,20 @@ def _train_members(
                 raise FloatingPointError(
                     f"the loss of member(s) {bad} is not finite; check the data and the learning rate"
                 )
-        except FloatingPointError as err:
+        except (FloatingPointError, ValueError) as err:
             if cuda_graph:  # the captured step applied its update: undo it before anything else
                 restore_all()
+            if (data := _data_error(batches, data_keys)) is not None:  # NaN or inf in the data
+                if not cuda_graph:
+                    restore_all()
+                raise ValueError(_stopped(step, data)) from err
+            if isinstance(err, ValueError):
+                raise
             if (compile or cuda_graph) and (named := _input_error(losses_of, batches)) is not None:
                 raise named from None
             if not cuda_graph:  # (restored above)
                 restore_all()
-            raise FloatingPointError(f"Training stopped at step {step}: {err}.") from err
+            raise FloatingPointError(_stopped(step, err)) from err
         if captured is None:
             optimizer.zero_grad(set_to_none=True)
             losses.sum().backward()

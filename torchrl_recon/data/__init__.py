@@ -5,6 +5,7 @@ from __future__ import annotations
 from torchrl_recon.data.buffers import (
     FIT_KEYS,
     MASK_KEY,
+    REWARD_FIT_KEYS,
     TRAJ_KEY,
     GatherTensorStorage,
     buffer_contents,
@@ -24,6 +25,7 @@ from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSa
 __all__ = [
     "MASK_KEY",
     "FIT_KEYS",
+    "REWARD_FIT_KEYS",
     "TRAJ_KEY",
     "GatherTensorStorage",
     "StepUniformSliceSampler",

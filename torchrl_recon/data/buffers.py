@@ -20,6 +20,8 @@ TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
 """Where TorchRL's collectors write each step's trajectory id; windows never cross a change of it."""
 FIT_KEYS: tuple[NestedKey, ...] = ("observation", "action", ("next", "observation"))
 """What the fits' losses read of a transition (with :data:`TRAJ_KEY`, which the sampler reads)."""
+REWARD_FIT_KEYS: tuple[NestedKey, ...] = (*FIT_KEYS, ("next", "reward"), ("next", "terminated"))
+""":data:`FIT_KEYS` and what a learned reward and termination read (``RewardLoss``)."""
 MASK_KEY: tuple[str, str] = ("collector", "mask")
 """Where TorchRL's ``SliceSampler(pad_output=True)`` marks a sample's real (True) and padded steps."""
 _PREFETCH_FILE = "prefetch.pkl"

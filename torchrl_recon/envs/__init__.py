@@ -6,6 +6,7 @@ from torchrl_recon.envs.entry_checks import entry_errors
 from torchrl_recon.envs.factory import make_env
 from torchrl_recon.envs.registry import (
     ENVS,
+    LEARNED,
     EnvEntry,
     GymEntry,
     get_entry,
@@ -18,6 +19,7 @@ from torchrl_recon.envs.threads import close_env, closing_env, keep_num_threads
 
 __all__ = [
     "ENVS",
+    "LEARNED",
     "EnvEntry",
     "GymEntry",
     "get_entry",

@@ -10,7 +10,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from torchrl_recon.envs.registry import ENVS, EnvEntry, import_cost
+from torchrl_recon.envs.registry import ENVS, LEARNED, EnvEntry, import_cost
 
 
 def entry_errors(
@@ -51,11 +51,14 @@ def entry_errors(
             )
     cost = term = None
     before = len(errors)  # a keyword of the wrong type still lets the env be built
-    if not entry.cost_fn_path:
+    if entry.cost_fn_path == LEARNED:
+        pass  # learned from the data's rewards: nothing to import
+    elif not entry.cost_fn_path:
         errors.append(
             f"'{key}.cost': environment {entry.gym_id!r} has no torch cost; give "
             f"{key}.cost=module:function, a batched torch cost(obs, action, next_obs) -> [...] "
-            f"in a module on PYTHONPATH (e.g. {key}.cost=my_costs:pendulum; see docs/custom_env.md)"
+            f"in a module on PYTHONPATH (e.g. {key}.cost=my_costs:pendulum; see docs/custom_env.md), "
+            f"or {key}.cost=learned (the env's reward, learned from the data)"
         )
     else:
         try:
@@ -63,7 +66,7 @@ def entry_errors(
             cost = entry.cost_fn_with(kwargs)
         except ValueError as e:
             errors.append(f"'{key}.cost': {e}")
-    if termination is not None:
+    if termination is not None and termination != LEARNED:
         try:
             term = import_cost(termination, what="termination")
         except ValueError as e:

@@ -116,3 +116,75 @@ def inverted_pendulum_upright(
     return torch.where(
         up, shape - 1, torch.zeros_like(shape)
     )  # 0, not NaN, past a non-finite state
+
+
+def _double_pendulum_tip(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """InvertedDoublePendulum-v5's tip (x, height) from its observation ``[..., 9]`` (cart x,
+    sin θ1, sin θ2, cos θ1, cos θ2, ...): two poles of 0.6 m, θ2 relative to the first pole."""
+    x, sin1, sin2, cos1, cos2 = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3], obs[..., 4]
+    sin12, cos12 = sin1 * cos2 + cos1 * sin2, cos1 * cos2 - sin1 * sin2
+    return x + 0.6 * (sin1 + sin12), 0.6 * (cos1 + cos12)
+
+
+def inverted_double_pendulum_fallen(
+    obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """InvertedDoublePendulum-v5's termination: the tip of the state reached at or below 1 m
+    (or a non-finite state), ``[..., 9]`` → bool ``[...]``.
+
+    Examples:
+        >>> up = torch.tensor([[0.0, 0, 0, 1, 1, 0, 0, 0, 0]])  # both poles straight up: 1.2 m
+        >>> inverted_double_pendulum_fallen(None, None, torch.cat([up, -up]))
+        tensor([False,  True])
+    """
+    _, height = _double_pendulum_tip(next_obs)
+    return ~torch.isfinite(next_obs).all(-1) | (height <= 1)
+
+
+def inverted_double_pendulum(
+    obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+) -> torch.Tensor:
+    """InvertedDoublePendulum-v5's cost, the negative of its reward from the state a step
+    reaches: −(10 while the tip stays above 1 m) + 0.01·tip_x² + (tip_height − 2)² +
+    0.001·θ̇1² + 0.005·θ̇2². The env reads the joint speeds unclipped and the observation
+    holds them clipped to ±10, the only difference (none below 10 rad/s). Pair it with
+    :func:`inverted_double_pendulum_fallen` as ``env.termination``.
+
+    Examples:
+        >>> up = torch.tensor([[0.0, 0, 0, 1, 1, 0, 0, 0, 0]])
+        >>> inverted_double_pendulum(None, None, up)  # the best a step can do: 10 - 0.64
+        tensor([-9.3600])
+    """
+    tip_x, height = _double_pendulum_tip(next_obs)
+    alive = 10.0 * (~inverted_double_pendulum_fallen(obs, action, next_obs)).to(next_obs.dtype)
+    distance = 0.01 * tip_x.pow(2) + (height - 2).pow(2)
+    speed = 1e-3 * next_obs[..., 6].pow(2) + 5e-3 * next_obs[..., 7].pow(2)
+    return torch.nan_to_num(distance + speed - alive, nan=0.0)
+
+
+def reacher(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """Reacher-v5's cost, the negative of its reward: the fingertip's distance to the target in
+    the state reached (``next_obs[8:10]``) plus Σ a², ``[..., 10]``, ``[..., 2]`` → ``[...]``.
+
+    Examples:
+        >>> reached = torch.zeros(1, 10)
+        >>> reached[0, 8:10] = torch.tensor([0.03, 0.04])
+        >>> reacher(None, torch.ones(1, 2), reached)
+        tensor([2.0500])
+    """
+    return next_obs[..., 8:10].norm(dim=-1) + action.pow(2).sum(-1)
+
+
+def half_cheetah(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """HalfCheetah-v5's cost from its observation: −(the forward speed of the state reached,
+    ``next_obs[8]``) + 0.1·Σ a². The env's reward takes the mean speed over the step (its x
+    moved over dt), which the observation (it leaves x out) does not hold; the speed at the
+    step's end is PETS's stand-in, ``[..., 17]``, ``[..., 6]`` → ``[...]``.
+
+    Examples:
+        >>> state = torch.zeros(1, 17)
+        >>> state[0, 8] = 3.0
+        >>> half_cheetah(None, torch.ones(1, 6), state)
+        tensor([-2.4000])
+    """
+    return -next_obs[..., 8] + 0.1 * action.pow(2).sum(-1)

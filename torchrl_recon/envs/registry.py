@@ -17,6 +17,11 @@ from torchrl_recon.plugins import import_object
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
+LEARNED = "learned"
+"""A recipe's ``env.cost`` / ``env.termination`` that is learned from the data's rewards and
+ends (:class:`~torchrl_recon.modules.RewardModel`) instead of imported."""
+
+
 def import_cost(path: str, *, what: str = "cost") -> CostFn:
     """Import the cost function ``"module:function"`` (this runs ``module``'s code, as any import).
 

@@ -13,6 +13,7 @@ from torchrl.envs import DeviceCastTransform, EnvBase
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import (
     FIT_KEYS,
+    REWARD_FIT_KEYS,
     long_trajectories,
     needs_padding,
     sequence_buffers,
@@ -20,12 +21,15 @@ from torchrl_recon.data import (
 )
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.envs import closing_env, get_entry, make_env
-from torchrl_recon.envs.registry import CostFn, EnvEntry, import_cost
+from torchrl_recon.envs.registry import LEARNED, CostFn, EnvEntry, import_cost
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.modules import (
+    LearnedCost,
+    LearnedTermination,
     LSTMWorldModel,
     Normalizer,
+    RewardModel,
     UncertaintyEstimator,
     get_estimator_class,
     make_estimator,
@@ -40,6 +44,7 @@ from torchrl_recon.planners import (
 )
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import (
+    fit_reward,
     fit_uncertainty,
     load_checkpoint,
     save_checkpoint,
@@ -101,18 +106,50 @@ def cost_fn(cfg: DictConfig) -> CostFn:
     return env_entry(cfg).cost_fn_with(OmegaConf.to_container(cfg.env.kwargs, resolve=True))
 
 
+def learns_reward(cfg: DictConfig) -> bool:
+    """Whether the recipe's cost or termination is learned (``env.cost`` or ``env.termination``
+    ``learned``)."""
+    return LEARNED in (cfg.env.get("cost"), cfg.env.get("termination"))
+
+
+def build_reward_model(
+    cfg: DictConfig, obs_dim: int, action_dim: int, device: torch.device | None = None
+) -> RewardModel | None:
+    """The recipe's learned reward and termination (``reward_model`` sizes), on ``device``, or
+    None when neither ``env.cost`` nor ``env.termination`` is ``learned``."""
+    if not learns_reward(cfg):
+        return None
+    device = resolve_device(cfg.device) if device is None else device
+    sizes = OmegaConf.to_container(cfg.reward_model, resolve=True)
+    return RewardModel(
+        obs_dim,
+        action_dim,
+        reward=cfg.env.get("cost") == LEARNED,
+        termination=cfg.env.get("termination") == LEARNED,
+        **sizes,
+    ).to(device)
+
+
 def planning_model(
-    cfg: DictConfig, world: LSTMWorldModel, uncertainty: UncertaintyEstimator | None = None
+    cfg: DictConfig,
+    world: LSTMWorldModel,
+    uncertainty: UncertaintyEstimator | None = None,
+    reward_model: RewardModel | None = None,
 ) -> PlanningModel:
-    """The recipe's :class:`PlanningModel`: its cost, ``env.termination`` and the action bounds
-    of its env (built and closed without stepping), its pass compiled as ``planning_compile``
-    says, its row blocks on ``planning_threads`` threads."""
+    """The recipe's :class:`PlanningModel`: its cost, ``env.termination`` (either ``learned``:
+    ``reward_model``'s) and the action bounds of its env (built and closed without stepping),
+    its pass compiled as ``planning_compile`` says, its row blocks on ``planning_threads``
+    threads."""
     path = cfg.env.get("termination")
-    termination = None if path is None else import_cost(path, what="termination")
+    if path == LEARNED:
+        termination = LearnedTermination(reward_model)
+    else:
+        termination = None if path is None else import_cost(path, what="termination")
+    cost = LearnedCost(reward_model) if cfg.env.get("cost") == LEARNED else cost_fn(cfg)
     with closing_env(build_env(cfg, seed=0, episode_steps=1)) as env:
         return PlanningModel.from_env(
             world,
-            cost_fn(cfg),
+            cost,
             env,
             uncertainty=uncertainty,
             termination_fn=termination,
@@ -269,16 +306,16 @@ def check_padding(cfg: DictConfig) -> None:
             )
 
 
-def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int):
-    """Training and validation sequence buffers of ``data``, split by trajectory (``seed``);
-    when a split has no trajectory of ``slice_len`` steps, both pad shorter ones
+def split_buffers(cfg: DictConfig, data: TensorDictBase, seed: int, keys: tuple = FIT_KEYS):
+    """Training and validation sequence buffers of ``data`` (its ``keys``), split by trajectory
+    (``seed``); when a split has no trajectory of ``slice_len`` steps, both pad shorter ones
     (:func:`~torchrl_recon.data.sequence_buffers`), once :func:`check_padding` passes."""
     t = cfg.training
     parts = split_by_trajectory(data, t.val_fraction, seed=seed)
     if needs_padding(t.slice_len, *parts):
         check_padding(cfg)
     sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
-    return sequence_buffers(parts, **sizes, keys=FIT_KEYS)
+    return sequence_buffers(parts, **sizes, keys=keys)
 
 
 def fit_kwargs(ctx: RunContext, fit: DictConfig, prefix: str) -> dict:
@@ -295,13 +332,19 @@ def fit_module(
     prefix: str,
     fit_normalization: bool = True,
 ) -> float:
-    """Fit the world model or an estimator on ``data``; returns the best validation loss."""
+    """Fit the world model, an estimator or a learned reward on ``data``; returns the best
+    validation loss. A learned reward takes the world model's fit settings (uncompiled)."""
     t, world = ctx.cfg.training, isinstance(module, LSTMWorldModel)
-    rb, val_rb = split_buffers(ctx.cfg, data, seed)
-    kwargs = fit_kwargs(ctx, t.world_model if world else t.uncertainty, prefix)
+    reward = isinstance(module, RewardModel)
+    rb, val_rb = split_buffers(ctx.cfg, data, seed, keys=REWARD_FIT_KEYS if reward else FIT_KEYS)
+    if reward:
+        block = OmegaConf.merge(t.world_model, {"compile": False})
+    else:
+        block = t.world_model if world else t.uncertainty
+    kwargs = fit_kwargs(ctx, block, prefix)
     kwargs |= {"mode": t.world_model_mode} if world else {}
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
-    fit = world_model_fit(module) if world else fit_uncertainty
+    fit = world_model_fit(module) if world else fit_reward if reward else fit_uncertainty
     return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss
 
 

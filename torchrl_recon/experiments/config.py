@@ -106,6 +106,17 @@ class UncertaintyConfig:
 
 
 @dataclass
+class RewardModelConfig:
+    """A learned reward and termination (:class:`~torchrl_recon.modules.RewardModel`), built when
+    ``env.cost`` or ``env.termination`` is ``learned``: ``layers`` hidden layers of
+    ``hidden_size`` units; fitted with the world model's settings."""
+
+    hidden_size: int = count(200)
+    layers: int = count(2)
+    activation: str = "relu"
+
+
+@dataclass
 class ModelsConfig:
     window: int = count(10)
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
@@ -324,7 +335,10 @@ class OnlineConfig(PlanningRunConfig):
     device, each step of their fits one replayed CUDA graph (``FitSchedule(cuda_graph=True)``);
     ``warmup``: what the steps before each episode's first plan do, ``auto`` resolved once from
     the random data as in :class:`ControlConfig`; ``exploration``: how many of the first rounds
-    explore instead."""
+    explore instead. ``renormalize``: before each refit, the world model's (and a learned
+    reward's) statistics refitted on all data so far, keeping their function
+    (``FitSchedule(renormalize=True)``). ``reward_model``: the sizes of a learned reward and
+    termination (``env.cost: learned``, ``env.termination: learned``)."""
 
     experiment: str = "online"
     output_dir: str = checked("outputs/online", _directory)
@@ -334,6 +348,8 @@ class OnlineConfig(PlanningRunConfig):
     refit_steps: int = count(300)
     refit_old_steps: int | None = count(None)
     refit_uncertainty: RefitUncertainty = RefitUncertainty.auto
+    renormalize: bool = False
+    reward_model: RewardModelConfig = field(default_factory=RewardModelConfig)
     world_model_members: int = count(1)
     fit_cuda_graph: bool = False
     planner: PlannerConfig = field(default_factory=PlannerConfig)

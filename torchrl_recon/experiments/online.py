@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import Callable
 
+import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -18,6 +19,7 @@ from torchrl_recon.experiments.common import (
     build_env,
     build_models,
     build_planner,
+    build_reward_model,
     check_random_data,
     checkpoint_stage,
     dims,
@@ -113,6 +115,7 @@ def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSc
         refit_uncertainty=refit_uncertainty,
         uncertainty=dict(t.uncertainty),
         cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
+        renormalize=bool(cfg.get("renormalize", False)),
         **sizes,
     )
 
@@ -126,12 +129,13 @@ def refit_stage(
     cfg, name = ctx.cfg, f"refit_{n}"
     refit_u = cfg.refit_uncertainty == "always" or reads_uncertainty(cfg, n + 1)
     schedule = recipe_schedule(cfg, refit_uncertainty=refit_u)
-    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
+    modules = fitted_modules(model)
 
     def fit() -> dict:
         start, seed = time.perf_counter(), ctx.stage_seed(name)
         losses = fit_models(
-            *modules.values(),
+            model.world_model,
+            model.uncertainty,
             data,
             schedule,
             seed=seed,
@@ -140,10 +144,20 @@ def refit_stage(
             progress=cfg.progress,
             logger=ctx.logger,
             log_prefix=f"{name}/",
+            reward_model=model.reward_model,
         )
         return {"val_loss": losses, "fit_s": time.perf_counter() - start}
 
     return checkpoint_stage(ctx, name, modules, fit)
+
+
+def fitted_modules(model: PlanningModel) -> dict[str, torch.nn.Module]:
+    """The networks the online fits train and the stages checkpoint, by name: the world model,
+    the estimator and, where the cost or termination is learned, the reward model."""
+    modules = {"world_model": model.world_model, "uncertainty": model.uncertainty}
+    if model.reward_model is not None:
+        modules["reward_model"] = model.reward_model
+    return modules
 
 
 class StagedCollector(IterationCollector):
@@ -185,13 +199,15 @@ class StagedFit(ModelFitStepper):
     a done stage's checkpoint is loaded back. :attr:`stage_records` keeps each stage's record."""
 
     def __init__(self, ctx: RunContext, model: PlanningModel, replay_buffer: ReplayBuffer) -> None:
-        super().__init__(model.world_model, model.uncertainty, replay_buffer)
+        super().__init__(
+            model.world_model, model.uncertainty, replay_buffer, reward_model=model.reward_model
+        )
         self.ctx, self.model = ctx, model
         self.stage_records: dict[int, dict] = {}
 
     def fit(self, data: TensorDictBase, *, index: int, new_steps: int) -> dict[str, float]:
         if index == 0:
-            modules = {"world_model": self.world_model, "uncertainty": self.estimator}
+            modules = fitted_modules(self.model)
             record = fit_stage(self.ctx, "models", data, modules)
             self.stage_records[0] = record
             return {k: record[f"{k}_val_loss"] for k in modules}
@@ -209,7 +225,7 @@ def run(ctx: RunContext) -> dict:
     check_random_data(cfg, data)  # two episodes to split, before any fit
     warmup = warmup_mode(cfg, data)  # from the random data only, once
     world, estimator = build_models(cfg, *dims(data), ctx.device)
-    model = planning_model(cfg, world, estimator)
+    model = planning_model(cfg, world, estimator, build_reward_model(cfg, *dims(data), ctx.device))
     collector = StagedCollector(ctx, model, data, warmup, lambda: buffer[:])
     buffer = ReplayBuffer(storage=LazyTensorStorage(collector.total_frames))
     fits = StagedFit(ctx, model, buffer)
@@ -222,6 +238,7 @@ def run(ctx: RunContext) -> dict:
         stepper=fits,
         progress=cfg.progress,
         logger=ctx.logger,
+        reward_model=model.reward_model,
     )
     trainer.train()
     iterations = []

@@ -78,7 +78,7 @@ def recipe_errors(
 def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: RecipeErrors) -> dict[str, Any]:
     """``env.id`` / ``env.name`` known and agreeing, then the entry's own checks. Returns the
     env's keyword defaults ({} when the env or a keyword is unknown)."""
-    from torchrl_recon.envs import ENVS, entry_errors
+    from torchrl_recon.envs import ENVS, LEARNED, entry_errors
     from torchrl_recon.experiments.common import env_entry
 
     env = cfg.env
@@ -101,6 +101,12 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: RecipeErrors) -
         )
         return {}
     names = list(env.state_names)
+    for key in ("cost", "termination"):
+        if env.get(key) == LEARNED and cfg.experiment != "online":
+            errors.append(
+                f"'env.{key}': learned is for the online kind (its fits learn the reward from "
+                f"the data as it grows); the {cfg.experiment} kind needs module:function"
+            )
     errors.extend(entry_errors(entry, kwargs, termination=env.termination, state_names=names))
     try:
         entry.check_kwargs(kwargs)

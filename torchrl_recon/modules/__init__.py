@@ -11,6 +11,7 @@ from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.population import ReconstructionPopulation, WorldModelPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.modules.reward_model import LearnedCost, LearnedTermination, RewardModel
 from torchrl_recon.modules.rnd import RNDUncertainty
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
@@ -21,6 +22,8 @@ __all__ = [
     "EnsembleUncertainty",
     "ESTIMATORS",
     "FittedCheck",
+    "LearnedCost",
+    "LearnedTermination",
     "LinearDeltaModel",
     "LSTMWorldModel",
     "get_estimator_class",
@@ -31,6 +34,7 @@ __all__ = [
     "Normalizer",
     "ReconstructionPopulation",
     "ReconstructionUncertainty",
+    "RewardModel",
     "RNDUncertainty",
     "UncertaintyEstimator",
     "unfitted_normalizers",

@@ -62,3 +62,72 @@ class Normalizer(nn.Module):
     def denormalize(self, x: torch.Tensor) -> torch.Tensor:
         """Map standardised values back to raw units."""
         return x * self.scale + self.loc
+
+    @torch.no_grad()
+    def statistics(self, data: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``(loc, scale)`` :meth:`fit` would set from ``data``, without setting them (on
+        this normaliser's device and dtype).
+
+        Examples:
+            >>> Normalizer(1).statistics(torch.tensor([[1.0], [3.0]]))
+            (tensor([2.]), tensor([1.4142]))
+        """
+        probe = Normalizer(self.num_features, min_scale=self.min_scale)
+        probe.fit(data)
+        return probe.loc.to(self.loc), probe.scale.to(self.scale)
+
+
+def refit_inputs(
+    weight: torch.Tensor,
+    bias: torch.Tensor,
+    old: tuple[torch.Tensor, torch.Tensor],
+    new: tuple[torch.Tensor, torch.Tensor],
+) -> None:
+    """Rewrite in place a layer that reads standardised inputs (``weight`` ``[*R, out, F]``,
+    ``bias`` ``[*R, out]``) so that, fed with the ``new`` statistics ``(loc, scale)``
+    ``[*R, F]`` instead of the ``old``, it computes the same outputs from the same raw inputs.
+    A feature the old statistics saw constant (scale exactly 1 and the new one not: a
+    :class:`Normalizer` gives 1 where the data did not vary) gets zero weight instead: its
+    weights were never trained, and scaled up by its new spread they would swamp the layer the
+    moment the feature moves; the outputs on the data so far stay the same either way.
+
+    Examples:
+        >>> layer = torch.nn.Linear(2, 1)
+        >>> old = (torch.tensor([1.0, 0.0]), torch.tensor([2.0, 1.0]))
+        >>> new = (torch.tensor([0.0, 5.0]), torch.tensor([4.0, 3.0]))
+        >>> x = torch.tensor([[3.0, 0.0]])  # feature 1 was constant (0) so far
+        >>> before = layer((x - old[0]) / old[1])
+        >>> refit_inputs(layer.weight.data, layer.bias.data, old, new)
+        >>> torch.allclose(layer((x - new[0]) / new[1]), before), layer.weight[0, 1].item()
+        (True, 0.0)
+    """
+    (old_loc, old_scale), (new_loc, new_scale) = old, new
+    constant = ((old_scale == 1) & (new_scale != 1)).unsqueeze(-2)
+    weight.masked_fill_(constant, 0.0)
+    bias.add_((weight * ((new_loc - old_loc) / old_scale).unsqueeze(-2)).sum(-1))
+    weight.mul_((new_scale / old_scale).unsqueeze(-2))
+
+
+def refit_outputs(
+    weight: torch.Tensor,
+    bias: torch.Tensor,
+    old: tuple[torch.Tensor, torch.Tensor],
+    new: tuple[torch.Tensor, torch.Tensor],
+) -> None:
+    """Rewrite in place a layer whose outputs are standardised targets (``weight``
+    ``[*R, D, in]``, ``bias`` ``[*R, D]``) so that, read back with the ``new`` statistics
+    ``(loc, scale)`` ``[*R, D]`` instead of the ``old``, it gives the same targets in raw units.
+
+    Examples:
+        >>> layer = torch.nn.Linear(3, 2)
+        >>> old = (torch.tensor([1.0, 0.0]), torch.tensor([2.0, 1.0]))
+        >>> new = (torch.tensor([0.0, 5.0]), torch.tensor([4.0, 3.0]))
+        >>> z = torch.randn(4, 3)
+        >>> before = layer(z) * old[1] + old[0]
+        >>> refit_outputs(layer.weight.data, layer.bias.data, old, new)
+        >>> torch.allclose(layer(z) * new[1] + new[0], before, atol=1e-6)
+        True
+    """
+    (old_loc, old_scale), (new_loc, new_scale) = old, new
+    weight.mul_((old_scale / new_scale).unsqueeze(-1))
+    bias.mul_(old_scale).add_(old_loc - new_loc).div_(new_scale)

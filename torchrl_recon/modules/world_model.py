@@ -24,7 +24,7 @@ from torchrl_recon.modules.checks import (
     check_window,
 )
 from torchrl_recon.modules.members import StackedMembers
-from torchrl_recon.modules.normalization import Normalizer
+from torchrl_recon.modules.normalization import Normalizer, refit_inputs, refit_outputs
 from torchrl_recon.modules.padding import check_prefix_mask, masked_mean, start_at_rest
 
 
@@ -201,6 +201,52 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         self.obs_norm.fit(obs)
         self.action_norm.fit(action)
         self.delta_norm.fit(next_obs - obs)
+
+    @torch.no_grad()
+    def refit_normalization(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> None:
+        """Refit the statistics on (more) real transitions and keep the model's function: the
+        LSTM's input weights and the output layer are rewritten so that every prediction, in raw
+        units, stays what it was (:func:`~torchrl_recon.modules.normalization.refit_inputs`,
+        ``refit_outputs``); an input the old statistics saw constant starts from zero weight.
+        A warm refit then trains in statistics of all the data so far (mbrl-lib refits its
+        normaliser before each training too), so a feature that only started to move late (a
+        constraint force at a rail) is not read at tens of its old, unit scale. Members all get
+        the statistics of the same data.
+
+        Examples:
+            >>> model = LSTMWorldModel(2, 1, window=3)
+            >>> s, a = torch.randn(40, 2), torch.randn(40, 1)
+            >>> model.fit_normalization(s, a, s + 0.1)
+            >>> ctx_s, ctx_a, plans = torch.randn(3, 2), torch.randn(3, 1), torch.rand(5, 4, 1)
+            >>> before = model.imagine(ctx_s, ctx_a, s[0], plans)
+            >>> model.refit_normalization(3 * s, a + 1, 3 * s + 0.5)
+            >>> after = model.imagine(ctx_s, ctx_a, s[0], plans)
+            >>> torch.allclose(before, after, atol=1e-5), bool(model.obs_norm.scale.mean() > 2)
+            (True, True)
+        """
+        check_features("obs", obs, self.obs_dim)
+        check_features("action", action, self.action_dim)
+        check_features("next_obs", next_obs, self.obs_dim)
+        pairs = (
+            (self.obs_norm, obs),
+            (self.action_norm, action),
+            (self.delta_norm, next_obs - obs),
+        )
+        old = [(norm.loc.clone(), norm.scale.clone()) for norm, _ in pairs]
+        new = [Normalizer(x.shape[-1]).to(norm.loc).statistics(x) for norm, x in pairs]
+        new = [tuple(t.expand_as(o) for t in stats) for stats, (o, _) in zip(new, old, strict=True)]
+        old_in, new_in = (
+            tuple(torch.cat([o[i], a[i]], -1) for i in (0, 1))
+            for o, a in ((old[0], old[1]), (new[0], new[1]))
+        )
+        refit_inputs(self.lstm.weight_ih_l0, self.lstm.bias_ih_l0, old_in, new_in)
+        refit_outputs(self.head.weight, self.head.bias, old[2], new[2])
+        for (norm, _), (loc, scale) in zip(pairs, new, strict=True):
+            norm.loc.copy_(loc)
+            norm.scale.copy_(scale)
+            norm.fitted.fill_(True)
 
     def normalize_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """The LSTM's input for raw ``obs`` ``[*R, ..., N]`` and ``action`` ``[*R, ..., M]``: both

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from torchrl_recon.objectives.reward_loss import RewardLoss
 from torchrl_recon.objectives.sequences import as_sequences
 from torchrl_recon.objectives.uncertainty_loss import UncertaintyLoss
 from torchrl_recon.objectives.world_model_loss import WorldModelPredictionLoss
 
-__all__ = ["UncertaintyLoss", "WorldModelPredictionLoss", "as_sequences"]
+__all__ = ["RewardLoss", "UncertaintyLoss", "WorldModelPredictionLoss", "as_sequences"]

@@ -14,6 +14,7 @@ from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
+from torchrl_recon.modules.reward_model import LEARNED_REWARD, RewardModel
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
@@ -386,6 +387,7 @@ class PlanningModel(nn.Module):
             )
         self._world_model_fitted = FittedCheck(WORLD_MODEL)
         self._uncertainty_fitted = FittedCheck(ESTIMATOR)
+        self._learned_fitted = FittedCheck(LEARNED_REWARD)
 
     @classmethod
     def from_env(
@@ -454,6 +456,19 @@ class PlanningModel(nn.Module):
         self._world_model_fitted(self.world_model)
         if self.uncertainty is not None:
             self._uncertainty_fitted(self.uncertainty)
+        if self.reward_model is not None:
+            self._learned_fitted(self.reward_model)
+
+    @property
+    def reward_model(self) -> RewardModel | None:
+        """The :class:`~torchrl_recon.modules.RewardModel` behind a learned cost or termination
+        (:class:`~torchrl_recon.modules.LearnedCost`, :class:`~torchrl_recon.modules.LearnedTermination`),
+        else None. The fits find it here to train it with the world model."""
+        for fn in (self.cost_fn, self.termination_fn):
+            found = getattr(fn, "reward_model", None)
+            if isinstance(found, RewardModel):
+                return found
+        return None
 
     @torch.no_grad()
     def warmup(

@@ -8,7 +8,7 @@ from typing import Literal
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from torchrl_recon.modules.checks import check_finite, check_int, check_real
@@ -226,6 +226,43 @@ class MPCPolicy(TensorDictModuleBase):
                 PLAN_U: spec(h),
                 PLAN_STEP: spec(1, dtype=torch.int64),
                 SEEN: spec(1, dtype=torch.int64),
+            },
+            device=like.device,
+        )
+
+    @property
+    def spec(self) -> Composite:
+        """The specs of everything the policy writes (unbatched), on its device. TorchRL's
+        ``Collector`` reads them at construction instead of calling the policy on a reset
+        tensordict, a call that would plan with models not fitted yet (``warmup="plan"``).
+
+        Examples:
+            >>> from torchrl_recon.modules import LSTMWorldModel
+            >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+            >>> model = PlanningModel(LSTMWorldModel(3, 1, window=2), lambda s, a, s1: s1[..., 0])
+            >>> policy = MPCPolicy(CEMPlanner(model, Objective(), horizon=4, num_candidates=8))
+            >>> policy.spec["action"].shape, sorted(policy.out_keys, key=str) == sorted(policy.spec.keys(True, True), key=str)
+            (torch.Size([1]), True)
+        """
+        model = self.planner.model
+        like = model.action_low
+        n = self.obs_dim
+
+        def spec(*shape: int, dtype: torch.dtype = like.dtype) -> Unbounded:
+            return Unbounded(shape, dtype=dtype, device=like.device)
+
+        state = self.state_spec()
+        return Composite(
+            {
+                self.action_key: Bounded(
+                    model.action_low, model.action_high, (self.action_dim,), device=like.device
+                ),
+                REPLANNED: spec(1, dtype=torch.bool),
+                FEASIBLE: spec(1, dtype=torch.bool),
+                PRED_NEXT: spec(n),
+                PRED_U: spec(1),
+                PRED_COST: spec(1),
+                "next": Composite({k: state[k] for k in STATE_KEYS}, device=like.device),
             },
             device=like.device,
         )

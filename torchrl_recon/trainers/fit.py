@@ -12,7 +12,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.record.loggers import Logger
 from torchrl.trainers import OptimizationStepper, Trainer
 
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
+from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.training.online import FitSchedule, fit_models
 
 
@@ -41,6 +41,10 @@ class ModelFitStepper(OptimizationStepper):
         schedule: the fits' settings (default ``FitSchedule()``).
         seed: the first fit's seed.
         progress, logger: a progress bar per fit; the fits' validation losses logged.
+        reward_model: a learned reward and termination
+            (:class:`~torchrl_recon.modules.RewardModel`, the planner's
+            :class:`~torchrl_recon.modules.LearnedCost`), fitted and refitted with the world
+            model from the buffer's ``("next", "reward")`` and ``("next", "terminated")``.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -66,12 +70,17 @@ class ModelFitStepper(OptimizationStepper):
         seed: int = 0,
         progress: bool = False,
         logger: Logger | None = None,
+        reward_model: RewardModel | None = None,
     ) -> None:
+        if reward_model is not None and not isinstance(reward_model, RewardModel):
+            raise TypeError(
+                f"reward_model must be a RewardModel or None, got {type(reward_model).__name__}."
+            )
         if schedule is not None and not isinstance(schedule, FitSchedule):
             raise TypeError(
                 f"schedule must be a FitSchedule or None, got {type(schedule).__name__}."
             )
-        self.world_model, self.estimator = world_model, estimator
+        self.world_model, self.estimator, self.reward_model = world_model, estimator, reward_model
         self.replay_buffer, self.schedule = replay_buffer, schedule or FitSchedule()
         self.schedule.check_world_model(world_model)  # before any data is collected
         self.seed, self.progress, self.logger = seed, progress, logger
@@ -128,6 +137,7 @@ class ModelFitStepper(OptimizationStepper):
             progress=self.progress,
             logger=self.logger,
             log_prefix=f"iteration_{index}/",
+            reward_model=self.reward_model,
         )
 
     def step(self, trainer: Trainer | None, sub_batch: TensorDictBase | None) -> TensorDictBase:

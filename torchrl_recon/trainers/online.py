@@ -12,7 +12,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from torchrl.trainers import ReplayBufferTrainer
 
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
+from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
@@ -45,6 +45,9 @@ class OnlineTrainer(VerifiedTrainer):
         progress: TorchRL's progress bar with the last return, model error and u.
         logger: a TorchRL logger: the Trainer's metrics and the fits' validation losses.
         on_iteration: called with each :class:`~torchrl_recon.training.online.IterationRecord`.
+        reward_model: a learned reward and termination the planners read
+            (:class:`~torchrl_recon.modules.RewardModel`), fitted with the world model and in
+            the Trainer's checkpoints; None (default) when the cost is given.
         trainer_kwargs: more of ``Trainer``'s keywords (``save_trainer_file``, ``checkpoint``,
             ``log_timings``, ...). Checkpoints are a :class:`VerifiedTrainer`'s: checked
             against a manifest of their files' sizes and SHA-256 before anything is loaded.
@@ -80,6 +83,7 @@ class OnlineTrainer(VerifiedTrainer):
         progress: bool = True,
         logger: Logger | None = None,
         on_iteration: Callable[[IterationRecord], None] | None = None,
+        reward_model: RewardModel | None = None,
         **trainer_kwargs: Any,
     ) -> None:
         schedule = schedule or FitSchedule()
@@ -94,6 +98,7 @@ class OnlineTrainer(VerifiedTrainer):
                 seed=seed,
                 progress=progress,
                 logger=logger,
+                reward_model=reward_model,
             )
         trainer_kwargs.setdefault("log_interval", 0)  # every batch is an iteration: log each
         super().__init__(
@@ -116,6 +121,8 @@ class OnlineTrainer(VerifiedTrainer):
         self.log_iteration.register(self)
         if estimator is not None:
             self.register_module("uncertainty", estimator)
+        if reward_model is not None:
+            self.register_module("reward_model", reward_model)
 
     @classmethod
     def from_env(
@@ -241,11 +248,13 @@ def learn_online(
         )
     explorer = ExplorationPolicy(make_explorer()) if explore_iterations else None
     controls = iterations > explore_iterations
+    planner = make_planner() if controls else None
+    planners = [p for p in (planner, explorer and explorer.planner) if p is not None]
     trainer = OnlineTrainer.from_env(
         env,
         world_model,
         estimator,
-        MPCPolicy(make_planner(), **(policy_kwargs or {})) if controls else None,
+        MPCPolicy(planner, **(policy_kwargs or {})) if controls else None,
         iterations=iterations,
         steps_per_iteration=steps_per_iteration,
         random_steps=random_steps,
@@ -256,6 +265,20 @@ def learn_online(
         schedule=schedule,
         logger=logger,
         on_iteration=on_iteration,
+        reward_model=learned_reward(planners),
     )
     trainer.train()
     return trainer.records, trainer.data()
+
+
+def learned_reward(planners: list[PlannerBase]) -> RewardModel | None:
+    """The one :class:`~torchrl_recon.modules.RewardModel` the ``planners``' models read (a
+    learned cost or termination), or None; two different ones are refused (one fit trains one).
+    """
+    found = {id(m): m for p in planners if (m := p.model.reward_model) is not None}
+    if len(found) > 1:
+        raise ValueError(
+            "the planners read different learned reward models; build them on one RewardModel "
+            "(the fits train one)."
+        )
+    return next(iter(found.values()), None)

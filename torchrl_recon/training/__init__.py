@@ -6,6 +6,7 @@ from torchrl_recon.training.checkpoint import load_checkpoint, load_modules, sav
 from torchrl_recon.training.fit import (
     FitResult,
     fit_population,
+    fit_reward,
     fit_uncertainty,
     fit_world_members,
     fit_world_model,
@@ -21,6 +22,7 @@ __all__ = [
     "FitSchedule",
     "IterationRecord",
     "fit_population",
+    "fit_reward",
     "fit_uncertainty",
     "fit_world_members",
     "fit_world_model",

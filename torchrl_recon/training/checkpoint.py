@@ -24,9 +24,14 @@ FORMER_NAMES = {"WorldModelPopulation": "LSTMWorldModel"}
 def _module_classes() -> dict[str, type[nn.Module]]:
     """The classes a checkpoint may name: the world model, every registered estimator kind and
     the autoencoder population, and the former names of these."""
-    from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel, ReconstructionPopulation
+    from torchrl_recon.modules import (
+        ESTIMATORS,
+        LSTMWorldModel,
+        ReconstructionPopulation,
+        RewardModel,
+    )
 
-    classes = {cls.__name__: cls for cls in (LSTMWorldModel, ReconstructionPopulation)}
+    classes = {cls.__name__: cls for cls in (LSTMWorldModel, ReconstructionPopulation, RewardModel)}
     classes.update((cls.__name__, cls) for cls in ESTIMATORS.values())
     classes.update((old, classes[new]) for old, new in FORMER_NAMES.items())
     return classes

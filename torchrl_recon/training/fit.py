@@ -29,9 +29,15 @@ from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.population import ReconstructionPopulation
 from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.modules.reward_model import RewardModel
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss, as_sequences
+from torchrl_recon.objectives import (
+    RewardLoss,
+    UncertaintyLoss,
+    WorldModelPredictionLoss,
+    as_sequences,
+)
 from torchrl_recon.training.checkpoint import save_checkpoint
 from torchrl_recon.training.fit_graph import (
     CapturedStep,
@@ -519,6 +525,44 @@ def fit_uncertainty(
     kwargs.setdefault("log_prefix", "uncertainty/")
     kwargs.setdefault("checkpoint_modules", {"uncertainty": estimator})
     return train_loss_module(loss, buffer, **kwargs)
+
+
+def fit_reward(
+    reward_model: RewardModel,
+    buffer: TensorDictReplayBuffer,
+    *,
+    fit_normalization: bool = True,
+    **kwargs,
+) -> FitResult:
+    """Fit normalisation from ``buffer``'s contents (with ``fit_normalization``), then train a
+    learned reward and termination (:class:`~torchrl_recon.objectives.RewardLoss`, see
+    :func:`train_loss_module`). The buffer's samples must hold ``("next", "reward")`` (and
+    ``("next", "terminated")`` where it learns the termination): with
+    :func:`~torchrl_recon.data.sequence_buffers`, pass ``keys=REWARD_FIT_KEYS``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.data import make_sequence_buffer
+        >>> from torchrl_recon.modules import RewardModel
+        >>> rb = make_sequence_buffer(100, slice_len=5, num_slices=4)
+        >>> s = torch.randn(40, 2)
+        >>> _ = rb.extend(TensorDict({"observation": s, "action": torch.randn(40, 1),
+        ...     ("next", "observation"): s + 0.1, ("next", "reward"): s[:, :1],
+        ...     ("next", "terminated"): s[:, :1] > 1,
+        ...     ("collector", "traj_ids"): torch.arange(40) // 20}, [40]))
+        >>> fit_reward(RewardModel(2, 1, termination=True), rb, steps=4, eval_every=2,
+        ...            progress=False).steps
+        4
+    """
+    _check_train_keywords(kwargs, reward_model)
+    if fit_normalization:
+        data = buffer_contents(buffer)
+        reward_model.fit_normalization(
+            data["observation"], data["action"], data["next", "observation"], data["next", "reward"]
+        )
+    kwargs.setdefault("log_prefix", "reward/")
+    kwargs.setdefault("checkpoint_modules", {"reward": reward_model})
+    return train_loss_module(RewardLoss(reward_model), buffer, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------

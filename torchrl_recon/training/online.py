@@ -20,17 +20,23 @@ from torchrl.record.loggers import Logger
 
 from torchrl_recon.data import (
     FIT_KEYS,
+    REWARD_FIT_KEYS,
     cut_sequences,
     sequence_buffers,
     split_by_trajectory,
 )
 from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator
-from torchrl_recon.modules.checks import check_flag, check_int
+from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
+from torchrl_recon.modules.checks import check_finite, check_flag, check_int
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import window_uncertainty
-from torchrl_recon.training.fit import check_fit_settings, fit_uncertainty, world_model_fit
+from torchrl_recon.training.fit import (
+    check_fit_settings,
+    fit_reward,
+    fit_uncertainty,
+    world_model_fit,
+)
 from torchrl_recon.training.fit_graph import check_cuda_graph
 
 
@@ -51,6 +57,11 @@ class FitSchedule:
     (the world model's where not given) and ``compile`` (False where not given); its refits take
     ``refit_steps`` too. ``cuda_graph``: a world model of members on a CUDA device fits with
     each training step one replayed CUDA graph (``fit_population(cuda_graph=True)``).
+    ``renormalize``: before each refit, the world model's (and a learned reward's) statistics
+    are refitted on all the data so far, their function kept
+    (:meth:`~torchrl_recon.modules.LSTMWorldModel.refit_normalization`); False keeps the first
+    fit's. ``reward``: a learned reward's fit settings (as ``uncertainty``; the world model's
+    where not given).
 
     Examples:
         >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_settings()["lr"]
@@ -75,19 +86,24 @@ class FitSchedule:
     compile: bool = False
     cuda_graph: bool = False
     uncertainty: dict[str, Any] = field(default_factory=dict)
+    renormalize: bool = False
+    reward: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.uncertainty, Mapping):
-            raise TypeError(
-                f"FitSchedule.uncertainty must be a mapping of fit settings, got "
-                f"{type(self.uncertainty).__name__}."
-            )
-        unknown = sorted(set(self.uncertainty) - set(FIT_SETTINGS))
-        if unknown:
-            raise ValueError(
-                f"FitSchedule.uncertainty has unknown key(s) {unknown}; expected any of "
-                f"{sorted(FIT_SETTINGS)}."
-            )
+        for name in ("uncertainty", "reward"):
+            settings = getattr(self, name)
+            if not isinstance(settings, Mapping):
+                raise TypeError(
+                    f"FitSchedule.{name} must be a mapping of fit settings, got "
+                    f"{type(settings).__name__}."
+                )
+            unknown = sorted(set(settings) - set(FIT_SETTINGS))
+            if unknown:
+                raise ValueError(
+                    f"FitSchedule.{name} has unknown key(s) {unknown}; expected any of "
+                    f"{sorted(FIT_SETTINGS)}."
+                )
+        check_flag("renormalize", self.renormalize)
         # checked here, not at the first fit, which comes after the random data are collected
         for name in ("steps", "refit_steps", "slice_len", "num_slices"):
             check_int(name, getattr(self, name))
@@ -100,6 +116,7 @@ class FitSchedule:
         for prefix, settings in (
             ("", self.world_model_settings()),
             ("uncertainty.", self.uncertainty),
+            ("reward.", self.reward),
         ):
             check_fit_settings(prefix, **settings)
             if "compile" in settings:
@@ -131,6 +148,10 @@ class FitSchedule:
     def estimator_settings(self) -> dict[str, Any]:
         """The estimator's fit settings: the world model's uncompiled, then ``uncertainty``'s."""
         return self.world_model_settings() | {"compile": False} | dict(self.uncertainty)
+
+    def reward_settings(self) -> dict[str, Any]:
+        """A learned reward's fit settings: the world model's uncompiled, then ``reward``'s."""
+        return self.world_model_settings() | {"compile": False} | dict(self.reward)
 
 
 FIT_SETTINGS = ("steps", "lr", "eval_every", "patience", "compile")  # each network's own
@@ -177,18 +198,25 @@ def fit_models(
     progress: bool = False,
     logger: Logger | None = None,
     log_prefix: str = "",
+    reward_model: RewardModel | None = None,
 ) -> dict[str, float]:
     """Fit (``warm=False``: normalisation and ``schedule.steps``) or refit (``warm=True``: the
     current weights and normalisation, ``schedule.refit_steps``; the estimator only with
-    ``schedule.refit_uncertainty``) both networks on ``data``,
-    split by trajectory with ``seed``; returns their best validation losses (a world model of
-    members: :func:`~torchrl_recon.training.fit_world_members`, their mean). When a split has no
+    ``schedule.refit_uncertainty``) both networks, and a learned ``reward_model`` when given,
+    on ``data``, split by trajectory with ``seed``; returns their best validation losses (a
+    world model of members: :func:`~torchrl_recon.training.fit_world_members`, their mean).
+    With ``schedule.renormalize`` a refit first refits the world model's and the reward
+    model's statistics on all ``data``, keeping their function. When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
     slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``).
     ``new_steps``: how many of ``data``'s last steps are new, for a refit with
     ``schedule.refit_old_steps``; the validation split is drawn from all ``data`` either way."""
     s = schedule
     s.check_world_model(world_model)
+    if reward_model is not None:
+        check_reward_data(reward_model, data)
+    if warm and s.renormalize:
+        renormalize(world_model, reward_model, data)
     graph = {"cuda_graph": True} if s.cuda_graph else {}
     parts = split_by_trajectory(data, s.val_fraction, seed=seed)
     if warm and s.refit_old_steps is not None:
@@ -197,7 +225,8 @@ def fit_models(
         first_new = data.get(TRAJ_KEY)[len(data) - new_steps]
         parts = (recent_and_sampled(parts[0], first_new, s.refit_old_steps, seed=seed), parts[1])
     sizes = dict(slice_len=s.slice_len, num_slices=s.num_slices)
-    buffers = sequence_buffers(parts, **sizes, keys=FIT_KEYS)
+    keys = FIT_KEYS if reward_model is None else REWARD_FIT_KEYS
+    buffers = sequence_buffers(parts, **sizes, keys=keys)
     common = dict(
         val_buffer=buffers[1],
         seed=seed,
@@ -206,7 +235,11 @@ def fit_models(
         fit_normalization=not warm,
         checkpoint_modules={},
     )
-    fits = {"world_model": s.world_model_settings(), "uncertainty": s.estimator_settings()}
+    fits = {
+        "world_model": s.world_model_settings(),
+        "uncertainty": s.estimator_settings(),
+        "reward": s.reward_settings(),
+    }
     if warm:
         for settings in fits.values():
             settings["steps"] = s.refit_steps
@@ -230,7 +263,59 @@ def fit_models(
             **common,
             **fits["uncertainty"],
         ).best_val_loss
+    if reward_model is not None:
+        out["reward_model"] = fit_reward(
+            reward_model, buffers[0], log_prefix=f"{log_prefix}reward/", **common, **fits["reward"]
+        ).best_val_loss
     return out
+
+
+def check_reward_data(reward_model: RewardModel, data: TensorDictBase) -> None:
+    """Refuse ``data`` a learned reward cannot fit on: without ``("next", "reward")`` (or
+    ``("next", "terminated")`` where it learns the termination), or with a non-finite reward
+    (one line naming the key and the first index).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_recon.modules import RewardModel
+        >>> data = TensorDict({("next", "reward"): torch.tensor([[0.0], [float("nan")]])}, [2])
+        >>> check_reward_data(RewardModel(2, 1), data)
+        Traceback (most recent call last):
+        ...
+        ValueError: ('next', 'reward') contains NaN or inf (first at index [1, 0]); expected finite values.
+    """
+    keys = [
+        k
+        for k, learns in zip(
+            REWARD_FIT_KEYS[-2:],
+            (reward_model.learns_reward, reward_model.learns_termination),
+            strict=True,
+        )
+        if learns
+    ]
+    present = set(data.keys(True, True))
+    for key in keys:
+        if key not in present:
+            raise ValueError(
+                f"the data hold no {key} to fit the learned reward on; collect them with a "
+                "TorchRL env (it writes ('next', 'reward') and ('next', 'terminated'))."
+            )
+    if reward_model.learns_reward:
+        check_finite(str(REWARD_FIT_KEYS[-2]), data.get(REWARD_FIT_KEYS[-2]))
+
+
+@torch.no_grad()
+def renormalize(
+    world_model: LSTMWorldModel, reward_model: RewardModel | None, data: TensorDictBase
+) -> None:
+    """Refit the world model's (and ``reward_model``'s) statistics on all ``data``, keeping
+    their function (:meth:`~torchrl_recon.modules.LSTMWorldModel.refit_normalization`)."""
+    device = module_device(world_model)
+    obs, action, next_obs = (data.get(k).to(device) for k in FIT_KEYS)
+    world_model.refit_normalization(obs, action, next_obs)
+    if reward_model is not None:
+        reward = data.get(REWARD_FIT_KEYS[-2]).to(module_device(reward_model))
+        reward_model.refit_normalization(obs, action, next_obs, reward)
 
 
 def recent_and_sampled(

@@ -51,7 +51,9 @@ def _reacher_obs(qpos: torch.Tensor, qvel: torch.Tensor) -> torch.Tensor:
     a, b = qpos[..., 0], qpos[..., 0] + qpos[..., 1]
     tip = torch.stack([0.1 * a.cos() + 0.11 * b.cos(), 0.1 * a.sin() + 0.11 * b.sin()], -1)
     theta = qpos[..., :2]
-    return torch.cat([theta.cos(), theta.sin(), qpos[..., 2:], qvel[..., :2], tip - qpos[..., 2:]], -1)
+    return torch.cat(
+        [theta.cos(), theta.sin(), qpos[..., 2:], qvel[..., :2], tip - qpos[..., 2:]], -1
+    )
 
 
 TASKS: dict[str, tuple[Callable, Callable, Callable | None]] = {
@@ -96,7 +98,9 @@ class SimulatorModel:
         mujoco.mj_getState(env.model, env.data, state, FULL)
         *lead, horizon, m = actions.shape
         control = actions.detach().reshape(-1, horizon, m).double().numpy()
-        control = np.repeat(control, self.skip, axis=1)  # the env holds each action frame_skip steps
+        control = np.repeat(
+            control, self.skip, axis=1
+        )  # the env holds each action frame_skip steps
         states, _ = rollout.rollout(env.model, self.datas, state[None], control)
         states = torch.from_numpy(states[:, self.skip - 1 :: self.skip]).to(actions.dtype)
         qpos, qvel = states[..., 1 : 1 + self.nq], states[..., 1 + self.nq : 1 + self.nq + self.nv]
@@ -108,10 +112,11 @@ def run_episode(env: gym.Env, planner, seed: int, steps: int) -> dict:
     the last plan): the env's return, its length and the mean plan time."""
     obs, _ = env.reset(seed=seed)
     torch.manual_seed(seed)
-    m, horizon = env.action_space.shape[0], planner.horizon
+    m = env.action_space.shape[0]
     prev_obs, prev_action = torch.as_tensor(obs).float(), torch.zeros(m)
     init, total, plan_s, length = None, 0.0, 0.0, 0
-    for length in range(1, steps + 1):
+    while length < steps:
+        length += 1
         start = time.perf_counter()
         result = planner.plan(
             prev_obs[None], prev_action[None], torch.as_tensor(obs).float(), init=init
@@ -144,10 +149,11 @@ def main() -> None:
     observe, cost, termination = TASKS[args.task]
     env = gym.make(args.task, max_episode_steps=args.steps)
     sim = SimulatorModel(env, observe)
-    low, high = (torch.as_tensor(b, dtype=torch.float32) for b in (env.action_space.low, env.action_space.high))
-    model = PlanningModel(
-        sim, cost, termination_fn=termination, action_low=low, action_high=high
+    low, high = (
+        torch.as_tensor(b, dtype=torch.float32)
+        for b in (env.action_space.low, env.action_space.high)
     )
+    model = PlanningModel(sim, cost, termination_fn=termination, action_low=low, action_high=high)
     kwargs = dict(horizon=args.horizon, num_candidates=args.candidates)
     if args.planner != "shooting":
         kwargs |= dict(iterations=args.iterations)
@@ -167,9 +173,15 @@ def main() -> None:
             flush=True,
         )
     returns = [ep["return"] for ep in episodes]
-    print(f"mean return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes")
+    print(
+        f"mean return {np.mean(returns):.1f} ± {np.std(returns):.1f} over {len(returns)} episodes"
+    )
     if args.out is not None:
-        record = vars(args) | {"out": None, "episodes": episodes, "mean_return": float(np.mean(returns))}
+        record = vars(args) | {
+            "out": None,
+            "episodes": episodes,
+            "mean_return": float(np.mean(returns)),
+        }
         with args.out.open("a") as f:
             f.write(json.dumps(record) + "\n")
 

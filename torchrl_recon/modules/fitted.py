@@ -15,7 +15,13 @@ import warnings
 import torch
 from torch import nn
 
-__all__ = ["FittedCheck", "check_fitted", "unfitted_normalizers", "warn_unfitted"]
+__all__ = [
+    "FittedCheck",
+    "check_fitted",
+    "unfitted_before_data",
+    "unfitted_normalizers",
+    "warn_unfitted",
+]
 
 WORLD_MODEL, ESTIMATOR = "world model", "uncertainty estimator"
 """The roles :func:`check_fitted` knows how to advise on."""
@@ -89,8 +95,8 @@ def _what(module: nn.Module, names: list[str], role: str) -> str:
     return f"the {role}'s normalisation ({listed} of {where})"
 
 
-def _how(module: nn.Module, role: str) -> str:
-    """How to fit ``module``'s normalisation, by role."""
+def _direct(module: nn.Module, role: str) -> str:
+    """How to fit ``module``'s normalisation from data directly, by role."""
     if role == WORLD_MODEL:
         if getattr(module, "num_members", None) is not None:
             direct = (
@@ -109,7 +115,12 @@ def _how(module: nn.Module, role: str) -> str:
         )
     else:
         direct = f"{role}.fit_normalization(...)"
-    return f"{direct}, or {_TRAINER_HOOK}"
+    return direct
+
+
+def _how(module: nn.Module, role: str) -> str:
+    """How to fit ``module``'s normalisation, by role."""
+    return f"{_direct(module, role)}, or {_TRAINER_HOOK}"
 
 
 def check_fitted(module: nn.Module, role: str = WORLD_MODEL) -> None:
@@ -136,6 +147,37 @@ def check_fitted(module: nn.Module, role: str = WORLD_MODEL) -> None:
             f"{_what(module, names, role)} was never fitted; fit it from data before planning: "
             f"{_how(module, role)}."
         )
+
+
+def unfitted_before_data(
+    modules: list[tuple[nn.Module | None, str]], owner: str
+) -> ValueError | None:
+    """The error for a policy ``owner`` that plans at an episode's first step
+    (``warmup="plan"``) with one of ``modules`` (``(module, role)``, None skipped) unfitted,
+    or None when all are fitted. Such a policy may be called before any data exists: TorchRL's
+    ``Collector`` calls its policy once at construction to learn its outputs (unless the policy
+    has a complete ``spec`` or ``use_buffers=False``), before any Trainer hook such as
+    ``FitNormalization`` could fit anything, so the message says what works there instead.
+
+    Examples:
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> err = unfitted_before_data([(LSTMWorldModel(3, 2), WORLD_MODEL), (None, ESTIMATOR)], "MPCPolicy")
+        >>> print(str(err).split(":")[0])
+        the world model's normalisation (obs_norm, action_norm, delta_norm of LSTMWorldModel) was never fitted, and MPCPolicy(warmup='plan') plans at an episode's first step, also when TorchRL's Collector calls it once at construction, before any data
+    """
+    for module, role in modules:
+        names = [] if module is None else unfitted_normalizers(module)
+        if names:
+            return ValueError(
+                f"{_what(module, names, role)} was never fitted, and {owner}(warmup='plan') "
+                "plans at an episode's first step, also when TorchRL's Collector calls it once "
+                "at construction, before any data: fit the models on data before building the "
+                f"collector ({_direct(module, role)}), use {owner}(warmup='random') (random "
+                "actions until its context is full; register FitNormalization on the Trainer), "
+                "or build Collector(..., use_buffers=False) (it reads the policy's out_keys "
+                "instead of calling it)."
+            )
+    return None
 
 
 def warn_unfitted(module: nn.Module, role: str, loss: str) -> bool:

@@ -12,6 +12,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from torchrl_recon.modules.checks import check_finite, check_int, check_real
+from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, unfitted_before_data
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 from torchrl_recon.policies.env_checks import (
     IS_INIT,
@@ -312,6 +313,20 @@ class MPCPolicy(TensorDictModuleBase):
             owner=f"{type(self).__name__}'s planner",
         )
 
+    def _check_fitted_before_data(self) -> None:
+        """Refuse unfitted models as the planning model does, but say what works for a policy
+        that plans at an episode's first step, which TorchRL's ``Collector`` may call before any
+        data (:func:`~torchrl_recon.modules.fitted.unfitted_before_data`)."""
+        model = self.planner.model
+        try:
+            model.check_fitted()
+        except ValueError:
+            modules = [(model.world_model, WORLD_MODEL), (model.uncertainty, ESTIMATOR)]
+            err = unfitted_before_data(modules, type(self).__name__)
+            if err is None:
+                raise
+            raise err from None
+
     def _needs_plan(self, step: torch.Tensor, plan_u: torch.Tensor) -> torch.Tensor:
         exhausted = step >= self.horizon
         if self.replan == "every_step":
@@ -370,6 +385,8 @@ class MPCPolicy(TensorDictModuleBase):
         if stepped is not None:
             replanned &= stepped.to(device).reshape(rows)
         if replanned.any():
+            if self.warmup == "plan":
+                self._check_fitted_before_data()
             idx = replanned.nonzero().squeeze(-1)
             with warnings.catch_warnings():  # recorded per step in mpc_feasible instead
                 warnings.simplefilter("ignore", InfeasiblePlanWarning)

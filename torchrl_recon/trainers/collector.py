@@ -41,6 +41,12 @@ class TimedPolicy(TensorDictModuleBase):
         """The wrapped policy's primer (an MPC policy's state, to append to the env)."""
         return self.policy.make_tensordict_primer()
 
+    @property
+    def spec(self):
+        """The wrapped policy's output specs (None if it has none): TorchRL's ``Collector``
+        reads them at construction instead of calling the policy before any data."""
+        return getattr(self.policy, "spec", None)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         start = time.perf_counter()
         out = self.policy(tensordict)

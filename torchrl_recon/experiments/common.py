@@ -343,6 +343,8 @@ def fit_module(
         block = t.world_model if world else t.uncertainty
     kwargs = fit_kwargs(ctx, block, prefix)
     kwargs |= {"mode": t.world_model_mode} if world else {}
+    if world and module.num_members is not None and ctx.cfg.get("fit_cuda_graph", False):
+        kwargs["cuda_graph"] = True  # online's first fit of members, as its refits
     common = dict(val_buffer=val_rb, fit_normalization=fit_normalization, checkpoint_modules={})
     fit = world_model_fit(module) if world else fit_reward if reward else fit_uncertainty
     return fit(module, rb, seed=seed, **common, **kwargs).best_val_loss

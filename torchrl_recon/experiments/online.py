@@ -112,6 +112,7 @@ def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSc
     return FitSchedule(
         **t.world_model,
         mode=str(t.world_model_mode),
+        sampling=str(t.window_sampling),
         refit_uncertainty=refit_uncertainty,
         uncertainty=dict(t.uncertainty),
         cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
@@ -278,6 +279,25 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
     objective (and the exploration objective when the first rounds explore)."""
     ends_early = cfg.env.termination is not None
     data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
+    errors.need(
+        "steps_per_iteration",
+        cfg.steps_per_iteration >= cfg.env.episode_steps,
+        f"at least env.episode_steps = {cfg.env.episode_steps} (each iteration plays new "
+        "episodes from a reset: a shorter one ends none, and has no return to report)",
+    )
+    errors.need(
+        "num_envs",
+        cfg.num_envs == 1,
+        "1 in the online kind (its iterations play one env; the random data would be the only "
+        "batched part)",
+    )
+    replan = cfg.replan
+    errors.need(
+        "replan.threshold_on",
+        str(replan.threshold_on) == "step" or str(replan.mode) == "uncertainty",
+        f"step unless replan.mode is uncertainty (replan.mode = {replan.mode} never reads the "
+        "threshold)",
+    )
     planner_errors(
         errors,
         "planner",

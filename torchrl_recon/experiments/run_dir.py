@@ -26,6 +26,10 @@ KEYS_ADDED_SINCE: dict[str, Any] = {
     "training.window_sampling": "trajectory",
     "warmup": "auto",
     "refit_uncertainty": "always",  # online runs before it refitted the estimator every time
+    "renormalize": False,  # online runs before it kept the first fit's statistics
+    "reward_model.hidden_size": 200,  # (no run before it learned the reward)
+    "reward_model.layers": 2,
+    "reward_model.activation": "relu",
 }
 """Keys added to the schema since, with the value an older run directory without them ran at
 (:func:`read_config` reads them so; a new default other than that is a difference)."""

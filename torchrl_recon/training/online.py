@@ -21,6 +21,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.data import (
     FIT_KEYS,
     REWARD_FIT_KEYS,
+    WINDOW_SAMPLINGS,
     cut_sequences,
     sequence_buffers,
     split_by_trajectory,
@@ -61,7 +62,8 @@ class FitSchedule:
     are refitted on all the data so far, their function kept
     (:meth:`~torchrl_recon.modules.LSTMWorldModel.refit_normalization`); False keeps the first
     fit's. ``reward``: a learned reward's fit settings (as ``uncertainty``; the world model's
-    where not given).
+    where not given). ``sampling``: how the fits draw their windows, ``"trajectory"``
+    (TorchRL's ``SliceSampler``) or ``"step"`` (every window start alike), every fit and refit.
 
     Examples:
         >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_settings()["lr"]
@@ -88,6 +90,7 @@ class FitSchedule:
     uncertainty: dict[str, Any] = field(default_factory=dict)
     renormalize: bool = False
     reward: dict[str, Any] = field(default_factory=dict)
+    sampling: str = "trajectory"
 
     def __post_init__(self) -> None:
         for name in ("uncertainty", "reward"):
@@ -111,6 +114,10 @@ class FitSchedule:
             check_int("refit_old_steps", self.refit_old_steps, minimum=0)
         check_val_fraction(self.val_fraction)
         check_flag("cuda_graph", self.cuda_graph)
+        if self.sampling not in WINDOW_SAMPLINGS:
+            raise ValueError(
+                f"sampling must be one of {sorted(WINDOW_SAMPLINGS)}, got {self.sampling!r}."
+            )
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
         for prefix, settings in (
@@ -224,7 +231,7 @@ def fit_models(
             raise ValueError("a refit with schedule.refit_old_steps needs new_steps.")
         first_new = data.get(TRAJ_KEY)[len(data) - new_steps]
         parts = (recent_and_sampled(parts[0], first_new, s.refit_old_steps, seed=seed), parts[1])
-    sizes = dict(slice_len=s.slice_len, num_slices=s.num_slices)
+    sizes = dict(slice_len=s.slice_len, num_slices=s.num_slices, sampling=s.sampling)
     keys = FIT_KEYS if reward_model is None else REWARD_FIT_KEYS
     buffers = sequence_buffers(parts, **sizes, keys=keys)
     common = dict(

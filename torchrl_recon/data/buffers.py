@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import numbers
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +50,39 @@ _DTYPES = {
 _PLAIN_KEY = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
 
 
+class _DropStorageInit(logging.Filter):
+    """Drops TorchRL's ``Initialized LazyTensorStorage with ... shape`` INFO record."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Initialized LazyTensorStorage")
+
+
+@contextlib.contextmanager
+def quiet_storage_init() -> Iterator[None]:
+    """Leave out TorchRL's INFO line ``Initialized LazyTensorStorage with ... shape`` that a
+    ``LazyTensorStorage`` logs when its first write allocates it (every other record of the
+    ``torchrl`` logger passes), for the writes inside the context only.
+
+    :class:`GatherTensorStorage` (the storage of :func:`make_sequence_buffer`, which every fit
+    builds) allocates inside it, so a fit logs nothing; wrap a first ``extend`` of a plain
+    ``LazyTensorStorage`` buffer in it for the same.
+
+    Examples:
+        >>> from torchrl.data import LazyTensorStorage, ReplayBuffer
+        >>> rb = ReplayBuffer(storage=LazyTensorStorage(10))
+        >>> with quiet_storage_init():
+        ...     _ = rb.extend(TensorDict({"x": torch.zeros(4)}, [4]))
+        >>> len(rb)
+        4
+    """
+    logger, drop = logging.getLogger("torchrl"), _DropStorageInit()
+    logger.addFilter(drop)
+    try:
+        yield
+    finally:
+        logger.removeFilter(drop)
+
+
 class GatherTensorStorage(LazyTensorStorage):
     """A ``LazyTensorStorage`` that gathers flat integer indices with ``index_select``.
 
@@ -55,7 +91,8 @@ class GatherTensorStorage(LazyTensorStorage):
     the CPU costs about three times ``x.index_select(0, index)`` for the same rows; a fit step
     of a population reads tens of thousands of rows a key. Any other index (a slice, an int,
     negative or multi-dim indices) goes through ``LazyTensorStorage.get`` unchanged, and the
-    rows are the same either way.
+    rows are the same either way. Its first write allocates it without TorchRL's INFO line
+    (:func:`quiet_storage_init`).
 
     Examples:
         >>> storage = GatherTensorStorage(10)
@@ -63,6 +100,10 @@ class GatherTensorStorage(LazyTensorStorage):
         >>> storage.get(torch.tensor([3, 1]))["x"]
         tensor([3., 1.])
     """
+
+    def _init(self, data: Any) -> None:
+        with quiet_storage_init():
+            super()._init(data)
 
     def get(self, index: Any) -> Any:
         # SliceSampler passes its rows as a 1-tuple of one long tensor.

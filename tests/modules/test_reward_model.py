@@ -197,3 +197,15 @@ def test_a_warm_refit_renormalizes_on_all_data_when_asked():
     )
     fit_models(world, None, bigger, SCHEDULE, seed=1, warm=True, reward_model=rewards)  # off: kept
     assert (world.obs_norm.scale > 1.5 * fitted).all()
+
+
+def test_the_trainer_hook_fits_a_reward_models_statistics_from_the_first_batch():
+    from torchrl_recon.trainers import FitNormalization
+
+    world, rewards = LSTMWorldModel(2, 1, window=3), RewardModel(2, 1, termination=True)
+    batch = transitions(60)
+    FitNormalization(world, reward_model=rewards)(batch)
+    torch.testing.assert_close(rewards.reward_norm.loc, batch["next", "reward"].mean(0))
+    batch["next", "reward"][3] = float("inf")
+    with pytest.raises(ValueError, match=r"\('next', 'reward'\).*first at row 3"):
+        FitNormalization(world, reward_model=RewardModel(2, 1))(batch)

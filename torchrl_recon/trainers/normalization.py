@@ -7,7 +7,12 @@ from typing import Any
 from tensordict import TensorDictBase
 from torchrl.trainers import Trainer, TrainerHookBase
 
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
+from torchrl_recon.modules import (
+    LSTMWorldModel,
+    RewardModel,
+    UncertaintyEstimator,
+    unfitted_normalizers,
+)
 from torchrl_recon.modules.checks import check_finite_keys
 
 
@@ -23,8 +28,9 @@ class FitNormalization(TrainerHookBase):
     :class:`~torchrl_recon.trainers.ModelFitStepper` needs no such hook: its first fit fits the
     normalisation from its training split. Registered at ``batch_process``; give it the
     random batch (``init_random_frames``) so the statistics cover the env's range. A world
-    model of members fits every member from the same batch. A batch holding NaN or inf is
-    refused (``ValueError`` naming the key and its first row).
+    model of members fits every member from the same batch; a learned ``reward_model``
+    (:class:`~torchrl_recon.modules.RewardModel`) is fitted from the batch's rewards too. A batch
+    holding NaN or inf is refused (``ValueError`` naming the key and its first row).
 
     Examples:
         >>> import torch
@@ -40,9 +46,13 @@ class FitNormalization(TrainerHookBase):
     """
 
     def __init__(
-        self, world_model: LSTMWorldModel, estimator: UncertaintyEstimator | None = None
+        self,
+        world_model: LSTMWorldModel,
+        estimator: UncertaintyEstimator | None = None,
+        *,
+        reward_model: RewardModel | None = None,
     ) -> None:
-        self.world_model, self.estimator = world_model, estimator
+        self.world_model, self.estimator, self.reward_model = world_model, estimator, reward_model
         self.done = False
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
@@ -68,6 +78,14 @@ class FitNormalization(TrainerHookBase):
                 world.load_member(r, member)
         if estimator_unfitted:
             self.estimator.fit_normalization(obs, action)
+        rewards = self.reward_model
+        if rewards is not None and unfitted_normalizers(rewards):
+            check_finite_keys(
+                batch, [("next", "observation"), ("next", "reward")], where="the collected batch"
+            )
+            rewards.fit_normalization(
+                obs, action, flat["next", "observation"], flat["next", "reward"]
+            )
         self.done = True
         return batch
 

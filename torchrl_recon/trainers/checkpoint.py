@@ -385,6 +385,15 @@ class VerifiedCheckpoint(Checkpoint):
             self._checked = None
 
 
+LEGACY_SAVE_WARNINGS: tuple[tuple[str, type[Warning]], ...] = (
+    ("The default Trainer checkpoint format will change from the legacy", FutureWarning),
+    ("The legacy CKPT_BACKEND trainer checkpoint path is deprecated", DeprecationWarning),
+)
+"""The two warnings TorchRL 0.14's ``Trainer`` gives at every legacy (``save_trainer_file``
+without ``checkpoint=``) save, which :class:`VerifiedTrainer` leaves out: the format is
+documented, and ``checkpoint=Checkpoint()`` is the way to TorchRL's unified one."""
+
+
 def _warn_unverified(path: str | Path) -> None:
     warnings.warn(
         f"{path} has no {FILES} manifest (saved by plain TorchRL): loaded without checking its "
@@ -406,6 +415,9 @@ class VerifiedTrainer(Trainer):
     ``ValueError``) naming it, before any state is loaded. A checkpoint without a manifest (made
     by plain TorchRL) still loads, with a warning, after what its format allows is checked; a
     legacy file torch cannot read is one line too. Nothing is unpickled (``weights_only=True``).
+    A legacy save gives none of TorchRL's two warnings that the legacy format is going away
+    (:data:`LEGACY_SAVE_WARNINGS`, each save before): pass ``checkpoint=Checkpoint()`` for the
+    unified format.
 
     Subclass it instead of ``Trainer`` (``OnlineTrainer`` does) or pass it the same keywords.
 
@@ -451,7 +463,10 @@ class VerifiedTrainer(Trainer):
         super().__init__(**kwargs)
 
     def _save_trainer(self) -> None:
-        super()._save_trainer()
+        with warnings.catch_warnings():
+            for message, category in LEGACY_SAVE_WARNINGS:
+                warnings.filterwarnings("ignore", message=message, category=category)
+            super()._save_trainer()
         if self.checkpoint is None and self.save_trainer_file is not None:
             write_manifest(self.save_trainer_file)  # legacy file: its sidecar; memmap: inside
 

@@ -45,3 +45,36 @@ def sequence_mask(sequences: TensorDictBase) -> torch.Tensor | None:
     """
     mask = sequences.get(MASK_KEY, None)
     return None if mask is None else mask.reshape(sequences.batch_size)
+
+
+def marked_slice_len(tensordict: TensorDictBase) -> int | None:
+    """The slice length of a flat ``[B * L]`` batch from TorchRL's ``SliceSampler``, read from the
+    marks it writes: ``("next", "truncated")`` at each slice's last step, else ``"is_init"`` at
+    its first. None when the batch has neither, or its slices differ in length (then pass
+    ``slice_len=``).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> ends = torch.tensor([0, 0, 1, 0, 0, 1], dtype=torch.bool)[:, None]
+        >>> marked_slice_len(TensorDict({("next", "truncated"): ends}, [6]))
+        3
+        >>> marked_slice_len(TensorDict({"x": torch.zeros(6)}, [6])) is None
+        True
+    """
+    if tensordict.batch_dims != 1 or tensordict.numel() == 0:
+        return None
+    n = tensordict.batch_size[0]
+    for key, at_end in ((("next", "truncated"), True), ("is_init", False)):
+        marks = tensordict.get(key, None)
+        if marks is None or marks.numel() != n:
+            continue
+        where = marks.reshape(n).nonzero().flatten()
+        if where.numel() == 0:
+            continue
+        length = int(where[0]) + 1 if at_end else (int(where[1]) if where.numel() > 1 else n)
+        if length > 0 and n % length == 0:
+            expected = torch.arange(n // length, device=where.device) * length
+            expected = expected + (length - 1 if at_end else 0)
+            if where.numel() == n // length and bool((where == expected).all()):
+                return length
+    return None

@@ -11,7 +11,7 @@ from torchrl.objectives import LossModule
 from torchrl_recon.modules.checks import capturing_cuda_graph
 from torchrl_recon.modules.fitted import WORLD_MODEL, warn_unfitted
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
+from torchrl_recon.objectives.sequences import as_sequences, marked_slice_len, sequence_mask
 
 
 class WorldModelPredictionLoss(LossModule):
@@ -23,6 +23,11 @@ class WorldModelPredictionLoss(LossModule):
     * ``"multi_step"``: warm up on the first ``window`` steps of each sequence, then roll out
       the rest with the real actions, feeding predictions back (as the planner does); the
       squared error of the predicted states, standardised by the state statistics.
+
+    Beside TorchRL's :class:`~torchrl.objectives.WorldModelLoss`: that one fits the heads of a
+    TorchRL ``WorldModel`` on single transitions (reward, done, a decoder's reconstruction, a
+    latent target); this one fits the LSTM's whole multi-step prediction, rolled out as the
+    planner rolls it out. Both take a TorchRL replay buffer's sample as it comes.
 
     A padded batch (its ``("collector", "mask")`` marks real steps, see
     ``make_sequence_buffer(pad_short=True)``) counts real steps only, episodes shorter than
@@ -37,7 +42,9 @@ class WorldModelPredictionLoss(LossModule):
 
     Keyword Args:
         mode: ``"multi_step"`` (default) or ``"one_step"``.
-        slice_len: length of the sequences in a flat ``SliceSampler`` batch.
+        slice_len: length of the sequences in a flat ``SliceSampler`` batch; by default read from
+            the marks the sampler writes (``("next", "truncated")`` at each slice's end), so the
+            loss takes a TorchRL replay buffer's sample as TorchRL's ``WorldModelLoss`` does.
         obs_key, action_key, next_obs_key: TensorDict keys.
 
     Examples:
@@ -69,7 +76,10 @@ class WorldModelPredictionLoss(LossModule):
         """Whether the world model's normalisation was checked (at the first call, warned if unfitted)."""
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        td = as_sequences(tensordict, self.slice_len)
+        slice_len = self.slice_len
+        if slice_len is None and tensordict.batch_dims == 1:  # a SliceSampler's flat batch
+            slice_len = marked_slice_len(tensordict)
+        td = as_sequences(tensordict, slice_len)
         obs, action, next_obs = (
             td.get(self.obs_key),
             td.get(self.action_key),

@@ -35,9 +35,19 @@ from torchrl_recon.planners.registry import (
     make_planner,
 )
 from torchrl_recon.planners.shooting import RandomShootingPlanner
+from torchrl_recon.planners.torchrl_models import (
+    CONTEXT_ACTION,
+    CONTEXT_OBS,
+    BatchedWorldModelEnv,
+    LSTMWorldModelModule,
+    TorchRLWorldModelAdapter,
+)
 
 __all__ = [
+    "BatchedWorldModelEnv",
     "COMPILE_MODES",
+    "CONTEXT_ACTION",
+    "CONTEXT_OBS",
     "compile_mode",
     "CEMPlanner",
     "EliteMemory",
@@ -46,6 +56,7 @@ __all__ = [
     "PLANNERS",
     "InfeasiblePlanError",
     "InfeasiblePlanWarning",
+    "LSTMWorldModelModule",
     "MPPIPlanner",
     "Objective",
     "PlanResult",
@@ -54,6 +65,7 @@ __all__ = [
     "Prediction",
     "RandomShootingPlanner",
     "TerminationFn",
+    "TorchRLWorldModelAdapter",
     "UncertaintyBand",
     "WorldModelPlanningEnv",
     "bounds_from_spec",

@@ -433,6 +433,53 @@ class PlanningModel(nn.Module):
             threads=threads,
         )
 
+    @classmethod
+    def from_torchrl(
+        cls,
+        world_model: nn.Module,
+        *,
+        env: EnvBase | None = None,
+        cost_fn: CostFn | None = None,
+        uncertainty: UncertaintyEstimator | None = None,
+        termination_fn: TerminationFn | None = None,
+        action_low: float | torch.Tensor | None = None,
+        action_high: float | torch.Tensor | None = None,
+        **adapter_kwargs,
+    ) -> PlanningModel:
+        """A planning model over a TorchRL ``WorldModel`` (or the one a ``WorldModelEnv`` drives),
+        through :class:`~torchrl_recon.planners.TorchRLWorldModelAdapter`: every candidate
+        rolled out in one batch, its reward head as the cost (or ``cost_fn`` on the states it
+        predicts, decoded where it has a decoder), its done head as the termination (or
+        ``termination_fn``), ``uncertainty`` scored on those states. The action bounds are
+        ``env``'s (or the ``WorldModelEnv``'s) action spec unless given; ``adapter_kwargs`` go
+        to the adapter (``obs_dim``, ``latent_key``, ...).
+
+        Examples:
+            >>> from tensordict.nn import TensorDictModule
+            >>> from torchrl.envs import GymEnv
+            >>> from torchrl.modules import MLP, WorldModel
+            >>> encoder = TensorDictModule(nn.Identity(), in_keys=["observation"], out_keys=["latent"])
+            >>> dynamics = TensorDictModule(MLP(in_features=4, out_features=3, depth=1),
+            ...                             in_keys=["latent", "action"], out_keys=[("next", "latent")])
+            >>> reward = TensorDictModule(nn.Linear(3, 1), in_keys=[("next", "latent")],
+            ...                           out_keys=[("next", "reward")])
+            >>> pm = PlanningModel.from_torchrl(WorldModel(encoder, dynamics, reward), env=GymEnv("Pendulum-v1"))
+            >>> pm.action_high.tolist(), pm(torch.zeros(1, 3), torch.zeros(1, 1), torch.zeros(3), torch.rand(64, 10, 1)).cost.shape
+            ([2.0], torch.Size([64, 10]))
+        """
+        from torchrl_recon.planners.torchrl_models import planning_model_from_torchrl
+
+        return planning_model_from_torchrl(
+            world_model,
+            env=env,
+            cost_fn=cost_fn,
+            uncertainty=uncertainty,
+            termination_fn=termination_fn,
+            action_low=action_low,
+            action_high=action_high,
+            **adapter_kwargs,
+        )
+
     @property
     def blocks_in_threads(self) -> bool:
         """Whether a pass without autograd runs its row blocks on ``threads`` threads

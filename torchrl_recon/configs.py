@@ -4,7 +4,10 @@
 part in TorchRL's groups: ``env`` (``torchrl_recon``: :func:`~torchrl_recon.envs.make_env`),
 ``model`` (the world model, every estimator), ``objective``, ``planner`` (every shipped
 planner), ``policy`` (MPC, exploration), ``loss``, ``fit_schedule``, ``hook`` (the Trainer hooks),
-``collector`` (``online``) and ``trainer`` (``online``: :func:`make_online_trainer`). A YAML
+``collector`` (``online``), ``trainer`` (``online``: :func:`make_online_trainer`) and
+``transform`` (``uncertainty_penalty``: :class:`~torchrl_recon.transforms.UncertaintyPenalty`);
+``model`` also holds the adapters to TorchRL's world models
+(``torchrl_world_model_adapter``, ``lstm_world_model_module``). A YAML
 then composes them with Hydra's defaults list and ``hydra.utils.instantiate(cfg.trainer)``
 builds the agent, as TorchRL's ``sota-implementations/*_trainer`` do
 (``examples/config_trainer/``; docs/torchrl_trainer.md).
@@ -44,7 +47,13 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.envs.registry import import_cost
 from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.planners import PLANNERS, Objective, PlanningModel
+from torchrl_recon.planners import (
+    PLANNERS,
+    LSTMWorldModelModule,
+    Objective,
+    PlanningModel,
+    TorchRLWorldModelAdapter,
+)
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.trainers import (
     FitNormalization,
@@ -54,6 +63,7 @@ from torchrl_recon.trainers import (
     OnlineTrainer,
 )
 from torchrl_recon.training.online import FitSchedule
+from torchrl_recon.transforms import UncertaintyPenalty
 
 PLAIN = (bool, int, float, str, type(None))
 
@@ -250,6 +260,18 @@ FitNormalizationConfig = target_config(FitNormalization, "FitNormalizationConfig
 LogIterationConfig = target_config(LogIteration, "LogIterationConfig")
 OnlineCollectorConfig = target_config(OnlineCollector, "OnlineCollectorConfig")
 OnlineTrainerConfig = target_config(make_online_trainer, "OnlineTrainerConfig")
+UncertaintyPenaltyConfig = target_config(
+    UncertaintyPenalty, "UncertaintyPenaltyConfig", partial=True, given=("estimator",)
+)
+TorchRLWorldModelAdapterConfig = target_config(
+    TorchRLWorldModelAdapter, "TorchRLWorldModelAdapterConfig", partial=True, given=("world_model",)
+)
+LSTMWorldModelModuleConfig = target_config(
+    LSTMWorldModelModule,
+    "LSTMWorldModelModuleConfig",
+    partial=True,
+    given=("world_model", "cost_fn"),
+)
 
 CONFIGS: dict[tuple[str, str], type] = {
     ("env", "torchrl_recon"): MakeEnvConfig,
@@ -268,6 +290,9 @@ CONFIGS: dict[tuple[str, str], type] = {
     ("hook", "log_iteration"): LogIterationConfig,
     ("collector", "online"): OnlineCollectorConfig,
     ("trainer", "online"): OnlineTrainerConfig,
+    ("transform", "uncertainty_penalty"): UncertaintyPenaltyConfig,
+    ("model", "torchrl_world_model_adapter"): TorchRLWorldModelAdapterConfig,
+    ("model", "lstm_world_model_module"): LSTMWorldModelModuleConfig,
 }
 """Every config this module stores, by (group, name) in TorchRL's config store."""
 
@@ -300,11 +325,14 @@ __all__ = [
     "FitNormalizationConfig",
     "FitScheduleConfig",
     "LSTMWorldModelConfig",
+    "LSTMWorldModelModuleConfig",
     "LogIterationConfig",
     "MPCPolicyConfig",
     "MakeEnvConfig",
     "ModelFitStepperConfig",
     "ObjectiveConfig",
+    "TorchRLWorldModelAdapterConfig",
+    "UncertaintyPenaltyConfig",
     "OnlineCollectorConfig",
     "OnlineTrainerConfig",
     "UncertaintyLossConfig",

@@ -288,5 +288,21 @@ def test_torchrls_planners_plan_lower_u_with_beta(kind):
     assert means[1] < 0.5 * means[0], means
 
 
+def test_in_torchrls_config_store_beside_its_transforms():
+    from hydra.core.config_store import ConfigStore
+    from hydra.utils import instantiate
+
+    from torchrl_recon import configs
+
+    repo = ConfigStore.instance().repo["transform"]
+    assert "uncertainty_penalty.yaml" in repo and "cat_frames.yaml" in repo
+    estimator = ReconstructionUncertainty(3, 1, window=4)
+    penalty = instantiate(configs.UncertaintyPenaltyConfig(beta=0.5, band_weight=3.0))(estimator)
+    assert isinstance(penalty, UncertaintyPenalty) and (penalty.beta, penalty.band_weight) == (
+        0.5,
+        3.0,
+    )
+
+
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])

@@ -92,6 +92,13 @@ GEMM = r"^GEMM rate \(float32 [^)]+\): ([0-9.]+) GFLOP/s$"
             r"ratio: ([0-9.]+)$",
             1,
         ),
+        (
+            "torchrl_world_models.py",
+            ["--candidates", "8", "--horizon", "3", "--iterations", "1", "--elites", "2"]
+            + ["--repeats", "1"],
+            r"^speed-up \([^)]+\): ([0-9.]+)x$",
+            2,
+        ),
     ],
 )
 def test_benchmark_prints_measured_ratios(script, args, pattern, count):

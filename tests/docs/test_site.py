@@ -39,6 +39,7 @@ PACKAGES = (
     "training",
     "trainers",
     "planners",
+    "transforms",
     "policies",
     "evaluation",
     "experiments",

@@ -69,7 +69,7 @@ def test_the_adapter_rolls_out_every_candidate_at_once_as_the_env_does(kind, bat
     world_model = _model(kind)
     adapter = TorchRLWorldModelAdapter(world_model, env=PENDULUM)
     calls = []
-    world_model.dynamics.register_forward_hook(lambda *a: calls.append(1))
+    world_model.dynamics.module.register_forward_hook(lambda *a: calls.append(1))
     obs, actions = torch.randn(*batch, 3), torch.rand(*batch, 5, 4, 1) * 4 - 2
     ctx = torch.zeros(*batch, 1, 3), torch.zeros(*batch, 1, 1)
     with torch.no_grad():

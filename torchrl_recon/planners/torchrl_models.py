@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
@@ -456,10 +456,10 @@ class TorchRLWorldModelAdapter(nn.Module):
         latents, rewards, dones = [], [], []
         for step in range(horizon):
             td.set(self.action_key, flat[:, step])
-            td = model.dynamics(td)
-            td = model.reward_head(td)
+            td = _run(model.dynamics, td)
+            td = _run(model.reward_head, td)
             if model.done_head is not None:
-                td = model.done_head(td)
+                td = _run(model.done_head, td)
                 dones.append(td.get(self.done_key).reshape(rows))
             latents.append(td.get(("next", *_as_tuple(self.latent_key))))
             rewards.append(td.get(self.reward_key).reshape(rows))
@@ -480,6 +480,29 @@ class TorchRLWorldModelAdapter(nn.Module):
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:
     return (key,) if isinstance(key, str) else tuple(key)
+
+
+def _run(module: nn.Module, td: TensorDictBase) -> TensorDictBase:
+    """``module(td)``; for a plain ``TensorDictModule`` (positional in keys, in place, no hooks
+    on it) its own steps without the per-call wrapping of each output (``TensorDict.from_any``,
+    whose module lookup costs about as much as a small layer: the rollout's hot loop)."""
+    plain = (
+        type(module) is TensorDictModule
+        and module.inplace is True
+        and module._kwargs is None
+        and not module._get_kwargs
+        and not (module._forward_hooks or module._forward_pre_hooks)
+    )
+    if not plain:
+        return module(td)
+    out = module._call_module(tuple(td.get(key) for key in module.in_keys))
+    out = out if isinstance(out, tuple) else (out,)
+    if len(out) != len(module.out_keys_source) or not all(isinstance(x, torch.Tensor) for x in out):
+        return module(td)  # not tensors in key order: the module's own way
+    for key, value in zip(module.out_keys_source, out, strict=True):
+        if key != "_":
+            td.set(key, value)
+    return td
 
 
 def planning_model_from_torchrl(

@@ -283,6 +283,36 @@ class LSTMRollout(torch.autograd.Function):
         return ds0, dh0, dc, dactions, None, dw_a, dbias, *dw
 
 
+def _step_weights(
+    weights: tuple[torch.Tensor, ...], n: int, hid: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The folded weights (:func:`fold_weights`) as the no-grad rollouts multiply them,
+    feature-major, each bias riding inside its matmul on a constant-1 row of the input:
+
+    * ``w_x`` ``[4 hid, N + hid + 1 + M]``: all four gates from ``[s; h; 1; a]`` in one
+      matmul, gate rows reordered to ``[i, f, o | g]`` and the ``g`` rows doubled (exact: a
+      power of two), so one sigmoid covers all four (``tanh(g) = 2·sigmoid(2g) − 1``);
+    * ``w_d1`` ``[dense, hid + 1]``: the dense layer from ``[h; 1]``;
+    * ``w_out1`` ``[N, dense + 1]``: the state change from ``[z; 1]``.
+    """
+    w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
+    like = dict(dtype=w_sh.dtype, device=w_sh.device)
+    order = torch.cat(
+        [
+            torch.arange(0, 2 * hid, device=w_sh.device),
+            torch.arange(3 * hid, 4 * hid, device=w_sh.device),
+            torch.arange(2 * hid, 3 * hid, device=w_sh.device),
+        ]
+    )
+    # after the reordering: sigmoid(2g) in the last block
+    double_g = torch.cat([torch.ones(3 * hid, 1, **like), torch.full((hid, 1), 2.0, **like)])
+    w_x = torch.cat([w_sh, bias[None], w_a])  # [N + hid + 1 + M, 4 hid]: rows of [s; h; 1; a]
+    w_x = (w_x.t()[order] * double_g).contiguous()
+    w_d1 = torch.cat([w_d, b_d[None]]).t().contiguous()  # [dense, hid + 1]
+    w_out1 = torch.cat([w_out, b_out[None]]).t().contiguous()  # [N, dense + 1]
+    return w_x, w_d1, w_out1
+
+
 @torch.no_grad()
 def rollout_inplace(
     s: torch.Tensor,
@@ -294,63 +324,84 @@ def rollout_inplace(
 ) -> torch.Tensor:
     """The rollout of :class:`LSTMRollout` for one model (2-D weights) without autograd.
 
-    Preallocated buffers, in-place ops, 14 small kernels a step, feature-major: every buffer is
+    Preallocated buffers, in-place ops, 12 small kernels a step, feature-major: every buffer is
     ``[features, R]``, so each matmul is ``W @ X`` with the R candidates as its long side. The
     output head (N state columns) and the dense layer read as ``X @ W`` had a short side of
     N + 1 or dense columns, which the CPU's GEMM runs at a fraction of its rate; feature-major
     the same products take about a quarter of the time and a CEM call about 11 % less (see
-    ``docs/benchmarks.md``). The four gates are row blocks of one ``[4·hidden, R]`` buffer
-    reused every step (a large per-call slab of all steps' gates cost page faults between
-    planner iterations), filled by three matmuls with rows reordered to ``[i, f, o | g]``.
-    Both tanh are computed as ``tanh(x) = 2·sigmoid(2x) − 1`` (:func:`sigmoid_tanh`): the
-    CPU's ``tanh`` kernel is about 5× slower per element than its ``sigmoid`` and was half of a
-    CEM call. The ``g`` rows of the weights are doubled (exact: a power of two), so one in-place
-    sigmoid covers all four gates. States, ``h`` and the dense output each carry a constant-1
-    row, so every bias rides inside a matmul, and the state update ``s + W·z`` is one ``addmm``
-    written straight into the ``[H + 1, N + 1, R]`` state slab.
+    ``docs/benchmarks.md``). Each step is three matmuls (:func:`_step_weights`): the four gates
+    from step t's column block ``[s; h; 1; a]`` of one ``[H + 1, N + hid + 1 + M, R]`` slab
+    (the actions laid into it once), the dense layer from the ``[h; 1]`` rows the step writes
+    into block t + 1, and the state ``s + W·z`` written by one ``addmm`` into block t + 1's
+    ``s`` rows. The gates are one ``[4·hidden, R]`` buffer reused every step (a slab of all
+    steps' gates cost page faults between planner iterations). Both tanh are computed as
+    ``tanh(x) = 2·sigmoid(2x) − 1`` (:func:`sigmoid_tanh`): the CPU's ``tanh`` kernel is about
+    5× slower per element than its ``sigmoid`` and was half of a CEM call.
+
+    Traced by ``torch.compile`` (a compiled plan or pass), it runs :func:`rollout_traced`
+    instead: the same ops on the same values (bitwise the same states with Dynamo's ``eager``
+    backend), written without writes into views of a buffer, which functionalisation would
+    turn into a copy of the whole buffer per step.
     """
-    w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
-    n, hid, dense = s.shape[-1], h.shape[-1], w_d.shape[-1]
-    rows, horizon = actions.shape[:2]
-    like = dict(dtype=s.dtype, device=s.device)
-    order = torch.cat(
-        [
-            torch.arange(0, 2 * hid, device=s.device),
-            torch.arange(3 * hid, 4 * hid, device=s.device),
-            torch.arange(2 * hid, 3 * hid, device=s.device),
-        ]
-    )
-    double_g = torch.ones(4 * hid, 1, **like)
-    double_g[3 * hid :] = 2  # after the reordering: sigmoid(2g) in the last block
-
-    def gate_rows(w: torch.Tensor) -> torch.Tensor:  # [K, 4 hid] -> [4 hid, K], reordered
-        return (w.t()[order] * double_g).contiguous()
-
-    w_s1 = gate_rows(torch.cat([w_sh[:n], bias[None]]))  # [4 hid, N + 1]
-    w_hh1 = gate_rows(torch.cat([w_sh[n:], torch.zeros(1, 4 * hid, **like)]))  # [4 hid, hid + 1]
-    w_a = gate_rows(w_a)  # [4 hid, M]
-    w_d1 = torch.cat([w_d, b_d[None]]).t().contiguous()  # [dense, hid + 1]
-    w_out1 = torch.zeros(n + 1, dense + 1, **like)  # the last row keeps the states' 1
-    w_out1[:n, :dense], w_out1[:n, dense] = w_out.t(), b_out
-    steps = actions.permute(1, 2, 0).contiguous()  # [H, M, R]: one contiguous slice per step
-    gates = torch.empty(4 * hid, rows, **like)
-    states = torch.ones(horizon + 1, n + 1, rows, **like)
-    states[0, :n] = s.t()
-    h1 = torch.ones(hid + 1, rows, **like)
-    h1[:hid] = h.t()
-    z1 = torch.ones(dense + 1, rows, **like)
-    h_view, z_view = h1[:hid], z1[:dense]
+    if torch.compiler.is_compiling():
+        return rollout_traced(s, h, c, actions, activation, *weights)
+    n, hid, dense = s.shape[-1], h.shape[-1], weights[3].shape[-1]
+    rows, horizon, m = actions.shape
+    w_x, w_d1, w_out1 = _step_weights(weights, n, hid)
+    x_rows = n + hid + 1 + m
+    slab = s.new_empty(horizon + 1, x_rows, rows)  # block t: [s_t; h_t; 1; a_t]
+    slab[0, :n], slab[0, n : n + hid] = s.t(), h.t()
+    slab[:, n + hid] = 1
+    slab[:horizon, n + hid + 1 :] = actions.permute(1, 2, 0)
+    slab[horizon, n + hid + 1 :] = 0  # never read
+    gates = s.new_empty(4 * hid, rows)
+    z1 = s.new_ones(dense + 1, rows)
     c = c.t().contiguous()
-    tg = torch.empty(hid, rows, **like)
+    tg = s.new_empty(hid, rows)
     act_ = INPLACE_ACTIVATIONS[activation]
     i, f, o, g2 = (gates[k * hid : (k + 1) * hid] for k in range(4))
     for t in range(horizon):
-        torch.mm(w_a, steps[t], out=gates).addmm_(w_s1, states[t]).addmm_(w_hh1, h1)
-        gates.sigmoid_()  # i, f, o, sigmoid(2g)
+        x, nxt = slab[t], slab[t + 1]
+        torch.mm(w_x, x, out=gates).sigmoid_()  # i, f, o, sigmoid(2g)
         torch.mul(g2, 2, out=tg).sub_(1)  # tanh(g)
         c.mul_(f).addcmul_(i, tg)
         torch.mul(c, 2, out=tg).sigmoid_().mul_(2).sub_(1)  # tanh(c)
-        torch.mul(o, tg, out=h_view)
-        act_(torch.mm(w_d1, h1, out=z_view))
-        torch.addmm(states[t], w_out1, z1, out=states[t + 1])
-    return states[1:, :n].permute(2, 0, 1)
+        torch.mul(o, tg, out=nxt[n : n + hid])  # h
+        act_(torch.mm(w_d1, nxt[n : n + hid + 1], out=z1[:dense]))
+        torch.addmm(x[:n], w_out1, z1, out=nxt[:n])  # s + W·z + b
+    return slab[1:, :n].permute(2, 0, 1)
+
+
+def rollout_traced(
+    s: torch.Tensor,
+    h: torch.Tensor,
+    c: torch.Tensor,
+    actions: torch.Tensor,
+    activation: str,
+    *weights: torch.Tensor,
+) -> torch.Tensor:
+    """:func:`rollout_inplace` as ``torch.compile`` traces it: the same ops on the same values,
+    each step's ``[s; h; 1; a]`` a ``cat`` and each state its own tensor, stacked once.
+
+    Written into views of one preallocated slab (``out=slab[t + 1]``), every step became a
+    rewrite of the whole slab once functionalised (O(H²·R) traffic, and ~31 ATen nodes a
+    step); here a step is ~23 nodes, three of them matmuls (one for the gates, one per head),
+    and Inductor lays the steps' states into the stacked result.
+    """
+    n, hid = s.shape[-1], h.shape[-1]
+    horizon = actions.shape[1]
+    w_x, w_d1, w_out1 = _step_weights(weights, n, hid)
+    act = ACTIVATIONS[activation]
+    ones = s.new_ones(1, s.shape[0])
+    steps = actions.permute(1, 2, 0)  # [H, M, R]
+    st, hz, ct = s.t(), torch.cat([h.t(), ones]), c.t()  # hz: [h; 1]
+    states = []
+    for t in range(horizon):
+        gates = torch.mm(w_x, torch.cat([st, hz, steps[t]])).sigmoid()  # i, f, o, sigmoid(2g)
+        i, f, o, g2 = (gates[k * hid : (k + 1) * hid] for k in range(4))
+        tg = g2 * 2 - 1  # tanh(g)
+        ct = torch.addcmul(ct * f, i, tg)
+        hz = torch.cat([o * ((ct * 2).sigmoid() * 2 - 1), ones])  # [h; 1], h = o·tanh(c)
+        st = torch.addmm(st, w_out1, torch.cat([act(torch.mm(w_d1, hz)), ones]))
+        states.append(st)
+    return torch.stack(states).permute(2, 0, 1)

@@ -150,11 +150,14 @@ def window_errors_blocked(
     c1 = enc_b + enc_w @ b2
     act_ = INPLACE_ACTIVATIONS[activation]
     out = x.new_empty(rows, num_windows)
-    step = max(1, _BLOCK // num_windows)
+    # Traced into a compiled graph: one block of every row, the same ops (a loop over blocks
+    # would be unrolled into the graph and pin the number of rows).
+    compiling = torch.compiler.is_compiling()
+    step = rows if compiling else max(1, _BLOCK // num_windows)
     # Block buffers allocated once and reused (fresh ~1 MB buffers per block are page-faulted in).
     shifted_buf = x.new_empty(step * num_windows, size)
     hidden_buf = x.new_empty(step * num_windows, enc_w.shape[0])
-    for i in range(0, rows, step):
+    for i in (0,) if compiling else range(0, rows, step):
         block = x[i : i + step]
         n = block.shape[0] * num_windows
         windows = window_view(block, window)

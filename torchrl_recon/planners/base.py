@@ -16,6 +16,7 @@ from torchrl_recon.planners.planning_model import (
     Prediction,
     compiled_plan,
     gather_candidates,
+    mark_batch_dynamic,
 )
 
 OnInfeasible = Literal["fallback", "raise"]
@@ -159,6 +160,14 @@ class PlannerBase(nn.Module):
         so a compiled plan's candidates differ from eager's for the same seed. With the
         planning model's ``threads`` above 1 on the CPU, only its pass is compiled, and its
         row blocks run on that many threads (:class:`PlanningModel`).
+
+        Everything that needs the host runs outside the graph, as it does uncompiled: the
+        input checks and the fitted-normalisation check before it (:meth:`_recall`: what the
+        planner remembers of its earlier plans, e.g. iCEM's elites), the flags' checks and
+        :meth:`_remember` after it. Each planner compiles its own graphs, one cache per planner
+        and mode (:func:`~torchrl_recon.planners.planning_model.compiled_plan`), with the batch
+        dims ``*B`` dynamic: a batch of one and a batch of several are two graphs, every other
+        batch size reuses the latter.
         """
         self.model.check_context(context_obs, context_action, observation)
         if init is not None and init.shape != (
@@ -169,16 +178,65 @@ class PlannerBase(nn.Module):
             raise ValueError(
                 f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
             )
+        self.model.check_fitted()  # here, not in the graph: a compiled graph skips it
+        carry = self._recall(init)
+        *out, kept = self._run(context_obs, context_action, observation, init, generator, carry)
+        result = self._checked(*out)
+        self._remember(result, kept)
+        return result
+
+    def _run(self, context_obs, context_action, observation, init, generator, carry) -> tuple:
+        """:meth:`plan_graph`, compiled where the planning model's ``compile`` asks for it; a
+        compiled graph's outputs copied out of its memory (a CUDA graph's next replay
+        overwrites them)."""
+        args = (context_obs, context_action, observation, init, generator, carry)
         mode = self.model.compile_mode
         whole = self.compiles_whole_call and not self.model.blocks_in_threads
         if mode is None or not whole or generator is not None:
-            return self._checked(
-                *self.plan_graph(context_obs, context_action, observation, init, generator)
-            )
-        graph = compiled_plan(type(self).plan_graph, mode)
-        out = graph(self, context_obs, context_action, observation, init, None)
-        # a CUDA graph's outputs are overwritten by its next replay: the plan keeps copies
-        return self._checked(*(x.clone() if isinstance(x, torch.Tensor) else x for x in out))
+            return self.plan_graph(*args)
+        batch_dims = observation.ndim - 1
+        carried = () if carry is None else carry
+        mark_batch_dynamic(batch_dims, context_obs, context_action, observation, init, *carried)
+        try:
+            out = self._graph(mode)(self, *args)
+        except torch._dynamo.exc.FailOnRecompileLimitHit:
+            if not getattr(self, "_warned_recompiles", False):
+                self._warned_recompiles = True
+                warnings.warn(
+                    f"planning_compile: this {type(self).__name__} has compiled as many graphs "
+                    f"as torch._dynamo's recompile_limit ({torch._dynamo.config.recompile_limit}) "
+                    f"allows; a call of another shape (here observation "
+                    f"{tuple(observation.shape)}) runs uncompiled but for the planning model's "
+                    "pass.",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+            return self.plan_graph(*args)
+        return tuple(x.clone() if isinstance(x, torch.Tensor) else x for x in out)
+
+    def _graph(self, mode: str):
+        """This planner's compiled :meth:`plan_graph` for ``mode``, made at its first call."""
+        graphs = self.__dict__.setdefault("_plan_graphs", {})
+        if mode not in graphs:
+            graphs[mode] = compiled_plan(type(self).plan_graph, mode)
+        return graphs[mode]
+
+    def __getstate__(self) -> dict:
+        """A copy or a pickle leaves the compiled graphs behind (the copy compiles its own)."""
+        state = super().__getstate__()
+        state.pop("_plan_graphs", None)
+        state.pop("_warned_recompiles", None)
+        return state
+
+    def _recall(self, init: torch.Tensor | None):
+        """What the planner carries into this call from earlier ones, read before the graph
+        (it may need the host): tensors with the batch dims first, or None (the default:
+        nothing). It reaches :meth:`_optimise` as ``carry``."""
+        return None
+
+    def _remember(self, result: PlanResult, kept: torch.Tensor | None) -> None:
+        """Keep ``kept`` (what :meth:`_optimise` returned to keep, copied out of a compiled
+        graph's memory) for later calls, once the plan passed its checks; nothing by default."""
 
     compiles_whole_call: bool = False
     """Whether ``planning_compile`` (the planning model's ``compile``) compiles :meth:`plan_graph`
@@ -192,6 +250,7 @@ class PlannerBase(nn.Module):
         observation: torch.Tensor,
         init: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        carry: tuple[torch.Tensor, ...] | None = None,
     ) -> tuple:
         """The whole planning call as tensor operations with no host synchronisation, so that
         it is one graph (``torch.compile(..., fullgraph=True)``; with ``mode="reduce-overhead"``
@@ -199,11 +258,13 @@ class PlannerBase(nn.Module):
         iteration's sampling, rollout, cost, u, ranking and refit, and the final choice.
         Returns the chosen actions, states, cost, u (or None) and objective, and the flags that
         :meth:`plan` reads on the host afterwards: feasible ``[*B]``, NaN objective ``[*B, 1]``,
-        every cost NaN, every u NaN. :meth:`plan` checks its inputs first and raises or warns
-        from the flags after (the same messages as uncompiled)."""
+        every cost NaN, every u NaN; last, what the planner keeps for its next call (or None).
+        :meth:`plan` checks its inputs first and raises or warns from the flags after (the
+        same messages as uncompiled). ``carry``: what :meth:`_recall` found for this call."""
         state = self.model.warmup(context_obs, context_action)  # once per plan
-        candidates, prediction, bounds = self._optimise(
-            context_obs, context_action, observation, init, state, generator
+        more = {} if carry is None else {"carry": carry}
+        candidates, prediction, bounds, *kept = self._optimise(
+            context_obs, context_action, observation, init, state, generator, **more
         )
         objective = self.objective.score(prediction)
         violation = self.objective.violation(prediction, bounds)
@@ -222,9 +283,14 @@ class PlannerBase(nn.Module):
             undefined,
             prediction.cost.isnan().all(),
             None if u is None else u.isnan().all(),
+            kept[0] if kept else None,
         )
 
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
+        """Candidates ``[*B, K, H, M]``, their :class:`Prediction` and the band's bounds (or
+        None); optionally a fourth item, what the planner keeps for its next call (handed to
+        :meth:`_remember` after the plan). Gets ``carry=`` too when :meth:`_recall` returned
+        something."""
         raise NotImplementedError
 
     def _pick(self, objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
@@ -233,10 +299,12 @@ class PlannerBase(nn.Module):
         return rank_key(objective, violation).argmax(-1, keepdim=True)
 
     def _checked(
-        self, actions, states, cost, u, objective, feasible, undefined, cost_nan, u_nan
+        self, actions, states, cost, u, objective, feasible, undefined, cost_nan, u_nan, kept=None
     ) -> PlanResult:
         """The :class:`PlanResult` of :meth:`plan_graph`'s tensors, once its flags are read: a
-        NaN objective raises, an infeasible plan warns (or raises with ``on_infeasible="raise"``)."""
+        NaN objective raises, an infeasible plan warns (or raises with ``on_infeasible="raise"``).
+        ``kept`` (what the planner keeps) is not part of the result: :meth:`plan` hands it to
+        :meth:`_remember`."""
         if undefined.any():  # NaN ranks last: the best is NaN only when every candidate is
             raise FloatingPointError(
                 f"every candidate's predicted objective is NaN for {int(undefined.sum())} of "

@@ -39,6 +39,13 @@ def frozen(module: nn.Module) -> Iterator[None]:
             p.requires_grad_(True)
 
 
+def _copied(prediction: Prediction) -> Prediction:
+    """A copy of ``prediction`` without autograd history, in memory of its own."""
+    kept = prediction.detach()
+    u = None if kept.uncertainty is None else kept.uncertainty.clone()
+    return Prediction(kept.states.clone(), kept.cost.clone(), u)
+
+
 class GradientPlanner(PlannerBase):
     """Maximise J by Adam on ``restarts`` action sequences at once, projected onto the bounds.
 
@@ -106,8 +113,10 @@ class GradientPlanner(PlannerBase):
                 prediction = self.model(
                     context_obs, context_action, observation, actions, state=state
                 )
+                # copies: a compiled pass's outputs live in its graph's memory, which its next
+                # call (a CUDA graph's replay) overwrites before the samples are concatenated
                 seen_actions.append(actions.detach().clone())
-                seen_predictions.append(prediction.detach())
+                seen_predictions.append(_copied(prediction))
                 if step == self.steps:
                     break
                 (grad,) = torch.autograd.grad(-self.objective.score(prediction).sum(), actions)

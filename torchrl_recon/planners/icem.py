@@ -121,7 +121,6 @@ class ICEMPlanner(CEMPlanner):
         )
         self.num_kept = math.ceil(keep_elites * num_elites)
         self.memory = EliteMemory()
-        self._last_elites: torch.Tensor | None = None
 
     def population_sizes(self) -> list[int]:
         """K_i of every iteration, before the kept elites and the mean are added."""
@@ -140,39 +139,51 @@ class ICEMPlanner(CEMPlanner):
         return colored_noise(white, self.horizon, self.noise_beta).transpose(-1, -2)
 
     def _carried(
-        self, init: torch.Tensor, batch: torch.Size, generator: torch.Generator | None
+        self,
+        init: torch.Tensor,
+        batch: torch.Size,
+        generator: torch.Generator | None,
+        carry: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
-        """The kept elites of the plan each row's ``init`` continues, else draws around ``init``."""
+        """The kept elites of the plan each row's ``init`` continues (``carry``, from
+        :meth:`_recall`; recalled here when not given, outside a compiled graph), else draws
+        around ``init``."""
         spread = WARM_START_STD * self._span * self._colored(batch, self.num_kept, generator)
         drawn = self._clamp(init.unsqueeze(-3) + spread)
-        recalled = self.memory.recall(init.reshape(-1, *init.shape[-2:]))
-        if recalled is None:
+        if carry is None and not torch.compiler.is_compiling():
+            carry = self._recall(init)
+        if carry is None:
             return drawn
-        elites, found = recalled
-        return torch.where(found.view(*batch, 1, 1, 1), elites.view_as(drawn), drawn)
+        elites, found = carry
+        return torch.where(found[..., None, None, None], elites, drawn)
 
-    def plan(
-        self,
-        context_obs: torch.Tensor,
-        context_action: torch.Tensor,
-        observation: torch.Tensor,
-        *,
-        init: torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> PlanResult:
-        """Plan as :meth:`PlannerBase.plan` does, then remember the last iteration's kept elites
-        under the returned plan, for the next call whose ``init`` continues it."""
-        result = super().plan(
-            context_obs, context_action, observation, init=init, generator=generator
-        )
-        if self.num_kept:
-            rows = result.actions.reshape(-1, *result.actions.shape[-2:])
-            self.memory.remember(rows, self._last_elites.reshape(len(rows), -1, *rows.shape[-2:]))
-        self._last_elites = None
-        return result
+    def _recall(self, init: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The elites :class:`EliteMemory` finds for each row's warm start ``init`` ``[*B, H, M]``
+        (``[*B, E, H, M]``, zeros where none is found) and where it found them (``[*B]``), read
+        before the plan's graph (the search needs the host); None without ``init`` or kept
+        elites. Tensors of the same shapes whatever is found: one graph serves every call."""
+        if init is None or not self.num_kept:
+            return None
+        batch, tail = init.shape[:-2], init.shape[-2:]
+        recalled = self.memory.recall(init.reshape(-1, *tail))
+        if recalled is None or recalled[0].shape[1] != self.num_kept:
+            elites = init.new_zeros(*batch, self.num_kept, *tail)
+            return elites, torch.zeros(batch, dtype=torch.bool, device=init.device)
+        elites, found = recalled
+        return elites.view(*batch, self.num_kept, *tail), found.view(batch)
+
+    def _remember(self, result: PlanResult, kept: torch.Tensor | None) -> None:
+        """Remember the last iteration's kept elites ``kept`` ``[*B, E, H, M]`` under the
+        returned plan, for the next call whose ``init`` continues it."""
+        if kept is None:
+            return
+        rows = result.actions.reshape(-1, *result.actions.shape[-2:])
+        self.memory.remember(rows, kept.reshape(len(rows), -1, *rows.shape[-2:]))
 
     @without_grad
-    def _optimise(self, context_obs, context_action, observation, init, state, generator):
+    def _optimise(
+        self, context_obs, context_action, observation, init, state, generator, carry=None
+    ):
         batch = observation.shape[:-1]
         low, high = self.model.action_low, self.model.action_high
         shape = (*batch, 1, self.horizon, self.model.action_dim)
@@ -190,7 +201,7 @@ class ICEMPlanner(CEMPlanner):
                 extra = (
                     []
                     if init is None or not self.num_kept
-                    else [self._carried(init, batch, generator)]
+                    else [self._carried(init, batch, generator, carry)]
                 )
             else:
                 candidates = self._clamp(mean + std * next_noise())
@@ -205,5 +216,5 @@ class ICEMPlanner(CEMPlanner):
                 bounds = self._reference_bounds(prediction, uniform, batch)
             mean, std, elites = self._elite_update(candidates, prediction, bounds, mean, std, seen)
             kept = elites[..., : self.num_kept, :, :]
-        self._last_elites = kept
-        return *seen.result(), bounds
+        # the last kept elites: plan() remembers them (copied out of a compiled graph's memory)
+        return *seen.result(), bounds, kept if self.num_kept else None

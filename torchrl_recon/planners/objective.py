@@ -63,11 +63,9 @@ class UncertaintyBand:
         the bounds NaN, and every candidate infeasible).
         """
         batch = reference.shape[:-1]
-        relative = self.kind != "absolute" and (self.low, self.high) != (None, None)
-        skip_nan = relative and bool(reference.isnan().any())  # else the exact ops as before
-        quantile, mean = (
-            (torch.nanquantile, torch.nanmean) if skip_nan else (torch.quantile, torch.mean)
-        )
+        # Each row's statistic skips NaN only where that row has one (else the exact ops as
+        # before), chosen per row by `where`: no host read, so a compiled plan stays one graph.
+        has_nan = reference.isnan().any(-1, keepdim=True)
 
         def one(value: float | None, default: float) -> torch.Tensor:
             if value is None:
@@ -75,8 +73,12 @@ class UncertaintyBand:
             if self.kind == "absolute":
                 return reference.new_full((*batch, 1), value)
             if self.kind == "quantile":
-                return quantile(reference, value, dim=-1, keepdim=True)
-            return value * mean(reference, -1, keepdim=True)
+                plain = torch.quantile(reference, value, dim=-1, keepdim=True)
+                skipping = torch.nanquantile(reference, value, dim=-1, keepdim=True)
+            else:
+                plain = value * torch.mean(reference, -1, keepdim=True)
+                skipping = value * torch.nanmean(reference, -1, keepdim=True)
+            return torch.where(has_nan, skipping, plain)
 
         return one(self.low, -torch.inf), one(self.high, torch.inf)
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import math
+import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -153,17 +155,55 @@ def without_grad(fn: Callable) -> Callable:
     return call
 
 
-@functools.cache
 def compiled_plan(fn: Callable, mode: str, backend: str = "inductor") -> Callable:
     """``torch.compile(fn, mode=mode, fullgraph=True)``: a planner's whole call as one graph
-    (a graph break is an error, not a slow path), made once per function, mode and backend;
-    it takes the planner as an argument. Called with Dynamo's ``allow_rnn`` on: the world
-    model's context warm-up is an ``nn.LSTM``, which Dynamo otherwise refuses to trace (its
-    own error names the switch ``torch._dynamo.config.allow_rnn``; there is no public one)."""
+    (a graph break is an error, not a slow path); it takes the planner as an argument.
+
+    Each call makes a new compiled function with a Dynamo cache of its own: Dynamo keeps the
+    graphs it compiled, and counts them against ``torch._dynamo.config.recompile_limit`` (8),
+    per code object, so the function is compiled from a copy of ``fn``'s code
+    (:func:`own_code`). A planner calls this once per mode (``PlannerBase._graph``): every
+    planner instance and mode has its own graphs, and one planner's shapes never use up
+    another's recompiles. Called with Dynamo's ``allow_rnn`` on: the world model's context
+    warm-up is an ``nn.LSTM``, which Dynamo otherwise refuses to trace (its own error names the
+    switch ``torch._dynamo.config.allow_rnn``; there is no public one)."""
+    own = own_code(fn)
     compiled = torch.compile(
-        fn, mode=None if backend != "inductor" else mode, fullgraph=True, backend=backend
+        own, mode=None if backend != "inductor" else mode, fullgraph=True, backend=backend
     )
-    return _allowing_rnn(fn, compiled)
+    call = _allowing_rnn(fn, compiled)
+    call.compiled = own  # what Dynamo compiles: its code object holds the graphs
+    return call
+
+
+def own_code(fn: Callable) -> Callable:
+    """A copy of function ``fn`` with a code object of its own (the same bytecode), so that
+    ``torch.compile`` keeps a separate cache of graphs for it.
+
+    Examples:
+        >>> def double(x):
+        ...     return 2 * x
+        >>> twin = own_code(double)
+        >>> twin(3), twin.__code__ is double.__code__, twin.__name__
+        (6, False, 'double')
+    """
+    code = fn.__code__.replace()  # a new code object
+    twin = types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    twin.__kwdefaults__ = fn.__kwdefaults__
+    twin.__qualname__, twin.__doc__, twin.__module__ = fn.__qualname__, fn.__doc__, fn.__module__
+    return twin
+
+
+def mark_batch_dynamic(batch_dims: int, *tensors: torch.Tensor | None) -> None:
+    """Mark the leading ``batch_dims`` dims of each tensor (None skipped) dynamic for
+    ``torch.compile`` (``torch._dynamo.maybe_mark_dynamic``): a compiled plan's graph then
+    serves every batch size of 2 or more (a dim of size 1 stays static: Dynamo specialises
+    sizes 0 and 1, so a batch of one has a graph of its own)."""
+    for x in tensors:
+        if x is None:
+            continue
+        for dim in range(batch_dims):
+            torch._dynamo.maybe_mark_dynamic(x, dim)
 
 
 @functools.cache
@@ -598,15 +638,21 @@ class PlanningModel(nn.Module):
                 prediction depends on that row alone, so the result is that of one pass up
                 to float rounding. An estimator that draws random numbers per call (MC
                 dropout's masks) still scores all rows in one call, so every candidate is
-                scored by the same masks. None (default): one pass.
+                scored by the same masks. None (default): one pass. Traced into a planner's
+                compiled graph (``compile`` with a sampling planner), ``"auto"`` is one pass
+                (blocks would be unrolled into the graph), and a number of rows splits the
+                candidates by the batch size: one graph per batch size.
         """
         self.check_fitted()
-        block_rows = resolve_block_rows(block_rows, actions.device)
-        batch_rows = int(observation.shape[:-1].numel())
+        compiling = torch.compiler.is_compiling()
+        # Traced into a plan's graph, "auto" is one pass: blocks would be unrolled into the
+        # graph (its compile time grows with their number) and pin the batch size.
+        auto_one_pass = compiling and block_rows == "auto"
+        block_rows = None if auto_one_pass else resolve_block_rows(block_rows, actions.device)
+        batch_rows = math.prod(observation.shape[:-1])  # symbolic in a graph of dynamic batch
         k = actions.shape[-3]
         context = (context_obs, context_action, observation)
         blocks_u = self._row_independent_u
-        compiling = torch.compiler.is_compiling()
         if self.blocks_in_threads and not (torch.is_grad_enabled() or compiling):
             prediction = self._threaded(context, actions, state, block_rows, blocks_u)
         else:
@@ -742,7 +788,7 @@ class PlanningModel(nn.Module):
         est = self.uncertainty
         past = est.window - 1
         *batch, k, horizon, _ = actions.shape
-        rows = int(torch.Size(batch).numel()) * k
+        rows = math.prod(batch) * k  # symbolic in a graph of dynamic batch
         x = entering.new_empty(rows, past + horizon, self.obs_dim + self.action_dim)
         x = x.view(*batch, k, past + horizon, -1)
         if past:

@@ -140,8 +140,10 @@ def test_a_trainer_with_a_plain_loss_says_what_is_missing_then_runs_with_fit_nor
         return out, world, estimator
 
     bare, world, _ = trainer(with_hook=False)
-    with pytest.raises(ValueError, match="never fitted") as err:
-        bare.train()
+    unfitted_loss = "WorldModelPredictionLoss is computed with the world model's normalisation"
+    with pytest.warns(UserWarning, match=unfitted_loss):  # the loss steps before the plan
+        with pytest.raises(ValueError, match="never fitted") as err:
+            bare.train()
     assert "FitNormalization" in str(err.value) and "\n" not in str(err.value)
     hooked, world, estimator = trainer(with_hook=True)
     hooked.train()

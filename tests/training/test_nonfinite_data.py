@@ -9,7 +9,7 @@ from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty, unfitted_normalizers
-from torchrl_recon.trainers import FitNormalization, LogIteration, OnlineCollector
+from torchrl_recon.trainers import FitNormalization, IterationCollector, LogIteration
 from torchrl_recon.trainers.collector import check_batch
 from torchrl_recon.training import fit_population, fit_uncertainty, fit_world_model
 
@@ -140,11 +140,11 @@ def test_a_nan_reward_is_refused_where_the_online_hooks_first_see_the_batch():
 
 
 def test_the_online_collector_refuses_a_batch_with_a_nan_reward_before_the_trainer_sees_it():
-    class NaNRewards(OnlineCollector):
+    class NaNRewards(IterationCollector):  # an online collector whose env returns a NaN reward
         def collect_iteration(self, iteration: int) -> TensorDict:
             self.batch_info = dict(iteration=iteration, policy="random")
             return _data(("next", "reward"), row=3)
 
-    collector = NaNRewards(None, None, iterations=0, steps_per_iteration=20, random_steps=40)
+    collector = NaNRewards(iterations=0, steps_per_iteration=20, random_steps=40)
     with pytest.raises(ValueError, match=r"^\('next', 'reward'\) in iteration 0's batch holds NaN"):
         next(iter(collector))

@@ -6,6 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from tests.fitting import fitted
 from torchrl_recon.data import (
     MASK_KEY,
     TRAJ_KEY,
@@ -134,8 +135,8 @@ def test_an_all_real_mask_gives_the_unmasked_losses():
     batch = rb.sample()
     masked = batch.clone()
     masked.set(MASK_KEY, torch.ones(len(batch), dtype=torch.bool))
-    model = LSTMWorldModel(N, M, window=WINDOW, hidden_size=8, dense_size=8)
-    ae = ReconstructionUncertainty(N, M, window=WINDOW)
+    model = fitted(LSTMWorldModel(N, M, window=WINDOW, hidden_size=8, dense_size=8))
+    ae = fitted(ReconstructionUncertainty(N, M, window=WINDOW))  # (unfitted: a loss warns)
     for mode in ("multi_step", "one_step"):
         loss = WorldModelPredictionLoss(model, mode=mode, slice_len=SLICE)
         torch.testing.assert_close(loss(masked), loss(batch))
@@ -147,7 +148,7 @@ def test_a_two_step_episode_is_predicted_from_a_context_at_rest():
     """The multi-step loss of an episode shorter than the warm-up: the context before its start
     is its first observation and the zero action (MPCPolicy(warmup="plan")'s convention)."""
     torch.manual_seed(0)
-    model = LSTMWorldModel(N, M, window=WINDOW, hidden_size=8, dense_size=8)
+    model = fitted(LSTMWorldModel(N, M, window=WINDOW, hidden_size=8, dense_size=8))
     data = episodes([2])
     seq = data.unsqueeze(0)  # [1, 2]
     pad = SLICE - 2

@@ -13,11 +13,12 @@ from typing import Any
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler, TensorDictReplayBuffer
 
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.files import read_json
+from torchrl_recon.modules.checks import check_int, check_type
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
 """Where TorchRL's collectors write each step's trajectory id; windows never cross a change of it."""
@@ -100,6 +101,10 @@ class GatherTensorStorage(LazyTensorStorage):
         >>> storage.get(torch.tensor([3, 1]))["x"]
         tensor([3., 1.])
     """
+
+    def __init__(self, max_size: int, *args: Any, **kwargs: Any) -> None:
+        check_int("max_size", max_size)
+        super().__init__(max_size, *args, **kwargs)
 
     def _init(self, data: Any) -> None:
         with quiet_storage_init():
@@ -191,6 +196,7 @@ def make_sequence_buffer(
 
 def _trajectory_ids(data: TensorDictBase, traj_key: NestedKey, caller: str) -> torch.Tensor:
     """The trajectory ids of flat transitions; a clear error when the key is missing."""
+    check_type("data", data, TensorDictBase, "a TensorDict of flat transitions")
     ids = data.get(traj_key, None)
     if ids is None:
         raise ValueError(
@@ -204,6 +210,7 @@ def _trajectory_ids(data: TensorDictBase, traj_key: NestedKey, caller: str) -> t
 
 def buffer_contents(buffer: TensorDictReplayBuffer) -> TensorDictBase:
     """Everything stored in ``buffer`` as one TensorDict; raises a clear error when it is empty."""
+    check_type("buffer", buffer, ReplayBuffer, "a torchrl ReplayBuffer")
     if len(buffer) == 0:
         raise ValueError("The replay buffer is empty; collect data before fitting.")
     return buffer[:]
@@ -223,6 +230,7 @@ def long_trajectories(
         >>> long_trajectories(td, 3), long_trajectories(td, 4), long_trajectories(td, 4, ended=True)
         (2, 1, 3)
     """
+    check_int("length", length)
     ids = _trajectory_ids(data, traj_key, "long_trajectories")
     _, inverse, counts = torch.unique(ids, return_inverse=True, return_counts=True)
     counted = counts >= length
@@ -246,6 +254,7 @@ def needs_padding(slice_len: int, *parts: TensorDictBase, traj_key: NestedKey = 
         >>> needs_padding(3, train), needs_padding(3, train, val)
         (False, True)
     """
+    check_int("slice_len", slice_len)
     return any(long_trajectories(part, slice_len, traj_key=traj_key) == 0 for part in parts)
 
 
@@ -270,6 +279,11 @@ def sequence_buffers(
         >>> [rb.sampler.pad_output for rb in sequence_buffers((train, val), slice_len=3, num_slices=1)]
         [True, True]
     """
+    if not isinstance(parts, tuple | list) or not parts:
+        raise ValueError(
+            f"parts must be a non-empty tuple of TensorDicts (e.g. a train and a validation "
+            f"split), got {type(parts).__name__} of length {len(parts) if hasattr(parts, '__len__') else '?'}."
+        )
     pad = needs_padding(slice_len, *parts)
     sizes = dict(slice_len=slice_len, num_slices=num_slices, sampling=sampling, pad_short=pad)
     buffers = tuple(make_sequence_buffer(len(part), **sizes) for part in parts)
@@ -308,6 +322,8 @@ def split_by_trajectory(
         (30, 10)
     """
     check_val_fraction(val_fraction)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed must be an int, got {type(seed).__name__} {seed!r}.")
     ids = _trajectory_ids(data, traj_key, "split_by_trajectory")
     unique = torch.unique(ids)
     if len(unique) < 2:
@@ -325,10 +341,13 @@ def save_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> None:
     TorchRL also writes ``prefetch.pkl`` (the prefetch queue, a pickle); our buffers never
     prefetch, so that file is removed and :func:`load_buffer` never unpickles anything.
     """
+    check_type("buffer", buffer, ReplayBuffer, "a torchrl ReplayBuffer")
     if getattr(buffer, "_prefetch_cap", 0):
         raise ValueError(
             "save_buffer supports buffers without prefetch only (prefetch state is pickled)."
         )
+    if len(buffer) == 0:
+        raise ValueError(f"The replay buffer is empty: nothing to save to {path}.")
     Path(path).mkdir(parents=True, exist_ok=True)
     buffer.dumps(path)
     Path(path, _PREFETCH_FILE).unlink(missing_ok=True)
@@ -384,6 +403,7 @@ def load_buffer(buffer: TensorDictReplayBuffer, path: str | Path) -> TensorDictR
         >>> len(load_buffer(make_sequence_buffer(10, slice_len=2, num_slices=1), path))
         10
     """
+    check_type("buffer", buffer, ReplayBuffer, "a torchrl ReplayBuffer")
     path = Path(path)
     if len(buffer):
         raise ValueError(

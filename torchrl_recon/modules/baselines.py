@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from torchrl_recon.modules.checks import check_features
+from torchrl_recon.modules.checks import check_features, check_int
 
 
 class LinearDeltaModel(nn.Module):
@@ -25,6 +25,8 @@ class LinearDeltaModel(nn.Module):
 
     def __init__(self, obs_dim: int, action_dim: int, *, window: int = 1) -> None:
         super().__init__()
+        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("window", window)):
+            check_int(name, value)
         self.obs_dim, self.action_dim, self.window = obs_dim, action_dim, window
         self.register_buffer("weight", torch.zeros(obs_dim + action_dim + 1, obs_dim))
 

@@ -20,8 +20,11 @@ __all__ = [
     "check_finite_keys",
     "check_flag",
     "check_int",
+    "check_keys",
     "check_real",
+    "check_type",
     "check_window",
+    "is_key",
 ]
 
 
@@ -168,6 +171,18 @@ def check_finite_keys(
     )
 
 
+def is_key(key: object) -> bool:
+    """Whether ``key`` is a TensorDict key: a str, or a non-empty tuple of str.
+
+    Examples:
+        >>> is_key("observation"), is_key(("next", "reward")), is_key(3)
+        (True, True, False)
+    """
+    if isinstance(key, str):
+        return True
+    return isinstance(key, tuple) and bool(key) and all(isinstance(k, str) for k in key)
+
+
 def check_flag(name: str, value: object) -> None:
     """Raise unless ``value`` is True or False (a switch such as ``compile``).
 
@@ -192,6 +207,47 @@ def check_int(name: str, value: object, minimum: int = 1) -> None:
     """
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}.")
+
+
+def _short(value: object, limit: int = 40) -> str:
+    """``value``'s repr after its type name when it is a short plain value, else nothing."""
+    if value is None or isinstance(value, str | bytes | int | float | complex):
+        text = repr(value)
+        return " " + (text if len(text) <= limit else text[: limit - 3] + "...")
+    return ""
+
+
+def check_type(name: str, value: object, types: type | tuple[type, ...], expected: str) -> None:
+    """Raise ``TypeError`` unless ``value`` is an instance of ``types``, naming the argument,
+    what it got and ``expected`` (how the message describes ``types``).
+
+    Examples:
+        >>> check_type("buffer", "rb", TensorDictBase, "a TensorDict")
+        Traceback (most recent call last):
+        ...
+        TypeError: buffer must be a TensorDict, got str 'rb'.
+    """
+    if not isinstance(value, types):
+        raise TypeError(f"{name} must be {expected}, got {type(value).__name__}{_short(value)}.")
+
+
+def check_keys(name: str, data: object, keys: Iterable[NestedKey]) -> None:
+    """Raise unless ``data`` is a TensorDict holding every one of ``keys``: ``TypeError`` for
+    another type, ``ValueError`` naming the missing keys and those it has.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> check_keys("data", TensorDict({"observation": torch.zeros(2, 3)}, [2]), ["observation", ("next", "reward")])
+        Traceback (most recent call last):
+        ...
+        ValueError: data lacks ('next', 'reward'); it has ['observation'].
+    """
+    check_type(name, data, TensorDictBase, "a TensorDict")
+    have = data.keys(True, True)
+    missing = [k for k in keys if k not in have]
+    if missing:
+        shown = ", ".join(repr(k) for k in missing)
+        raise ValueError(f"{name} lacks {shown}; it has {sorted(map(str, have))}.")
 
 
 def check_real(

@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from torchrl_recon.data.buffers import MASK_KEY
+from torchrl_recon.modules.checks import check_int, check_type
 
 
 def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDictBase:
@@ -19,6 +20,10 @@ def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDic
         >>> as_sequences(TensorDict({"x": torch.arange(12)}, [12]), 4).batch_size
         torch.Size([3, 4])
     """
+    if not torch.compiler.is_compiling():  # (a compiled fit's graph: checked when eager)
+        check_type("tensordict", tensordict, TensorDictBase, "a TensorDict of transitions")
+        if slice_len is not None:
+            check_int("slice_len", slice_len)
     if tensordict.batch_dims >= 2:
         return tensordict
     if slice_len is None:

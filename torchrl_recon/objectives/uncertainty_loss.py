@@ -6,7 +6,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_recon.modules.checks import capturing_cuda_graph
+from torchrl_recon.modules.checks import capturing_cuda_graph, check_int, check_type
 from torchrl_recon.modules.fitted import ESTIMATOR, warn_unfitted
 from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -51,6 +51,9 @@ class UncertaintyLoss(LossModule):
         action_key: NestedKey = "action",
     ) -> None:
         super().__init__()
+        check_type("estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator")
+        if slice_len is not None:
+            check_int("slice_len", slice_len)
         self.estimator, self.slice_len = estimator, slice_len
         self.obs_key, self.action_key = obs_key, action_key
         self.fit_checked = False

@@ -8,7 +8,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_recon.modules.checks import capturing_cuda_graph
+from torchrl_recon.modules.checks import capturing_cuda_graph, check_int, check_type
 from torchrl_recon.modules.fitted import WORLD_MODEL, warn_unfitted
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives.sequences import as_sequences, marked_slice_len, sequence_mask
@@ -68,6 +68,9 @@ class WorldModelPredictionLoss(LossModule):
         next_obs_key: NestedKey = ("next", "observation"),
     ) -> None:
         super().__init__()
+        check_type("world_model", world_model, LSTMWorldModel, "an LSTMWorldModel")
+        if slice_len is not None:
+            check_int("slice_len", slice_len)
         if mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {mode!r}.")
         self.world_model, self.mode, self.slice_len = world_model, mode, slice_len

@@ -15,6 +15,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 
 from torchrl_recon.data.buffers import MASK_KEY, TRAJ_KEY, cut_sequences
+from torchrl_recon.modules.checks import check_int, check_keys, check_real, check_type
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.padding import windows_at_rest
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -33,6 +34,8 @@ def cost_to_u_ratio(data: TensorDictBase, per_window_u: torch.Tensor) -> float:
         >>> cost_to_u_ratio(data, torch.tensor([0.5, 1.5]))
         6.0
     """
+    check_keys("data", data, [("next", "reward")])
+    check_type("per_window_u", per_window_u, torch.Tensor, "a tensor of u per window")
     cost = float(data["next", "reward"].abs().mean())
     u = float(per_window_u.mean())
     if not (math.isfinite(cost) and math.isfinite(u) and cost > 0 and u > 0):
@@ -75,6 +78,10 @@ def window_uncertainty(
         >>> window_uncertainty(short, est, sequence_length=10).shape  # one window (at rest) each
         torch.Size([20])
     """
+    check_type("estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator")
+    if sequence_length is not None:
+        check_int("sequence_length", sequence_length)
+    check_keys("data", data, [obs_key, action_key, traj_key])
     length = estimator.window if sequence_length is None else sequence_length
     if length < estimator.window:
         raise ValueError(
@@ -120,7 +127,6 @@ def relative_beta(
         >>> abs(relative_beta(0.5, data, est) - 0.5 * 6.0 / float(u.mean())) < 1e-4
         True
     """
-    if not math.isfinite(beta):
-        raise ValueError(f"beta must be a finite number, got {beta!r}.")
+    check_real("beta", beta)
     u = window_uncertainty(data, estimator, sequence_length=sequence_length, traj_key=traj_key)
     return beta * cost_to_u_ratio(data, u)

@@ -96,6 +96,11 @@ def bounds_from_spec(action_spec: TensorSpec) -> tuple[torch.Tensor, torch.Tenso
         >>> low.tolist(), high.tolist()
         ([-2.0], [2.0])
     """
+    if not isinstance(action_spec, TensorSpec):
+        raise TypeError(
+            f"action_spec must be a torchrl TensorSpec (env.action_spec), got "
+            f"{type(action_spec).__name__}."
+        )
     remedy = "pass action_low= / action_high= to PlanningModel explicitly."
     domain = getattr(action_spec, "domain", "continuous")
     dtype = action_spec.dtype
@@ -153,6 +158,12 @@ def check_bounds_match(
         the planner's action range [-1, 1] differs from the env's action spec [-2, 2]
     """
     env_low, env_high = bounds_from_spec(action_spec)
+    for name, value in (("low", low), ("high", high)):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(
+                f"{name} must be a tensor [M] of the planner's action bounds, got "
+                f"{type(value).__name__}."
+            )
     low = low.detach().to("cpu", torch.float64).reshape(-1)
     high = high.detach().to("cpu", torch.float64).reshape(-1)
     if low.shape != env_low.shape:

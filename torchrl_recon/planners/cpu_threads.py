@@ -93,6 +93,7 @@ def run_blocks(
         >>> run_blocks(lambda i: i * i, blocks=5, threads=2)
         [0, 1, 4, 9, 16]
     """
+    check_int("blocks", blocks)
     threads = min(check_threads(threads), blocks)
     if threads == 1:
         return [fn(i) for i in range(blocks)]

@@ -10,6 +10,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
 from torchrl_recon.modules.activations import ACTIVATIONS
+from torchrl_recon.modules.checks import check_real, check_type
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -125,6 +126,10 @@ class WorldModelPlanningEnv(ModelBasedEnvBase):
         action_low: float | torch.Tensor = -1.0,
         action_high: float | torch.Tensor = 1.0,
     ) -> None:
+        check_type("world_model", world_model, LSTMWorldModel, "an LSTMWorldModel")
+        if uncertainty is not None:
+            check_type("uncertainty", uncertainty, UncertaintyEstimator, "an UncertaintyEstimator")
+        check_real("beta", beta)
         n, m = world_model.obs_dim, world_model.action_dim
         low, high = action_bounds(action_low, action_high, m, dtype=module_dtype(world_model))
         check_step_fn("cost_fn", cost_fn, n, m, device=module_device(world_model))

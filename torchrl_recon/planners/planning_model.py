@@ -456,6 +456,8 @@ class PlanningModel(nn.Module):
             >>> pm.action_low.tolist(), pm.action_high.tolist()
             ([-2.0], [2.0])
         """
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"env must be a torchrl EnvBase, got {type(env).__name__}.")
         low, high = bounds_from_spec(env.action_spec)
         if low.numel() != world_model.action_dim:
             raise ValueError(

@@ -59,6 +59,10 @@ def check_planner_kwargs(cls: type[PlannerBase], kwargs: Mapping[str, Any]) -> N
     Raises:
         TypeError: one line naming the keywords at fault and those ``cls`` accepts.
     """
+    if not (isinstance(cls, type) and issubclass(cls, PlannerBase)):
+        raise TypeError(
+            f"cls must be a PlannerBase subclass (get_planner_class(kind)), got {cls!r}."
+        )
     check_keywords(cls, kwargs, positional=2)
 
 

@@ -19,6 +19,15 @@ MISSING_INIT_TRACKER = (
 
 def _cpu_bounds(low: torch.Tensor, high: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     """CPU copies of the bounds, or None when they have no values (a model on the meta device)."""
+    for name, value in (("action_low", low), ("action_high", high)):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(
+                f"{name} must be a tensor [M] of the planner's bounds, got {type(value).__name__}."
+            )
+        if value.ndim != 1 or value.shape != low.shape:
+            raise ValueError(
+                f"{name} has shape {list(value.shape)}; expected [M], the shape of action_low."
+            )
     if low.device.type == "meta":
         return None
     return low.detach().cpu().clone(), high.detach().cpu().clone()
@@ -97,6 +106,11 @@ class PlannerStatePrimer(TensorDictPrimer):
         owner: str = "the planner",
         **kwargs,
     ) -> None:
+        if not isinstance(primers, Composite):
+            raise TypeError(
+                f"primers must be a torchrl Composite of the state specs, got "
+                f"{type(primers).__name__}."
+            )
         super().__init__(primers, **kwargs)
         self._planner_bounds = _cpu_bounds(action_low, action_high)
         self._planner_action_key = action_key

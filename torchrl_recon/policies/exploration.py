@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from torchrl_recon.modules.checks import check_real
+from torchrl_recon.modules.checks import check_int, check_real, check_type
 from torchrl_recon.planners.base import PlannerBase
 from torchrl_recon.planners.objective import Objective, UncertaintyBand
 from torchrl_recon.policies.mpc import MPCPolicy
@@ -63,6 +63,9 @@ class ExplorationPolicy(MPCPolicy):
         replan_every: int | None = None,
         **kwargs,
     ):
+        check_type("planner", planner, PlannerBase, "a planner (a PlannerBase, e.g. CEMPlanner)")
+        if replan_every is not None:
+            check_int("replan_every", replan_every)
         objective = planner.objective
         if objective.alpha != 0 or objective.beta > 0:
             raise ValueError(
@@ -74,5 +77,8 @@ class ExplorationPolicy(MPCPolicy):
                 "ExplorationPolicy needs a planning model with an uncertainty estimator."
             )
         super().__init__(
-            planner, replan=replan, replan_every=replan_every or planner.horizon, **kwargs
+            planner,
+            replan=replan,
+            replan_every=planner.horizon if replan_every is None else replan_every,
+            **kwargs,
         )

@@ -11,7 +11,15 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from torchrl_recon.modules.checks import check_finite, check_int, check_real
+from torchrl_recon.modules.checks import (
+    check_features,
+    check_finite,
+    check_flag,
+    check_int,
+    check_real,
+    check_type,
+    is_key,
+)
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, unfitted_before_data
 from torchrl_recon.planners.base import InfeasiblePlanWarning, PlannerBase
 from torchrl_recon.policies.env_checks import (
@@ -147,6 +155,13 @@ class MPCPolicy(TensorDictModuleBase):
         action_key: str = "action",
     ) -> None:
         super().__init__()
+        check_type("planner", planner, PlannerBase, "a planner (a PlannerBase, e.g. CEMPlanner)")
+        check_flag("warm_start", warm_start)
+        for name, key in (("obs_key", obs_key), ("action_key", action_key)):
+            if not is_key(key):
+                raise TypeError(
+                    f"{name} must be a TensorDict key (a str or tuple of str), got {key!r}."
+                )
         if replan not in ("every_step", "every_n", "uncertainty"):
             raise ValueError(
                 f"replan must be 'every_step', 'every_n' or 'uncertainty', got {replan!r}."
@@ -355,6 +370,7 @@ class MPCPolicy(TensorDictModuleBase):
         return on_plan & (rms > self.error_threshold)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        check_type("tensordict", tensordict, TensorDictBase, "a TensorDict (an env's step)")
         if PLAN not in tensordict.keys():
             raise KeyError(
                 f"MPCPolicy state {PLAN!r} is missing from the tensordict; append "
@@ -363,7 +379,13 @@ class MPCPolicy(TensorDictModuleBase):
         batch = tensordict.batch_size
         flat = tensordict.reshape(-1)
         rows = flat.shape[0]
-        given = flat.get(self.obs_key)
+        given = flat.get(self.obs_key, None)
+        if given is None:
+            raise KeyError(
+                f"MPCPolicy reads the observation {self.obs_key!r}, which the tensordict lacks "
+                f"(it has {sorted(map(str, tensordict.keys(True, True)))}); pass obs_key=."
+            )
+        check_features(f"{self.obs_key!r} given to MPCPolicy", given, self.obs_dim)
         check_finite(f"{self.obs_key!r} given to MPCPolicy", given)
         device, out_device = self.device, given.device
         obs = given.to(device)

@@ -8,6 +8,8 @@ from tensordict import TensorDict
 from torchrl.data import ReplayBuffer
 from torchrl.trainers import Trainer, TrainerHookBase
 
+from torchrl_recon.modules.checks import check_type
+
 
 class ReplayBufferSteps(TrainerHookBase):
     """The replay buffer's steps in the Trainer's checkpoint, as plain tensors: ``state_dict``
@@ -34,6 +36,7 @@ class ReplayBufferSteps(TrainerHookBase):
     """
 
     def __init__(self, replay_buffer: ReplayBuffer) -> None:
+        check_type("replay_buffer", replay_buffer, ReplayBuffer, "a torchrl ReplayBuffer")
         self.replay_buffer = replay_buffer
 
     def state_dict(self) -> dict[str, Any]:

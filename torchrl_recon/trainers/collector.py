@@ -13,7 +13,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_recon.collectors import collect, collect_random, renumber_trajectories
-from torchrl_recon.modules.checks import FIX_ENV, check_finite_keys, check_int
+from torchrl_recon.modules.checks import FIX_ENV, check_finite_keys, check_int, check_type
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.policies.mpc import REPLANNED
 
@@ -34,6 +34,7 @@ class TimedPolicy(TensorDictModuleBase):
 
     def __init__(self, policy: TensorDictModuleBase) -> None:
         super().__init__()
+        check_type("policy", policy, TensorDictModuleBase, "a TensorDict policy (e.g. MPCPolicy)")
         self.policy, self.seconds = policy, 0.0
         self.in_keys, self.out_keys = policy.in_keys, policy.out_keys
 
@@ -60,6 +61,8 @@ def play(
     """``frames`` steps of ``policy`` on ``env`` (the policy's primer appended) through
     TorchRL's ``Collector``, seeded with ``seed``; returns the steps and the seconds spent
     planning."""
+    check_type("env", env, EnvBase, "a torchrl env (make_env)")
+    check_int("frames", frames)
     timed = TimedPolicy(policy)
     data = collect(env, timed, frames=frames, seed=seed, progress=progress, desc="mpc")
     return data, timed.seconds
@@ -193,6 +196,10 @@ class OnlineCollector(IterationCollector):
             random_steps=random_steps,
             explore_iterations=explore_iterations,
         )
+        check_type("env", env, EnvBase, "a torchrl env (make_env)")
+        for name, value in (("policy", policy), ("explorer", explorer)):
+            if value is not None:
+                check_type(name, value, MPCPolicy, "an MPCPolicy (or ExplorationPolicy) or None")
         if explore_iterations and explorer is None:
             raise ValueError(f"explore_iterations={explore_iterations} needs an explorer.")
         if iterations > explore_iterations and policy is None:
@@ -284,6 +291,8 @@ def check_schedule(
 def env_keys(data: TensorDictBase, env: EnvBase) -> list:
     """The leaf keys of ``data`` that a random collection from ``env`` holds too: the env's
     observations, action, reward, done flags and the collector's trajectory ids."""
+    check_type("data", data, TensorDictBase, "a TensorDict of collected steps")
+    check_type("env", env, EnvBase, "a torchrl env")
     specs = (env.full_observation_spec, env.full_action_spec, env.full_done_spec)
     own = {k for spec in specs for k in spec.keys(True, True)}
     own |= {("next", k) for k in own} | {("next", k) for k in env.full_reward_spec.keys(True, True)}

@@ -11,6 +11,7 @@ from tensordict import TensorDictBase
 from torchrl.trainers import Trainer, TrainerHookBase
 
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
+from torchrl_recon.modules.checks import check_int, check_type
 from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.trainers.collector import check_batch
 from torchrl_recon.training.online import (
@@ -73,6 +74,12 @@ class LogIteration(TrainerHookBase):
         on_iteration: Callable[[IterationRecord], None] | None = None,
         timed_policy: Any = None,
     ) -> None:
+        check_type("world_model", world_model, LSTMWorldModel, "an LSTMWorldModel")
+        if estimator is not None:
+            check_type("estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator")
+        check_int("slice_len", slice_len)
+        if on_iteration is not None and not callable(on_iteration):
+            raise TypeError(f"on_iteration must be callable or None, got {on_iteration!r}.")
         self.world_model, self.estimator, self.slice_len = world_model, estimator, slice_len
         self.on_iteration, self.timed_policy = on_iteration, timed_policy
         self.records: list[IterationRecord] = []

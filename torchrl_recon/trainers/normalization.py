@@ -13,7 +13,7 @@ from torchrl_recon.modules import (
     UncertaintyEstimator,
     unfitted_normalizers,
 )
-from torchrl_recon.modules.checks import check_finite_keys
+from torchrl_recon.modules.checks import check_finite_keys, check_keys, check_type
 
 
 class FitNormalization(TrainerHookBase):
@@ -52,6 +52,11 @@ class FitNormalization(TrainerHookBase):
         *,
         reward_model: RewardModel | None = None,
     ) -> None:
+        check_type("world_model", world_model, LSTMWorldModel, "an LSTMWorldModel")
+        if estimator is not None:
+            check_type("estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator")
+        if reward_model is not None:
+            check_type("reward_model", reward_model, RewardModel, "a RewardModel")
         self.world_model, self.estimator, self.reward_model = world_model, estimator, reward_model
         self.done = False
 
@@ -66,6 +71,7 @@ class FitNormalization(TrainerHookBase):
         if world_unfitted:
             keys.append(("next", "observation"))
         if world_unfitted or estimator_unfitted:
+            check_keys("the collected batch", batch, keys)
             check_finite_keys(batch, keys, where="the collected batch")
         flat = batch.reshape(-1)
         obs, action = flat["observation"], flat["action"]

@@ -75,6 +75,7 @@ def save_checkpoint(
         >>> load_modules(path)["world_model"].obs_dim
         6
     """
+    _check_modules(modules)
     payload = {
         "format": FORMAT_VERSION,
         "modules": {
@@ -90,6 +91,25 @@ def save_checkpoint(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomically(path, lambda tmp: torch.save(payload, tmp))
+
+
+def _check_modules(modules: object) -> None:
+    """Refuse ``modules`` unless a dict of names to modules that have a ``config()``."""
+    if not isinstance(modules, dict):
+        raise TypeError(
+            f"modules must be a dict of names to modules, got {type(modules).__name__}."
+        )
+    for name, module in modules.items():
+        if not isinstance(name, str) or not isinstance(module, nn.Module):
+            raise TypeError(
+                f"modules must map str names to torch modules, got {name!r}: "
+                f"{type(module).__name__}."
+            )
+        if not callable(getattr(module, "config", None)):
+            raise TypeError(
+                f"modules[{name!r}] is a {type(module).__name__}, which has no config() to "
+                "rebuild it from; save the library's modules (or give yours a config())."
+            )
 
 
 def _reason(err: BaseException) -> str:

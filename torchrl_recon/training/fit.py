@@ -17,14 +17,14 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
+from torchrl.data import ReplayBuffer, TensorDictReplayBuffer
 from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
 from torchrl_recon.devices import check_compile_support
-from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real
+from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real, check_type
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.population import ReconstructionPopulation
@@ -251,6 +251,8 @@ def train_loss_module(
         >>> result.steps
         20
     """
+    check_type("loss_module", loss_module, nn.Module, "a torchrl LossModule")
+    _check_buffer("buffer", buffer)
     counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
     check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
     _check_seed(seed)
@@ -383,6 +385,11 @@ def _check_seed(seed: object) -> None:
         raise TypeError(f"seed must be an int, got {seed!r}.")
 
 
+def _check_buffer(name: str, buffer: object) -> None:
+    """Refuse a ``buffer`` that is not a TorchRL replay buffer."""
+    check_type(name, buffer, ReplayBuffer, "a torchrl replay buffer (make_sequence_buffer)")
+
+
 def _check_train_keywords(kwargs: dict, module: nn.Module) -> None:
     """Check the keywords a fit hands on to :func:`train_loss_module` as it would (an unknown
     one included), before the fit does any work of its own (its normalisation)."""
@@ -419,6 +426,8 @@ def fit_world_model(
         >>> [h["step"] for h in result.history], bool(model.obs_norm.fitted)
         ([5, 10], True)
     """
+    check_type("model", model, LSTMWorldModel, "an LSTMWorldModel")
+    _check_buffer("buffer", buffer)
     if getattr(model, "num_members", None) is not None:
         raise ValueError(
             f"fit_world_model fits one model; this one has num_members={model.num_members} "
@@ -517,6 +526,8 @@ def fit_uncertainty(
         ...                 progress=False).steps
         4
     """
+    check_type("estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator")
+    _check_buffer("buffer", buffer)
     _check_train_keywords(kwargs, estimator)
     if fit_normalization:
         data = _checked_contents(buffer, ESTIMATOR_KEYS)
@@ -786,9 +797,17 @@ def fit_population(
     """
     counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
     check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
+    check_type("models", models, list | tuple, "a list of models")
     models = list(models)
     if not models:
         raise ValueError("fit_population needs at least one model.")
+    for i, model in enumerate(models):
+        check_type(f"models[{i}]", model, nn.Module, "a model (LSTMWorldModel or an estimator)")
+    kinds = sorted({type(m).__name__ for m in models})
+    if len({isinstance(m, LSTMWorldModel) for m in models}) > 1:
+        raise TypeError(
+            f"fit_population fits models of one kind (world models or estimators), got {kinds}."
+        )
     stacked = [i for i, m in enumerate(models) if isinstance(m, StackedMembers) and m.num_members]
     if stacked:
         raise ValueError(

@@ -1,7 +1,10 @@
 """Learn Pendulum-v1 online with TorchRL's own Collector, ReplayBuffer and Trainer, and the
 library's hooks (docs/torchrl_trainer.md).
 
-    python examples/torchrl_trainer.py --frames 2000
+    python examples/torchrl_trainer.py --frames 2000 [--threads 1]
+
+It computes on one CPU thread (``torch.set_num_threads(1)``): beside another process, more
+threads than free cores make it crawl; ``--threads N`` gives it N.
 
 The first 400 frames are random (the Collector's ``init_random_frames``), then MPC with CEM
 (PETS's budget: 350 candidates x 5 iterations x 15 steps) plans every step with an LSTM world
@@ -38,7 +41,11 @@ def main(argv: list[str] | None = None) -> tuple[float, float]:
     parser.add_argument("--frames", type=int, default=2000, help="env steps in all")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, a check of the wiring")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error(f"--threads must be an int >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     size = SMOKE if args.smoke else FULL
     torch.manual_seed(args.seed)
 

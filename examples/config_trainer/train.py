@@ -2,6 +2,8 @@
 
     python examples/config_trainer/train.py [overrides]
 
+It computes on one CPU thread (``torch.set_num_threads(1)``): beside another process, more
+threads than free cores make it crawl; the override ``threads=N`` gives it N.
 The last line is ``return <mean return of the last half of the MPC episodes> random <the
 random episodes' mean>``.
 """
@@ -9,6 +11,7 @@ random episodes' mean>``.
 from __future__ import annotations
 
 import hydra
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
@@ -17,6 +20,7 @@ import torchrl_recon.configs  # noqa: F401  (stores the library's parts beside T
 
 @hydra.main(config_path=".", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    torch.set_num_threads(cfg.threads)
     trainer = instantiate(cfg.trainer)
     trainer.train()
     records = trainer.records

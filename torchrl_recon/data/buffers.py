@@ -52,7 +52,7 @@ _PLAIN_KEY = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
 
 
 class _DropStorageInit(logging.Filter):
-    """Drops TorchRL's ``Initialized LazyTensorStorage with ... shape`` INFO record."""
+    """Drops TorchRL's ``Initialized LazyTensorStorage with <shape> shape`` INFO record."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith("Initialized LazyTensorStorage")
@@ -60,9 +60,11 @@ class _DropStorageInit(logging.Filter):
 
 @contextlib.contextmanager
 def quiet_storage_init() -> Iterator[None]:
-    """Leave out TorchRL's INFO line ``Initialized LazyTensorStorage with ... shape`` that a
-    ``LazyTensorStorage`` logs when its first write allocates it (every other record of the
-    ``torchrl`` logger passes), for the writes inside the context only.
+    """Leave out the INFO line that TorchRL logs when a storage's first write allocates it.
+
+    That line is ``Initialized LazyTensorStorage with <shape> shape``, which a
+    ``LazyTensorStorage`` logs at its first write; every other record of the ``torchrl`` logger
+    passes, and only the writes inside the context are quiet.
 
     :class:`GatherTensorStorage` (the storage of :func:`make_sequence_buffer`, which every fit
     builds) allocates inside it, so a fit logs nothing; wrap a first ``extend`` of a plain

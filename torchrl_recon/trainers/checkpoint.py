@@ -416,8 +416,8 @@ class VerifiedTrainer(Trainer):
     by plain TorchRL) still loads, with a warning, after what its format allows is checked; a
     legacy file torch cannot read is one line too. Nothing is unpickled (``weights_only=True``).
     A legacy save gives none of TorchRL's two warnings that the legacy format is going away
-    (:data:`LEGACY_SAVE_WARNINGS`, each save before): pass ``checkpoint=Checkpoint()`` for the
-    unified format.
+    (``LEGACY_SAVE_WARNINGS`` in this module; each save gave them before): pass
+    ``checkpoint=Checkpoint()`` for the unified format.
 
     Subclass it instead of ``Trainer`` (``OnlineTrainer`` does) or pass it the same keywords.
 

@@ -28,7 +28,7 @@ def _bound(name: str, value: object, action_dim: int, dtype: torch.dtype) -> tor
     if isinstance(value, bool | str | bytes) or value is None:
         raise TypeError(f"{name} must be {expected}, got {type(value).__name__} {value!r}.")
     try:
-        x = torch.as_tensor(value).detach()
+        x = torch.as_tensor(value, device="cpu").detach()  # (CPU under any default device)
     except (TypeError, ValueError, RuntimeError) as e:
         raise TypeError(f"{name} must be {expected}, got {type(value).__name__} {value!r}.") from e
     if x.dtype == torch.bool or x.is_complex():

@@ -565,6 +565,13 @@ case(
     "wraps one LSTMWorldModel",
 )
 case(
+    "LSTMWorldModelModule.make_env/action_low",
+    lambda: P.LSTMWorldModelModule(world(), cost).make_env(
+        action_low=torch.tensor([-1.0, -1.0]), action_high=1.0
+    ),
+    r"action_low has shape \[2\]; expected .*\[1\]",
+)
+case(
     "TorchRLWorldModelAdapter/world_model", lambda: P.TorchRLWorldModelAdapter("wm"), "world_model"
 )
 

@@ -31,7 +31,7 @@ from torchrl_recon.modules.checks import check_features, check_int
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.planners.bounds import bounds_from_spec
+from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.planning_model import CostFn, PlanningModel, TerminationFn
 
 __all__ = [
@@ -708,9 +708,8 @@ class LSTMWorldModelModule(WorldModel):
         if base_env is None:
             if action_low is None or action_high is None:
                 raise ValueError("pass a reference env, or action_low= and action_high=.")
-            low = torch.as_tensor(action_low, dtype=dtype).expand(wm.action_dim)
-            high = torch.as_tensor(action_high, dtype=dtype).expand(wm.action_dim)
-            action_spec = Bounded(low.clone(), high.clone(), (wm.action_dim,), dtype=dtype)
+            low, high = action_bounds(action_low, action_high, wm.action_dim, dtype=dtype)
+            action_spec = Bounded(low, high, (wm.action_dim,), dtype=dtype)
         return BatchedWorldModelEnv(
             self,
             base_env,

@@ -4,6 +4,7 @@ Trainer with ModelFitStepper, LogIteration and FitNormalization, at smoke scale.
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -41,8 +42,11 @@ def _policy(env, world, estimator=None) -> MPCPolicy:
 
 
 def _collector(env, policy, frames: int, random_frames: int) -> Collector:
+    with warnings.catch_warnings():  # TorchRL says once per process that it unwraps by default
+        warnings.filterwarnings("ignore", "Nested TransformedEnvs are automatically unwrapped")
+        primed = TransformedEnv(env, policy.make_tensordict_primer())  # TorchRL's default
     return Collector(
-        TransformedEnv(env, policy.make_tensordict_primer()),  # TorchRL's default: auto-unwrap
+        primed,
         policy,
         frames_per_batch=20,
         total_frames=frames,

@@ -914,7 +914,18 @@ case(
     "fit_reward/reward_model",
     lambda: T.fit_reward("rm", buffer(), **FIT),
     "reward_model",
-    xfail=OTHERS + "training/fit.py's fit_reward (issue 55) reads the data first",
+)
+case(
+    "RewardModel.fit_normalization/nan",
+    lambda: M.RewardModel(N, A).fit_normalization(
+        torch.zeros(5, N), torch.zeros(5, A), torch.zeros(5, N), torch.full((5, 1), NAN)
+    ),
+    r"reward contains NaN or inf",
+)
+case(
+    "fit_reward/nan-reward",
+    lambda: T.fit_reward(M.RewardModel(N, A), buffer(steps(bad=(("next", "reward"), 9)))),
+    r"\('next', 'reward'\) in the replay buffer .*row 9",
 )
 case("fit_world_members/one", lambda: T.fit_world_members(world(), buffer()), "num_members")
 case("fit_uncertainty/estimator", lambda: T.fit_uncertainty("ae", buffer(), **FIT), "estimator")

@@ -565,9 +565,11 @@ def fit_reward(
         ...            progress=False).steps
         4
     """
+    check_type("reward_model", reward_model, RewardModel, "a RewardModel")
+    _check_buffer("buffer", buffer)
     _check_train_keywords(kwargs, reward_model)
     if fit_normalization:
-        data = buffer_contents(buffer)
+        data = _checked_contents(buffer, (*WORLD_MODEL_KEYS, ("next", "reward")))
         reward_model.fit_normalization(
             data["observation"], data["action"], data["next", "observation"], data["next", "reward"]
         )

@@ -17,7 +17,10 @@ comes when less than ``MIN_STEP_S`` is left is reported as not run):
    without a GPU);
 2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
    GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
-   run), the same at K = 10,000 candidates (1,000 elites), population fits (with
+   run; with ``--reduce-overhead``: CEM, MPPI and iCEM each plan one CUDA graph, with
+   ``TORCHINDUCTOR_CUDAGRAPH_OR_ERROR=1``, compiled while the step's time allows: the step
+   passes its time left as ``--time-limit-s``, and a row whose compile would not fit is left
+   out with a line saying so), the same at K = 10,000 candidates (1,000 elites), population fits (with
    ``--compile``: the fits with ``compile=True`` against eager; with ``--cuda-graph``: the
    shared fit with each step one replayed CUDA graph, and its sampling alone),
    episode batching, window scoring, uncertainty overhead, gradient planning and control
@@ -33,7 +36,9 @@ time and printed figures; each step's whole output is in ``<out>/logs/``, the ex
 run directories in ``<out>/runs/``. Without a CUDA device the report says "no CUDA device":
 the test steps still run (their CUDA tests skip) and the GPU steps are reported as skipped.
 ``--quick`` runs the planners' and fits' CUDA tests, the planner rows at K = 1,000 and 10,000
-and the fit rows, to iterate on a GPU. ``--dry-run`` runs nothing heavy: it checks that every step is wired (the tests are
+(eager and reduce-overhead) and the fit rows (eager and CUDA graph), to iterate on a GPU, in
+3 minutes by the estimate it prints first (each step's expected time on an H200, measured where
+a run measured it, else its time limit; the whole check prints its own). ``--dry-run`` runs nothing heavy: it checks that every step is wired (the tests are
 collected, each benchmark script accepts the flags passed to it, each recipe resolves with
 its overrides) and writes the report with every section. Exit status: 0 when no step failed,
 timed out or was found unwired, else 1.
@@ -82,31 +87,75 @@ class Step:
     recipe: str | None = None  # experiments: the recipe name
     overrides: list[str] = field(default_factory=list)  # experiments: key=value overrides
     run_dir: Path | None = None  # experiments: the run directory
+    env: dict[str, str] = field(default_factory=dict)  # set in the step's environment
+    estimate_s: float | None = None  # its expected wall time on an H200 (None: its timeout)
     status: str = "not run"
     exit_code: int | None = None
     wall_s: float | None = None
     figures: list[str] = field(default_factory=list)
 
 
-def benchmark(name: str, script: str, timeout_s: int, full: list[str], tiny: list[str]):
-    """A benchmark step's ``(name, script, timeout, full-size args, tiny args)``."""
-    return name, script, timeout_s, full, tiny
+def benchmark(
+    name: str,
+    script: str,
+    timeout_s: int,
+    full: list[str],
+    tiny: list[str],
+    *,
+    estimate_s: float | None = None,
+    quick: tuple[int, list[str]] | None = None,
+    env: dict[str, str] | None = None,
+):
+    """A benchmark step's ``(name, script, timeout, full-size args, tiny args, options)``;
+    options: its expected wall time on an H200 (``estimate_s``; None: its timeout), its
+    ``--quick`` timeout and args (None: as the full check's), environment variables."""
+    options = {"estimate_s": estimate_s, "quick": quick, "env": env or {}}
+    return name, script, timeout_s, full, tiny, options
+
+
+GRAPHS_OR_ERROR = {"TORCHINDUCTOR_CUDAGRAPH_OR_ERROR": "1"}
+"""The compiled planner rows' environment: a graph that cannot be a CUDA graph fails its row
+instead of running eagerly."""
+TIME_LIMIT = "--time-limit-s"
+"""A benchmark's own time limit: :func:`run_step` sets it to the time its step has (less
+``START_S``), so that the benchmark leaves out a compiled row it has no time for."""
+START_S = 10
+"""Seconds of a step's time kept for its interpreter's start and exit."""
+QUICK_S = 180
+"""``--quick``'s estimate must stay within this (3 minutes)."""
 
 
 BENCHMARK_STEPS = [
     benchmark(
-        "planners vs TorchRL's CEMPlanner (eager and torch.compile)",
+        "planners vs TorchRL's CEMPlanner (eager, torch.compile, reduce-overhead)",
         "planner_speed.py",
         150,
-        ["--horizons", "30", "--repeats", "5", "--compile"],  # H=200: episode batching
-        ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"],
+        # H=200: episode batching. The reduce-overhead rows (CEM, MPPI, iCEM with u, each
+        # plan one CUDA graph) compile while the step's time allows (planner_speed.py's
+        # --time-limit-s, set by run_step): 47.9 s on an H200 without them
+        ["--horizons", "30", "--repeats", "5", "--compile", "--reduce-overhead"]
+        + [TIME_LIMIT, "150"],
+        ["--candidates", "20", "--elites", "4", "--horizons", "5", "--repeats", "1", "--compile"]
+        + ["--reduce-overhead"],
+        estimate_s=150,  # its limit: the compiles' time on a GPU is not measured yet
+        quick=(60, ["--horizons", "30", "--repeats", "3", "--reduce-overhead", TIME_LIMIT, "60"]),
+        env=GRAPHS_OR_ERROR,
     ),
     benchmark(
-        "planners at K = 10,000 (1,000 elites) vs TorchRL's CEMPlanner",
+        "planners at K = 10,000 (1,000 elites) vs TorchRL's CEMPlanner (eager, reduce-overhead)",
         "planner_speed.py",
         120,
-        ["--candidates", "10000", "--elites", "1000", "--horizons", "30", "--repeats", "3"],
-        ["--candidates", "40", "--elites", "4", "--horizons", "5", "--repeats", "1"],
+        ["--candidates", "10000", "--elites", "1000", "--horizons", "30", "--repeats", "3"]
+        + ["--reduce-overhead", TIME_LIMIT, "120"],
+        ["--candidates", "40", "--elites", "4", "--horizons", "5", "--repeats", "1"]
+        + ["--reduce-overhead"],
+        estimate_s=120,  # its limit, as above
+        quick=(
+            45,
+            ["--candidates", "10000", "--elites", "1000", "--horizons", "30", "--repeats", "2"]
+            + ["--reduce-overhead", TIME_LIMIT, "45"],
+        ),
+        env=GRAPHS_OR_ERROR,
     ),
     benchmark(
         "population fits (eager, torch.compile and CUDA graph)",
@@ -116,6 +165,11 @@ BENCHMARK_STEPS = [
         ["--members", "20", "--steps", "5", "--compile", "shared", "--cuda-graph"],
         ["--hidden", "4", "--dense", "4", "--window", "2", "--slice-len", "4", "--windows", "2"]
         + ["--steps", "1", "--repeats", "1", "--members", "3", "--compile"],
+        # 136.4 s before the cut, which left out the sequential compile (39.4 s) and its rows
+        # (~14 s) and halved the eager rows' steps
+        estimate_s=60,
+        # quick: the eager and CUDA-graph rows (the compiled fit is the full check's)
+        quick=(30, ["--members", "20", "--steps", "5", "--repeats", "2", "--cuda-graph"]),
     ),
     benchmark(
         "episode batching",
@@ -124,6 +178,7 @@ BENCHMARK_STEPS = [
         ["--steps", "5", "--repeats", "2"],  # 65 s at 10 steps on an H200
         ["--envs", "2", "--horizon", "5", "--restarts", "2", "--steps", "1"]
         + ["--candidates", "8", "--elites", "2", "--iterations", "1", "--repeats", "1"],
+        estimate_s=41,  # 40.7 s on an H200 (third run)
     ),
     benchmark(
         "window scoring",
@@ -132,6 +187,7 @@ BENCHMARK_STEPS = [
         [],
         ["--candidates", "6", "--horizon", "3", "--obs-dim", "3", "--action-dim", "2"]
         + ["--repeats", "1"],
+        estimate_s=10,  # 9.9 s
     ),
     benchmark(
         "uncertainty overhead",
@@ -139,6 +195,7 @@ BENCHMARK_STEPS = [
         45,
         [],
         ["--candidates", "20", "--horizons", "12", "--repeats", "2"],
+        estimate_s=10,  # 10.1 s
     ),
     benchmark(
         "gradient planning",
@@ -146,6 +203,7 @@ BENCHMARK_STEPS = [
         60,
         ["--repeats", "5"],
         ["--rows", "2", "--horizon", "5", "--repeats", "2"],
+        estimate_s=17,  # 17.3 s
     ),
     benchmark(
         "planner quality at equal budget (shooting, CEM, MPPI, iCEM)",
@@ -154,6 +212,7 @@ BENCHMARK_STEPS = [
         ["--envs", "industrial_benchmark", "drone", "--fit-steps", "200", "--seeds", "2"],
         ["--envs", "drone", "--frames", "600", "--fit-steps", "2", "--contexts", "3"]
         + ["--candidates", "16", "--iterations", "2", "--horizon", "4", "--seeds", "1"],
+        estimate_s=28,  # 28.2 s
     ),
     benchmark(
         "control batching",
@@ -163,6 +222,7 @@ BENCHMARK_STEPS = [
         # itself): 75 s at 20 steps on an H200
         ["--steps", "11"],
         ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
+        estimate_s=50,  # 74.8 s at 20 steps, its gradient row 51.3 s of it; now one plan each
     ),
 ]
 EXPERIMENT_KINDS = ("explore", "control", "calibrate", "online")
@@ -196,17 +256,24 @@ def build_steps(device: str, tiny: bool, out: Path, quick: bool = False) -> list
             f'CUDA tests (tests/test_device.py -k "{selection}")',
             "tests",
             pytest + ["tests/test_device.py", "-k", selection],
-            180,
+            120 if quick else 180,
             needs_cuda=False,
             tail=15,
+            estimate_s=45 if quick else 73,  # 72.6 s for every CUDA test (third run)
         )
     ]
-    for name, script, timeout_s, full, small in BENCHMARK_STEPS:
+    for name, script, timeout_s, full, small, options in BENCHMARK_STEPS:
         if quick and script not in QUICK_SCRIPTS:
             continue
+        estimate_s = options["estimate_s"]
+        if quick and options["quick"] is not None:
+            timeout_s, full = options["quick"]
+            estimate_s = timeout_s
         args = small if tiny else full
         argv = [python, str(BENCHMARKS / script), *args, "--device", device]
-        steps.append(Step(f"benchmark: {name} ({script})", "benchmark", argv, timeout_s))
+        step = Step(f"benchmark: {name} ({script})", "benchmark", argv, timeout_s)
+        step.env, step.estimate_s = options["env"], estimate_s
+        steps.append(step)
     if quick:
         return steps
     for kind in EXPERIMENT_KINDS:
@@ -225,6 +292,7 @@ def build_steps(device: str, tiny: bool, out: Path, quick: bool = False) -> list
                 recipe=recipe,
                 overrides=overrides,
                 run_dir=run_dir,
+                estimate_s=20,  # 16-19 s each on an H200 (third run)
             )
         )
     selection = "cuda and not industrial_benchmark" + " and not minitaur" * (not has_pybullet())
@@ -236,21 +304,38 @@ def build_steps(device: str, tiny: bool, out: Path, quick: bool = False) -> list
             300,
             needs_cuda=False,
             tail=15,
+            estimate_s=30,  # 29.1 s (third run, without the Minitaur's)
         )
     )
     return steps
+
+
+def estimate_line(steps: list[Step], budget_s: float, quick: bool = False) -> str:
+    """The line the check prints first: its estimated time (each step's ``estimate_s``, else its
+    timeout) against the budget, and for ``--quick`` against :data:`QUICK_S`."""
+    total = sum(s.timeout_s if s.estimate_s is None else s.estimate_s for s in steps)
+    cap = min(budget_s, QUICK_S) if quick else budget_s
+    verdict = "within" if total <= cap else "over"
+    line = f"estimated {total:.0f} s for {len(steps)} steps on an H200, {verdict} the {cap:.0f} s"
+    line += " of --quick" if quick and cap == QUICK_S else " budget"
+    if verdict == "over":
+        line += ": the steps whose turn comes when the budget is spent are reported as not run"
+    return line
 
 
 # ----------------------------------------------------------------------------------------------
 # Running a step
 
 
-def run_command(argv: list[str], timeout_s: float, log: Path) -> tuple[int | None, str]:
-    """Run ``argv`` in the repository root; ``(exit code or None on timeout, stdout)``.
+def run_command(
+    argv: list[str], timeout_s: float, log: Path, env: dict[str, str] | None = None
+) -> tuple[int | None, str]:
+    """Run ``argv`` in the repository root, with ``env`` added to the environment; ``(exit
+    code or None on timeout, stdout)``.
 
     The whole process group is killed at the timeout; stdout and stderr go to ``log``.
     """
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     proc = subprocess.Popen(
         argv,
         cwd=ROOT,
@@ -350,8 +435,11 @@ def dry_run(step: Step, log: Path) -> None:
 def run_step(step: Step, log: Path, left_s: float) -> None:
     """Run ``step`` within ``min(its timeout, left_s)`` seconds; set its status and figures."""
     limit = min(step.timeout_s, left_s)
+    argv = list(step.argv)
+    if TIME_LIMIT in argv:  # the benchmark's own limit: the time this step has
+        argv[argv.index(TIME_LIMIT) + 1] = f"{max(limit - START_S, 1):.0f}"
     start = time.perf_counter()
-    code, out = run_command(step.argv, limit, log)
+    code, out = run_command(argv, limit, log, step.env)
     step.wall_s = time.perf_counter() - start
     step.exit_code = code
     if code is None:
@@ -452,6 +540,7 @@ def main(argv: list[str] | None = None) -> int:
             "no CUDA device: the test steps run (their CUDA tests skip), the GPU steps are skipped"
         )
     steps = build_steps(args.device, args.tiny, out, quick=args.quick)
+    print(estimate_line(steps, args.budget_s, args.quick), flush=True)
     mode = "dry run" if args.dry_run else ("tiny" if args.tiny else "full")
     mode += ", quick" if args.quick else ""
     report, header = out / "gpu_check.md", machine_lines(args.device)

@@ -169,3 +169,35 @@ def test_quick_selects_the_planner_and_fit_steps(tmp_path):
     assert steps[2].argv[steps[2].argv.index("--candidates") + 1] == "10000"
     assert Path(steps[3].argv[1]).name == "training_speed.py"
     assert len(_load().build_steps("cuda", False, tmp_path)) > len(steps)
+
+
+def test_the_compiled_planner_rows_run_within_their_steps_and_quick_within_3_minutes(
+    tmp_path, monkeypatch
+):
+    """The planner steps (whole and quick) time CEM, MPPI and iCEM as one CUDA graph a plan
+    with a silent eager fall-back refused, and pass their benchmark the time they have, which
+    run_step sets from what is left; ``--quick``'s printed estimate is within 3 minutes."""
+    check = _load()
+    for quick in (False, True):
+        steps = check.build_steps("cuda", False, tmp_path, quick=quick)
+        planners = [s for s in steps if Path(s.argv[1]).name == "planner_speed.py"]
+        assert len(planners) == 2
+        for step in planners:
+            assert "--reduce-overhead" in step.argv
+            assert step.env == {"TORCHINDUCTOR_CUDAGRAPH_OR_ERROR": "1"}
+            limit = step.argv[step.argv.index("--time-limit-s") + 1]
+            assert float(limit) == step.timeout_s
+        line = check.estimate_line(steps, check.BUDGET_S, quick)
+        assert line.startswith("estimated ")
+        if quick:
+            assert "within the 180 s of --quick" in line, line
+    seen = {}
+
+    def run_command(argv, limit, log, env=None):
+        seen.update(argv=argv, env=env)
+        return 0, ""
+
+    monkeypatch.setattr(check, "run_command", run_command)
+    check.run_step(planners[0], tmp_path / "log", left_s=33.0)
+    assert seen["argv"][seen["argv"].index("--time-limit-s") + 1] == "23"  # 33 s less START_S
+    assert seen["env"] == {"TORCHINDUCTOR_CUDAGRAPH_OR_ERROR": "1"}

@@ -196,6 +196,21 @@ def test_an_unfitted_model_is_refused_before_the_first_compiled_call(traced):
     assert "\n" not in str(error.value) and traced.graphs == []
 
 
+@needs_cpp_compiler
+def test_a_plan_that_cannot_be_one_graph_is_refused_in_one_line(traced):
+    """A cost that reads the host inside the graph (a data-dependent branch): one line naming
+    the planner, torch.compile's first line and the way out, not Dynamo's whole trace."""
+    world, est = _networks()
+
+    def cost(s, a, s2):
+        return s2.pow(2).sum(-1) * (2.0 if bool(s2.sum() > 0) else 1.0)
+
+    planner = PLANNERS["cem"](PlanningModel(world, cost, compile=True), Objective())
+    with pytest.raises(RuntimeError, match=r"^planning_compile: CEMPlanner's plan could not") as e:
+        planner.plan(*_context())
+    assert "\n" not in str(e.value) and "planning_compile=false" in str(e.value)
+
+
 class _IntoBuffer(torch.autograd.Function):
     """``x`` copied into ``buffer``, returned as a view of it; the gradient goes to ``x``."""
 

@@ -212,6 +212,13 @@ class PlannerBase(nn.Module):
                     stacklevel=3,
                 )
             return self.plan_graph(*args)
+        except torch._dynamo.exc.TorchDynamoException as error:  # its message: a whole trace
+            raise RuntimeError(
+                f"planning_compile: {type(self).__name__}'s plan could not be compiled as one "
+                f"graph ({type(error).__name__}: {str(error).strip().splitlines()[0]}); plan "
+                "without it (planning_compile=false, PlanningModel(compile=False)) and report "
+                "it; the CLI's --debug prints torch.compile's trace."
+            ) from error
         return tuple(x.clone() if isinstance(x, torch.Tensor) else x for x in out)
 
     def _graph(self, mode: str):

@@ -13,8 +13,8 @@ Steps, in this order (each a subprocess with its own time limit; all of them tog
 ``--budget-s``, 450 s by default, so the whole check stays under 8 minutes: a step whose turn
 comes when less than ``MIN_STEP_S`` is left is reported as not run):
 
-1. the CUDA tests of ``tests/test_device.py`` (``pytest -k cuda``: the tests that skip
-   without a GPU);
+1. the CUDA tests of ``tests/test_device.py`` and ``tests/planners/test_compiled_plans.py``
+   (``pytest -k cuda``: the tests that skip without a GPU);
 2. the benchmarks with ``--device cuda``: planners against TorchRL's CEMPlanner on the same
    GPU (with ``--compile``: our CEM rows under ``torch.compile`` against eager, in the same
    run; with ``--reduce-overhead``: CEM, MPPI and iCEM each plan one CUDA graph, with
@@ -241,6 +241,9 @@ def has_pybullet() -> bool:
 
 QUICK_SCRIPTS = ("planner_speed.py", "training_speed.py")
 """The benchmarks of ``--quick``: the planner rows (K = 1,000 and 10,000) and the fit rows."""
+CUDA_TEST_FILES = ("tests/test_device.py", "tests/planners/test_compiled_plans.py")
+"""The files of the first step's CUDA tests (the tests that skip without a GPU): the device
+tests and the compiled planners' plans in a row as CUDA graphs."""
 QUICK_TESTS = "cuda and (plan or fit)"
 """The CUDA tests of ``--quick``: the planners' and the fits'."""
 
@@ -253,9 +256,9 @@ def build_steps(device: str, tiny: bool, out: Path, quick: bool = False) -> list
     selection = QUICK_TESTS if quick else "cuda"
     steps = [
         Step(
-            f'CUDA tests (tests/test_device.py -k "{selection}")',
+            f'CUDA tests ({" ".join(CUDA_TEST_FILES)} -k "{selection}")',
             "tests",
-            pytest + ["tests/test_device.py", "-k", selection],
+            pytest + [*CUDA_TEST_FILES, "-k", selection],
             120 if quick else 180,
             needs_cuda=False,
             tail=15,

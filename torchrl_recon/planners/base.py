@@ -162,12 +162,12 @@ class PlannerBase(nn.Module):
         row blocks run on that many threads (:class:`PlanningModel`).
 
         Everything that needs the host runs outside the graph, as it does uncompiled: the
-        input checks and the fitted-normalisation check before it (:meth:`_recall`: what the
-        planner remembers of its earlier plans, e.g. iCEM's elites), the flags' checks and
-        :meth:`_remember` after it. Each planner compiles its own graphs, one cache per planner
-        and mode (:func:`~torchrl_recon.planners.planning_model.compiled_plan`), with the batch
-        dims ``*B`` dynamic: a batch of one and a batch of several are two graphs, every other
-        batch size reuses the latter.
+        input checks, the fitted-normalisation check and ``_recall`` (what the planner
+        remembers of its earlier plans, e.g. iCEM's elites) before it, the flags' checks and
+        ``_remember`` after it. Each planner compiles its own graphs, one cache per planner and
+        mode (``planning_model.compiled_plan``), with the batch dims ``*B`` dynamic: a batch
+        of one and a batch of several are two graphs, every other batch size reuses the
+        latter (``docs/planning.md`` lists what recompiles).
         """
         self.model.check_context(context_obs, context_action, observation)
         if init is not None and init.shape != (
@@ -267,7 +267,7 @@ class PlannerBase(nn.Module):
         :meth:`plan` reads on the host afterwards: feasible ``[*B]``, NaN objective ``[*B, 1]``,
         every cost NaN, every u NaN; last, what the planner keeps for its next call (or None).
         :meth:`plan` checks its inputs first and raises or warns from the flags after (the
-        same messages as uncompiled). ``carry``: what :meth:`_recall` found for this call."""
+        same messages as uncompiled). ``carry``: what ``_recall`` found for this call."""
         state = self.model.warmup(context_obs, context_action)  # once per plan
         more = {} if carry is None else {"carry": carry}
         candidates, prediction, bounds, *kept = self._optimise(

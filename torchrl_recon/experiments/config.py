@@ -111,7 +111,7 @@ class RewardModelConfig:
     ``env.cost`` or ``env.termination`` is ``learned``: ``layers`` hidden layers of
     ``hidden_size`` units; fitted with the world model's settings."""
 
-    hidden_size: int = count(200)
+    hidden_size: int = count(64)
     layers: int = count(2)
     activation: str = "relu"
 

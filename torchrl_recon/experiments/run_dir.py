@@ -27,7 +27,7 @@ KEYS_ADDED_SINCE: dict[str, Any] = {
     "warmup": "auto",
     "refit_uncertainty": "always",  # online runs before it refitted the estimator every time
     "renormalize": False,  # online runs before it kept the first fit's statistics
-    "reward_model.hidden_size": 200,  # (no run before it learned the reward)
+    "reward_model.hidden_size": 64,  # (no run before it learned the reward)
     "reward_model.layers": 2,
     "reward_model.activation": "relu",
 }

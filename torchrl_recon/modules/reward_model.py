@@ -66,7 +66,7 @@ class RewardModel(TensorDictModuleBase):
         *,
         reward: bool = True,
         termination: bool = False,
-        hidden_size: int = 200,
+        hidden_size: int = 64,
         layers: int = 2,
         activation: str = "relu",
         obs_key: NestedKey = "observation",
@@ -251,7 +251,7 @@ class RewardModel(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Write the predicted reward and termination probability of the transitions in
-        ``tensordict`` (each head it learns) under :attr:`out_keys`."""
+        ``tensordict`` (each head it learns) under ``out_keys``."""
         obs, action, next_obs = (tensordict.get(k) for k in self.in_keys)
         out = self._outputs(obs, action, next_obs)
         if self.learns_reward:

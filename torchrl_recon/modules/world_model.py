@@ -208,7 +208,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     ) -> None:
         """Refit the statistics on (more) real transitions and keep the model's function: the
         LSTM's input weights and the output layer are rewritten so that every prediction, in raw
-        units, stays what it was (:func:`~torchrl_recon.modules.normalization.refit_inputs`,
+        units, stays what it was (``modules.normalization.refit_inputs``,
         ``refit_outputs``); an input the old statistics saw constant starts from zero weight.
         A warm refit then trains in statistics of all the data so far (mbrl-lib refits its
         normaliser before each training too), so a feature that only started to move late (a

@@ -69,8 +69,12 @@ class MPCPolicy(TensorDictModuleBase):
     The planner's action bounds must be the env's: the primer refuses, when appended, an env
     whose action spec has another range, and :meth:`check_env` checks a finished env (bounds,
     ``InitTracker``, primer). Build the planning model with
-    :meth:`~torchrl_recon.planners.PlanningModel.from_env` to take the bounds from the env. The first ``warmup_steps`` (default ``C``) steps of an episode take
-    uniform random actions to fill the context (the paper's "10 random actions after reset").
+    :meth:`~torchrl_recon.planners.PlanningModel.from_env` to take the bounds from the env. By
+    default the first ``warmup_steps`` (default ``C``) steps of an episode take uniform random
+    actions to fill the context (the paper's "10 random actions after reset"): on a task those
+    steps can end or spoil (a balanced pole, episodes shorter than the context) pass
+    ``warmup="plan"``, which plans from the first step (TorchRL's ``Collector`` at its
+    defaults reads the policy's :attr:`spec` and does not call it before the models are fitted).
 
     Re-planning (``replan``):
 
@@ -256,7 +260,7 @@ class MPCPolicy(TensorDictModuleBase):
             >>> from torchrl_recon.modules import LSTMWorldModel
             >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
             >>> model = PlanningModel(LSTMWorldModel(3, 1, window=2), lambda s, a, s1: s1[..., 0])
-            >>> policy = MPCPolicy(CEMPlanner(model, Objective(), horizon=4, num_candidates=8))
+            >>> policy = MPCPolicy(CEMPlanner(model, Objective(), horizon=4, num_candidates=8, num_elites=2))
             >>> policy.spec["action"].shape, sorted(policy.out_keys, key=str) == sorted(policy.spec.keys(True, True), key=str)
             (torch.Size([1]), True)
         """

@@ -43,9 +43,11 @@ class TimedPolicy(TensorDictModuleBase):
         return self.policy.make_tensordict_primer()
 
     @property
-    def spec(self):
-        """The wrapped policy's output specs (None if it has none): TorchRL's ``Collector``
-        reads them at construction instead of calling the policy before any data."""
+    def spec(self) -> Any:
+        """The wrapped policy's output specs, or None where it has none.
+
+        TorchRL's ``Collector`` reads them at construction instead of calling the policy before
+        any data."""
         return getattr(self.policy, "spec", None)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -77,7 +79,7 @@ class IterationCollector(BaseCollector):
     batches' (a ``SliceSampler`` never joins two iterations' episodes), counts iterations
     (``state_dict``) and sets ``init_random_frames`` to ``random_steps``, so the Trainer fits
     after the random batch and after every later one. A batch holding NaN or inf (an
-    observation, action or reward) is refused before the Trainer sees it (:func:`check_batch`).
+    observation, action or reward) is refused before the Trainer sees it (``check_batch``).
     :attr:`batch_info` describes the last
     batch (``iteration``, ``policy``, ``plan_s``, ``env_s``, ``replans``) for
     :class:`~torchrl_recon.trainers.LogIteration`.

@@ -2,7 +2,7 @@
 
 Run: python benchmarks/planner_ceiling.py --task InvertedDoublePendulum-v5 --planner cem
      [--horizon 30] [--candidates 350] [--iterations 5] [--episodes 3] [--steps 1000]
-     [--seed 0] [--threads 1] [--out ceiling.json]
+     [--seed 0] [--threads 1] [--kwargs '{"warm_start_uniform": 0}'] [--out ceiling.jsonl]
 
 What it separates: when an agent with a learned model falls short on a task, is it the model or
 the planner? Here the planner (the library's CEM, MPPI, iCEM or random shooting, with the
@@ -143,6 +143,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--kwargs", type=json.loads, default={}, help="more planner keywords, as a JSON object"
+    )
     parser.add_argument("--out", type=Path, default=None, help="append the result as a JSON line")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -159,9 +162,10 @@ def main() -> None:
         kwargs |= dict(iterations=args.iterations)
     if args.planner in ("cem", "icem"):
         kwargs |= dict(num_elites=max(2, args.candidates // 10))
-    planner = PLANNERS[args.planner](model, Objective(), **kwargs)
+    planner = PLANNERS[args.planner](model, Objective(), **kwargs, **args.kwargs)
     print(
-        f"{args.task}: {args.planner} {args.candidates} x {args.iterations} x H {args.horizon}, "
+        f"{args.task}: {args.planner} {args.candidates} x {args.iterations} x H {args.horizon} "
+        f"{args.kwargs or ''}, "
         f"the true simulator as its model, {args.episodes} episodes of at most {args.steps} steps"
     )
     episodes = []

@@ -162,7 +162,7 @@ def main() -> None:
         kwargs |= dict(iterations=args.iterations)
     if args.planner in ("cem", "icem"):
         kwargs |= dict(num_elites=max(2, args.candidates // 10))
-    planner = PLANNERS[args.planner](model, Objective(), **kwargs, **args.kwargs)
+    planner = PLANNERS[args.planner](model, Objective(), **(kwargs | args.kwargs))
     print(
         f"{args.task}: {args.planner} {args.candidates} x {args.iterations} x H {args.horizon} "
         f"{args.kwargs or ''}, "

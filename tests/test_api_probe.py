@@ -782,7 +782,6 @@ case(
         torch.full((5, N), NAN), torch.zeros(5, A), torch.zeros(5, N)
     ),
     "obs",
-    xfail=OTHERS + "world_model.py hands NaN to Normalizer.fit, whose line names no argument",
 )
 case(
     "LSTMWorldModel.fit_normalization/rows",
@@ -790,7 +789,6 @@ case(
         torch.zeros(5, N), torch.zeros(4, A), torch.zeros(5, N)
     ),
     "action",
-    xfail=OTHERS + "world_model.py fits obs, action and Δs of different rows unchecked (silence)",
 )
 case("LinearDeltaModel/obs_dim", lambda: M.LinearDeltaModel(0, A), "obs_dim")
 case(
@@ -804,13 +802,11 @@ case(
     "Normalizer/num_features",
     lambda: M.Normalizer(0),
     "num_features",
-    xfail=OTHERS + "normalization.py takes any num_features (silence)",
 )
 case(
     "Normalizer/min_scale",
     lambda: M.Normalizer(N, min_scale=-1.0),
     "min_scale",
-    xfail=OTHERS + "normalization.py takes any min_scale (silence)",
 )
 case(
     "Normalizer.fit/dims",
@@ -1037,13 +1033,11 @@ case(
     "ModelFitStepper/world_model",
     lambda: Tr.ModelFitStepper("wm", None, ReplayBuffer(storage=LazyTensorStorage(10))),
     "world_model",
-    xfail=OTHERS + "trainers/fit.py stores its arguments unchecked (silence)",
 )
 case(
     "ModelFitStepper/replay_buffer",
     lambda: Tr.ModelFitStepper(world(), None, "rb"),
     "replay_buffer",
-    xfail=OTHERS + "trainers/fit.py stores its arguments unchecked (silence)",
 )
 case(
     "OnlineCollector/env",
@@ -1073,7 +1067,6 @@ case(
     "OnlineTrainer/collector",
     lambda: Tr.OnlineTrainer(collector="c", world_model=world(), estimator=None),
     "collector",
-    xfail=OTHERS + "trainers/online.py reads collector.total_frames first (AttributeError)",
 )
 case("ReplayBufferSteps/replay_buffer", lambda: Tr.ReplayBufferSteps("rb"), "replay_buffer")
 case("TimedPolicy/policy", lambda: Tr.TimedPolicy("mpc"), "policy")

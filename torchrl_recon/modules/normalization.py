@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchrl_recon.modules.checks import check_int, check_real
+
 
 class Normalizer(nn.Module):
     """Standardise features with a fitted mean and standard deviation.
@@ -14,10 +16,10 @@ class Normalizer(nn.Module):
     below ``min_scale`` (e.g. a constant setpoint) get a scale of 1.
 
     Args:
-        num_features: size of the last dimension.
+        num_features: size of the last dimension (an int >= 1).
 
     Keyword Args:
-        min_scale: standard deviations below this are replaced by 1.
+        min_scale: standard deviations below this are replaced by 1 (a finite number > 0).
 
     Examples:
         >>> norm = Normalizer(2)
@@ -31,6 +33,8 @@ class Normalizer(nn.Module):
     fitted: torch.Tensor
 
     def __init__(self, num_features: int, *, min_scale: float = 1e-6) -> None:
+        check_int("num_features", num_features)
+        check_real("min_scale", min_scale, minimum=0, exclusive=True)
         super().__init__()
         self.num_features = num_features
         self.min_scale = min_scale

@@ -189,7 +189,18 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
     def fit_normalization(
         self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
     ) -> None:
-        """Fit input and target statistics from real transitions ``[..., N]``, ``[..., M]``, ``[..., N]``."""
+        """Fit input and target statistics from real transitions ``[..., N]``, ``[..., M]``, ``[..., N]``.
+
+        The three must agree on their leading (row) dims, one action and one next observation
+        per observation; NaN or inf in any of them is refused (``ValueError`` naming the
+        argument and the first bad index).
+
+        Examples:
+            >>> LSTMWorldModel(2, 1).fit_normalization(torch.zeros(5, 2), torch.zeros(4, 1), torch.zeros(5, 2))
+            Traceback (most recent call last):
+            ...
+            ValueError: obs (5, 2), action (4, 1) and next_obs (5, 2) disagree on batch dims; expected one action and one next_obs per observation.
+        """
         if self.num_members is not None:
             raise ValueError(
                 "fit_normalization fits one model; fit each member's before stacking them "
@@ -198,6 +209,15 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         check_features("obs", obs, self.obs_dim)
         check_features("action", action, self.action_dim)
         check_features("next_obs", next_obs, self.obs_dim)
+        if not obs.shape[:-1] == action.shape[:-1] == next_obs.shape[:-1]:
+            raise ValueError(
+                f"obs {tuple(obs.shape)}, action {tuple(action.shape)} and next_obs "
+                f"{tuple(next_obs.shape)} disagree on batch dims; expected one action and one "
+                "next_obs per observation."
+            )
+        check_finite("obs", obs)
+        check_finite("action", action)
+        check_finite("next_obs", next_obs)
         self.obs_norm.fit(obs)
         self.action_norm.fit(action)
         self.delta_norm.fit(next_obs - obs)

@@ -13,6 +13,7 @@ from torchrl.record.loggers import Logger
 from torchrl.trainers import OptimizationStepper, Trainer
 
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
+from torchrl_recon.modules.checks import check_type
 from torchrl_recon.training.online import FitSchedule, fit_models
 
 
@@ -72,6 +73,12 @@ class ModelFitStepper(OptimizationStepper):
         logger: Logger | None = None,
         reward_model: RewardModel | None = None,
     ) -> None:
+        check_type("world_model", world_model, LSTMWorldModel, "an LSTMWorldModel")
+        if estimator is not None:
+            check_type(
+                "estimator", estimator, UncertaintyEstimator, "an UncertaintyEstimator or None"
+            )
+        check_type("replay_buffer", replay_buffer, ReplayBuffer, "a torchrl ReplayBuffer")
         if reward_model is not None and not isinstance(reward_model, RewardModel):
             raise TypeError(
                 f"reward_model must be a RewardModel or None, got {type(reward_model).__name__}."

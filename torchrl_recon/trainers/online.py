@@ -7,12 +7,14 @@ from collections.abc import Callable
 from typing import Any
 
 from tensordict import TensorDictBase
+from torchrl.collectors import BaseCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from torchrl.trainers import ReplayBufferTrainer
 
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
+from torchrl_recon.modules.checks import check_type
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import PlannerBase
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy
@@ -86,6 +88,12 @@ class OnlineTrainer(VerifiedTrainer):
         reward_model: RewardModel | None = None,
         **trainer_kwargs: Any,
     ) -> None:
+        check_type(
+            "collector",
+            collector,
+            BaseCollector,
+            "a torchrl collector (an OnlineCollector or torchrl's Collector)",
+        )
         schedule = schedule or FitSchedule()
         if replay_buffer is None:
             replay_buffer = ReplayBuffer(storage=LazyTensorStorage(collector.total_frames))

@@ -188,7 +188,6 @@ case(
     "PlanningModel/world_model-type",
     lambda: P.PlanningModel("wm", cost),
     "world_model",
-    xfail=OTHERS + "planning_model.py reads world_model.obs_dim first (AttributeError)",
 )
 case("PlanningModel/cost_fn-type", lambda: P.PlanningModel(world(), 3), "cost_fn")
 case(
@@ -200,7 +199,6 @@ case(
     "PlanningModel/uncertainty-type",
     lambda: P.PlanningModel(world(), cost, uncertainty="u"),
     "uncertainty",
-    xfail=OTHERS + "planning_model.py reads uncertainty.obs_dim first (AttributeError)",
 )
 case(
     "PlanningModel/uncertainty-dims",
@@ -267,13 +265,11 @@ case(
     "PlanningModel()/actions-ndim",
     lambda: model()(*CONTEXT, torch.zeros(5, A)),
     "actions",
-    xfail=OTHERS + "planning_model.py's forward indexes actions.shape[-3] unchecked (IndexError)",
 )
 case(
     "PlanningModel()/actions-nan",
     lambda: model()(*CONTEXT, torch.full((4, 5, A), NAN)),
     "actions",
-    xfail=OTHERS + "planning_model.py's forward does not check the candidates' values (silence)",
 )
 case(
     "PlanningModel()/observation-dim",
@@ -301,7 +297,6 @@ case(
         torch.zeros(4, 5, A),
     ),
     "dtype",
-    xfail=OTHERS + "planning_model.py's forward leaves the context's dtype to the LSTM's error",
 )
 case(
     "PlanningModel()/block_rows",
@@ -312,14 +307,12 @@ case(
     "Prediction.concat/empty",
     lambda: P.Prediction.concat([]),
     "predictions",
-    xfail=OTHERS + "planning_model.py's Prediction.concat indexes predictions[0] (IndexError)",
 )
 case("compile_mode/unknown", lambda: P.compile_mode("fast"), "compile")
 case(
     "threaded_pass/mode",
     lambda: P.threaded_pass(cost, "fast"),
     "mode",
-    xfail=OTHERS + "planning_model.py hands the mode to Inductor unchecked (RuntimeError)",
 )
 
 PLANNERS = (P.RandomShootingPlanner, P.CEMPlanner, P.MPPIPlanner, P.ICEMPlanner, P.GradientPlanner)
@@ -336,13 +329,11 @@ for _cls in PLANNERS:
         f"{_n}/model-type",
         lambda cls=_cls: cls("model", P.Objective(), **planner_kwargs(cls)),
         "model",
-        xfail=OTHERS + "base.py stores the model unchecked (silence, then AttributeError at plan)",
     )
     case(
         f"{_n}/objective-type",
         lambda cls=_cls: cls(model(), "J", **planner_kwargs(cls)),
         "objective",
-        xfail=OTHERS + "base.py reads objective.needs_uncertainty first (AttributeError)",
     )
     case(f"{_n}/horizon-zero", _build(horizon=0), "horizon")
     case(f"{_n}/horizon-float", _build(horizon=2.5), "horizon")
@@ -383,13 +374,11 @@ for _cls in PLANNERS:
         f"{_n}.plan/init-nan",
         _plan(_cls, *CONTEXT, init=torch.full((3, A), NAN)),
         "init",
-        xfail=OTHERS + "base.py does not check init's values (silence)",
     )
     case(
         f"{_n}.plan/generator-type",
         _plan(_cls, *CONTEXT, generator=3),
         "generator",
-        xfail=OTHERS + "base.py reads generator.device first (AttributeError)",
     )
 
 for _cls in (P.CEMPlanner, P.ICEMPlanner):
@@ -400,7 +389,6 @@ for _cls in (P.CEMPlanner, P.ICEMPlanner):
                 model(), P.Objective(), horizon=3, num_candidates=8, num_elites=value
             ),
             "num_elites",
-            xfail=OTHERS + "sampling.py compares num_elites unchecked (raw TypeError or silence)",
         )
     case(
         f"{_cls.__name__}/num_elites-zero",

@@ -9,13 +9,14 @@ from typing import Literal
 import torch
 from torch import nn
 
-from torchrl_recon.modules.checks import check_int
+from torchrl_recon.modules.checks import check_finite, check_int, check_type
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
     Prediction,
     compiled_plan,
     gather_candidates,
+    inputs_checked,
     mark_batch_dynamic,
 )
 
@@ -75,6 +76,8 @@ class PlannerBase(nn.Module):
         on_infeasible: OnInfeasible = "fallback",
     ) -> None:
         super().__init__()
+        check_type("model", model, PlanningModel, "a PlanningModel")
+        check_type("objective", objective, Objective, "an Objective")
         check_int("horizon", horizon)
         if objective.needs_uncertainty and model.uncertainty is None:
             raise ValueError(
@@ -170,20 +173,31 @@ class PlannerBase(nn.Module):
         latter (``docs/planning.md`` lists what recompiles).
         """
         self.model.check_context(context_obs, context_action, observation)
-        if init is not None and init.shape != (
-            *observation.shape[:-1],
-            self.horizon,
-            self.model.action_dim,
-        ):
-            raise ValueError(
-                f"init has shape {tuple(init.shape)}; expected {(*observation.shape[:-1], self.horizon, self.model.action_dim)}."
-            )
+        if init is not None:
+            self._check_init(init, observation)
+        if generator is not None:
+            check_type("generator", generator, torch.Generator, "a torch.Generator or None")
         self.model.check_fitted()  # here, not in the graph: a compiled graph skips it
         carry = self._recall(init)
-        *out, kept = self._run(context_obs, context_action, observation, init, generator, carry)
+        with inputs_checked():  # checked above: the passes read no input values on the host
+            *out, kept = self._run(context_obs, context_action, observation, init, generator, carry)
         result = self._checked(*out)
         self._remember(result, kept)
         return result
+
+    def _check_init(self, init: torch.Tensor, observation: torch.Tensor) -> None:
+        """Refuse a warm start that is not a finite ``[*B, H, M]`` tensor of the model's dtype."""
+        check_type("init", init, torch.Tensor, "a tensor [*B, H, M] or None")
+        expected = (*observation.shape[:-1], self.horizon, self.model.action_dim)
+        if init.shape != expected:
+            raise ValueError(f"init has shape {tuple(init.shape)}; expected {expected}.")
+        low = self.model.action_low
+        if init.device != low.device or init.dtype != low.dtype:
+            raise ValueError(
+                f"init is {init.dtype} on {init.device}; expected {low.dtype} on {low.device}, "
+                "the planning model's."
+            )
+        check_finite("init", init)
 
     def _run(self, context_obs, context_action, observation, init, generator, carry) -> tuple:
         """:meth:`plan_graph`, compiled where the planning model's ``compile`` asks for it; a

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -69,6 +71,32 @@ def check_step_fn(
         )
 
 
+WORLD_MODEL_PARTS = ("imagine", "obs_dim", "action_dim", "window")
+"""What a planning model reads of its world model."""
+ESTIMATOR_PARTS = ("score_sequence", "obs_dim", "action_dim", "window")
+"""What a planning model reads of its uncertainty estimator."""
+
+
+def check_parts(name: str, value: object, parts: Sequence[str], expected: str) -> None:
+    """Raise ``TypeError`` unless ``value`` has every attribute of ``parts`` (its int dims
+    ``*_dim`` and ``window`` at least 1), naming those it lacks.
+
+    Examples:
+        >>> check_parts("world_model", "wm", WORLD_MODEL_PARTS, "a world model")
+        Traceback (most recent call last):
+        ...
+        TypeError: world_model must be a world model, got str without imagine, obs_dim, action_dim, window.
+    """
+    missing = [part for part in parts if not hasattr(value, part)]
+    if missing:
+        raise TypeError(
+            f"{name} must be {expected}, got {type(value).__name__} without {', '.join(missing)}."
+        )
+    for part in parts:
+        if part.endswith("_dim") or part == "window":
+            check_int(f"{name}.{part}", getattr(value, part))
+
+
 BLOCK_ROWS = 1024
 """Candidate rows per block on the CPU, where a block's rollout state and u windows then stay in
 cache (``block_rows="auto"``, the sampling planners' default)."""
@@ -103,6 +131,24 @@ def check_block_rows(block_rows: int | str | None) -> None:
             f"block_rows must be a positive int, None (one pass) or 'auto', got {block_rows!r}."
         )
     check_int("block_rows", block_rows)
+
+
+_INPUTS_CHECKED: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "planning_inputs_checked", default=False
+)
+"""True within :func:`inputs_checked`."""
+
+
+@contextlib.contextmanager
+def inputs_checked() -> Iterator[None]:
+    """Within it, :meth:`PlanningModel.forward` skips its input checks: a planner's ``plan``
+    checked the context and makes the candidates itself, so its passes read no values on the
+    host."""
+    token = _INPUTS_CHECKED.set(True)
+    try:
+        yield
+    finally:
+        _INPUTS_CHECKED.reset(token)
 
 
 def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -208,14 +254,22 @@ def mark_batch_dynamic(batch_dims: int, *tensors: torch.Tensor | None) -> None:
 
 @functools.cache
 def threaded_pass(fn: Callable, mode: str) -> Callable:
-    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options, one graph
-    (``fullgraph=True``), made once per function and mode.
+    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options (one of
+    :data:`COMPILE_MODES`), one graph (``fullgraph=True``), made once per function and mode.
 
     The C++ wrapper releases the GIL for the whole compiled call (Inductor's
     ``cpp_wrapper_cpu``), which is what lets :func:`~torchrl_recon.planners.run_blocks` run a
     pass's blocks in parallel (``PlanningModel(threads=...)``). Called with Dynamo's
     ``allow_rnn`` on, as ``compiled_plan``.
+
+    Examples:
+        >>> threaded_pass(abs, "fast")
+        Traceback (most recent call last):
+        ...
+        ValueError: mode must be one of ['default', 'reduce-overhead', 'max-autotune', 'max-autotune-no-cudagraphs'], got 'fast'.
     """
+    if not isinstance(mode, str) or mode not in COMPILE_MODES:
+        raise ValueError(f"mode must be one of {list(COMPILE_MODES)}, got {mode!r}.")
     options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
     options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs
     return _allowing_rnn(fn, torch.compile(fn, fullgraph=True, options=options))
@@ -275,7 +329,13 @@ class Prediction:
             >>> part = Prediction(torch.zeros(2, 3, 5, 6), torch.zeros(2, 3, 5), None)
             >>> Prediction.concat([part, part, part]).states.shape
             torch.Size([2, 9, 5, 6])
+            >>> Prediction.concat([])
+            Traceback (most recent call last):
+            ...
+            ValueError: predictions must hold at least one Prediction, got none.
         """
+        if not predictions:
+            raise ValueError("predictions must hold at least one Prediction, got none.")
         u = None
         if predictions[0].uncertainty is not None:
             u = torch.cat([p.uncertainty for p in predictions], -2)
@@ -384,6 +444,13 @@ class PlanningModel(nn.Module):
         threads: int = 1,
     ) -> None:
         super().__init__()
+        check_parts(
+            "world_model", world_model, WORLD_MODEL_PARTS, "a world model (e.g. an LSTMWorldModel)"
+        )
+        if uncertainty is not None:
+            check_parts(
+                "uncertainty", uncertainty, ESTIMATOR_PARTS, "an UncertaintyEstimator or None"
+            )
         self.world_model, self.cost_fn, self.uncertainty = world_model, cost_fn, uncertainty
         self.termination_fn = termination_fn
         self.obs_dim, self.action_dim = world_model.obs_dim, world_model.action_dim
@@ -618,6 +685,24 @@ class PlanningModel(nn.Module):
                 )
             check_finite(name, x)
 
+    def check_actions(self, actions: torch.Tensor, observation: torch.Tensor) -> None:
+        """Validate candidates ``[*B, K, H, M]`` for ``observation`` ``[*B, N]``: shape, device,
+        dtype, finite values."""
+        check_features("actions", actions, self.action_dim, min_ndim=3)
+        batch = tuple(observation.shape[:-1])
+        if tuple(actions.shape[:-3]) != batch:
+            raise ValueError(
+                f"actions has shape {tuple(actions.shape)}; expected [*B, K, H, {self.action_dim}] "
+                f"with observation's batch dims {batch}."
+            )
+        low = self.action_low
+        if actions.device != low.device or actions.dtype != low.dtype:
+            raise ValueError(
+                f"actions is {actions.dtype} on {actions.device}; expected {low.dtype} on "
+                f"{low.device}, the planning model's (pass actions.to({str(low.device)!r}, {low.dtype}))."
+            )
+        check_finite("actions", actions.detach())
+
     def forward(
         self,
         context_obs: torch.Tensor,
@@ -644,9 +729,17 @@ class PlanningModel(nn.Module):
                 compiled graph (``compile`` with a sampling planner), ``"auto"`` is one pass
                 (blocks would be unrolled into the graph), and a number of rows splits the
                 candidates by the batch size: one graph per batch size.
+
+        Raises:
+            ValueError: unfitted networks, or inputs of the wrong shape, device or dtype, or
+                holding NaN or inf (:meth:`check_context`, :meth:`check_actions`; left out
+                while compiling and within a planner's ``plan``, which checked them).
         """
         self.check_fitted()
         compiling = torch.compiler.is_compiling()
+        if not compiling and not _INPUTS_CHECKED.get():
+            self.check_context(context_obs, context_action, observation)
+            self.check_actions(actions, observation)
         # Traced into a plan's graph, "auto" is one pass: blocks would be unrolled into the
         # graph (its compile time grows with their number) and pin the batch size.
         auto_one_pass = compiling and block_rows == "auto"

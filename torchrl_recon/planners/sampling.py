@@ -28,7 +28,18 @@ Noise = Callable[[torch.Size, int, "torch.Generator | None"], torch.Tensor]
 
 
 def check_num_elites(num_elites: int, num_candidates: int) -> None:
-    """Refuse ``num_elites`` outside ``[1, num_candidates]``."""
+    """Refuse ``num_elites`` that is not an int in ``[1, num_candidates]``.
+
+    Examples:
+        >>> check_num_elites(2.5, 8)
+        Traceback (most recent call last):
+        ...
+        TypeError: num_elites must be an int in [1, num_candidates=8], got 2.5.
+    """
+    if isinstance(num_elites, bool) or not isinstance(num_elites, int):
+        raise TypeError(
+            f"num_elites must be an int in [1, num_candidates={num_candidates}], got {num_elites!r}."
+        )
     if not 1 <= num_elites <= num_candidates:
         raise ValueError(
             f"num_elites must be in [1, num_candidates={num_candidates}], got {num_elites}."

@@ -147,7 +147,7 @@ NAVIGATION = {
         "clusters",
         "testing",
     ],
-    "Results": ["uncertainty_estimators", "benchmarks", "reproduction"],
+    "Results": ["standard_tasks", "uncertainty_estimators", "benchmarks", "reproduction"],
     "API reference": [f"api/{pkg.rsplit('.', 1)[-1]}" for pkg in API_PACKAGES],
 }
 SITE_TOCTREES = "".join(

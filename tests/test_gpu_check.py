@@ -171,12 +171,12 @@ def test_quick_selects_the_planner_and_fit_steps(tmp_path):
     assert len(_load().build_steps("cuda", False, tmp_path)) > len(steps)
 
 
-def test_the_compiled_planner_rows_run_within_their_steps_and_quick_within_3_minutes(
+def test_the_compiled_planner_rows_run_within_their_steps_and_quick_within_its_cap(
     tmp_path, monkeypatch
 ):
     """The planner steps (whole and quick) time CEM, MPPI and iCEM as one CUDA graph a plan
     with a silent eager fall-back refused, and pass their benchmark the time they have, which
-    run_step sets from what is left; ``--quick``'s printed estimate is within 3 minutes."""
+    run_step sets from what is left; ``--quick``'s printed estimate is within its cap (7.5 minutes)."""
     check = _load()
     for quick in (False, True):
         steps = check.build_steps("cuda", False, tmp_path, quick=quick)
@@ -190,7 +190,7 @@ def test_the_compiled_planner_rows_run_within_their_steps_and_quick_within_3_min
         line = check.estimate_line(steps, check.BUDGET_S, quick)
         assert line.startswith("estimated ")
         if quick:
-            assert "within the 180 s of --quick" in line, line
+            assert "within the 450 s of --quick" in line, line
     seen = {}
 
     def run_command(argv, limit, log, env=None):

@@ -251,19 +251,33 @@ class MPCPolicy(TensorDictModuleBase):
         )
 
     @property
-    def spec(self) -> Composite:
-        """The specs of everything the policy writes (unbatched), on its device. TorchRL's
-        ``Collector`` reads them at construction instead of calling the policy on a reset
-        tensordict, a call that would plan with models not fitted yet (``warmup="plan"``).
+    def spec(self) -> Composite | None:
+        """With ``warmup="plan"``: the specs of everything the policy writes (unbatched), on its
+        device. TorchRL's ``Collector`` reads them at construction instead of calling the policy
+        on a reset tensordict, a call that would plan with models not fitted yet.
+
+        With ``warmup="random"``: None, so the Collector calls the policy once (a random step,
+        no plan) to learn its outputs, as for any policy without a spec. TorchRL 0.14's
+        Collector reads a spec only correctly when the env and the policy share a device: with
+        ``env_device="cpu", policy_device="cuda"`` and a spec, its first batch stops in
+        ``TensorDict.update`` (the keys it takes back are a set). So with ``warmup="plan"`` and
+        an env on another device, cast the env's data to the policy's device
+        (``DeviceCastTransform``, as the experiments do) or build the Collector with
+        ``use_buffers=False``.
 
         Examples:
             >>> from torchrl_recon.modules import LSTMWorldModel
             >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
             >>> model = PlanningModel(LSTMWorldModel(3, 1, window=2), lambda s, a, s1: s1[..., 0])
-            >>> policy = MPCPolicy(CEMPlanner(model, Objective(), horizon=4, num_candidates=8, num_elites=2))
+            >>> planner = CEMPlanner(model, Objective(), horizon=4, num_candidates=8, num_elites=2)
+            >>> MPCPolicy(planner).spec is None
+            True
+            >>> policy = MPCPolicy(planner, warmup="plan")
             >>> policy.spec["action"].shape, sorted(policy.out_keys, key=str) == sorted(policy.spec.keys(True, True), key=str)
             (torch.Size([1]), True)
         """
+        if self.warmup != "plan":
+            return None
         model = self.planner.model
         like = model.action_low
         n = self.obs_dim

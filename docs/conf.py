@@ -296,8 +296,8 @@ def skip_foreign_member(app, what, name, obj, skip, options):
 
 
 def public_bases(app, name, obj, options, bases) -> None:
-    """Show a class's public bases: a private base of the library (``SamplingPlanner``, a mixin)
-    is replaced by its own bases, whose members the class's page documents anyway."""
+    """Show a class's public bases: a private base of the library (a mixin) is replaced by its
+    own bases, whose members the class's page documents anyway."""
     public = app.env.temp_data.setdefault("public_objects", _public_objects())
 
     def expand(cls) -> list:

@@ -128,7 +128,7 @@ def test_api_pages_show_signature_docstring_and_example(site):
     page = (html / "api/generated/torchrl_recon.planners.CEMPlanner.html").read_text()
     assert 'class="sig sig-object py"' in page and "num_candidates" in page
     assert "Examples" in page and "&gt;&gt;&gt;" in page  # the doctest block
-    assert "Bases:" in page and "torchrl_recon.planners.PlannerBase" in page
+    assert "Bases:" in page and "torchrl_recon.planners.SamplingPlanner" in page
     # a TensorDictModuleBase's own parameters, not tensordict's __new__(*args, **kwargs)
     policy = (html / "api/generated/torchrl_recon.policies.MPCPolicy.html").read_text()
     signature = policy.split('class="sig-paren">(', 1)[1].split('class="sig-paren">)', 1)[0]

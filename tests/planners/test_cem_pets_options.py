@@ -32,16 +32,16 @@ def _cem(model, iterations=5, **kw):
 
 
 def _recording(planner):
-    """``planner`` with the mean of every elite update kept in ``planner.means``."""
+    """``planner`` with the mean of every update kept in ``planner.means``."""
     planner.means = []
-    update = planner._elite_update
+    update = planner.update
 
     def record(*args):
-        out = update(*args)
-        planner.means.append(out[0])
-        return out
+        search, best = update(*args)
+        planner.means.append(search.mean)
+        return search, best
 
-    planner._elite_update = record
+    planner.update = record
     return planner
 
 

@@ -8,6 +8,7 @@ functionalisation leaves it (ATen ops counted, nothing built). The CUDA test
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import warnings
 
@@ -30,7 +31,7 @@ from torchrl_recon.planners import (
     PlanningModel,
     UncertaintyBand,
 )
-from torchrl_recon.planners.planning_model import Prediction, compiled_plan
+from torchrl_recon.planners.planning_model import compiled_plan
 from torchrl_recon.policies.exploration import exploration_objective
 
 H = 4
@@ -237,13 +238,17 @@ def _replaying(fn, *args, **kwargs):
             buffers[key] = torch.empty_like(x, requires_grad=False)
         return _IntoBuffer.apply(x, buffers[key])
 
+    def kept(slot, x):  # a Prediction, a PlanOutput: each tensor of each field, nested
+        if dataclasses.is_dataclass(x):
+            fields = dataclasses.fields(x)
+            return dataclasses.replace(
+                x, **{f.name: kept(f"{slot}.{f.name}", getattr(x, f.name)) for f in fields}
+            )
+        return keep(slot, x)
+
     @functools.wraps(fn)
     def call(*a, **kw):
-        out = fn(*a, **kw)
-        if isinstance(out, Prediction):
-            parts = (out.states, out.cost, out.uncertainty)
-            return Prediction(*(keep(i, x) for i, x in enumerate(parts)))
-        return tuple(keep(i, x) for i, x in enumerate(out))
+        return kept("out", fn(*a, **kw))
 
     return call
 

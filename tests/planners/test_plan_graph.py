@@ -23,7 +23,9 @@ from torchrl_recon.planners import (
     RandomShootingPlanner,
     UncertaintyBand,
 )
-from torchrl_recon.planners.planning_model import compiled_plan
+from torchrl_recon.planners.base import PlanOutput
+from torchrl_recon.planners.planning_model import compiled_plan, gather_candidates
+from torchrl_recon.planners.sampling import SamplingPlanner
 
 H = 4
 
@@ -62,7 +64,7 @@ def test_the_whole_plan_is_one_graph_and_plans_what_eager_does(kind):
     eager = planner.plan(*ctx)
     graph = compiled_plan(type(planner).plan_graph, "default", "eager")  # fullgraph=True
     torch.manual_seed(5)
-    traced = planner._checked(*graph(planner, *ctx, None, None))
+    traced = planner._checked(graph(planner, *ctx, None, None))
     for name in ("actions", "states", "cost", "uncertainty", "objective", "feasible"):
         torch.testing.assert_close(getattr(traced, name), getattr(eager, name), rtol=0, atol=0)
 
@@ -75,7 +77,7 @@ def test_the_host_checks_read_the_graphs_flags_with_the_same_messages():
         FloatingPointError,
         match="every candidate's predicted objective is NaN for 2 of 2 batch element",
     ):
-        planner._checked(*graph(planner, *_context(), None, None))
+        planner._checked(graph(planner, *_context(), None, None))
     band = Objective(beta=0.1, band=UncertaintyBand(1e6, 2e6))  # no u reaches it
     strict = CEMPlanner(
         _model(),
@@ -88,10 +90,43 @@ def test_the_host_checks_read_the_graphs_flags_with_the_same_messages():
     )
     graph = compiled_plan(type(strict).plan_graph, "default", "eager")
     with pytest.raises(Exception, match="No candidate met the constraints"):
-        strict._checked(*graph(strict, *_context(), None, None))
+        strict._checked(graph(strict, *_context(), None, None))
 
 
 def test_planning_compile_compiles_the_whole_call_of_the_sampling_planners_only():
     model = _model()
     assert all(PLANNERS[k](model, Objective()).compiles_whole_call for k in PLANNERS)
     assert not GradientPlanner.compiles_whole_call and not PlannerBase.compiles_whole_call
+
+
+class _AroundBest(SamplingPlanner):
+    """A sampling planner of its own: two methods, and the shared loop."""
+
+    def sample(self, best, step):
+        if step.first_batch is not None:
+            return step.first_batch
+        return self._clamp(best + 0.1 * self._span * step.noise)
+
+    def update(self, best, candidates, prediction, bounds):
+        index = self._rank(prediction, bounds).argmax(-1, keepdim=True)
+        return gather_candidates(candidates, index), index
+
+
+def test_a_sampling_planner_of_two_methods_is_one_graph_too():
+    band = Objective(beta=0.1, band=UncertaintyBand(low=0.25, high=0.75, kind="quantile"))
+    planner = _AroundBest(
+        _model(), band, horizon=H, num_candidates=12, iterations=3, block_rows=None,
+        on_infeasible="fallback",
+    )  # fmt: skip
+    ctx, init = _context(), torch.zeros(2, H, 2)
+    torch.manual_seed(5)
+    eager = planner.plan(*ctx, init=init)
+    graph = compiled_plan(type(planner).plan_graph, "default", "eager")  # fullgraph=True
+    torch.manual_seed(5)
+    out = graph(planner, *ctx, init, None)
+    assert isinstance(out, PlanOutput) and out.kept is None
+    traced = planner._checked(out)
+    for name in ("actions", "states", "cost", "uncertainty", "objective", "feasible"):
+        torch.testing.assert_close(getattr(traced, name), getattr(eager, name), rtol=0, atol=0)
+    # a plan for each row, inside the band
+    assert eager.actions.shape == (2, H, 2) and eager.feasible.all()

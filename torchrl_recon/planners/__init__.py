@@ -5,12 +5,14 @@ from __future__ import annotations
 from torchrl_recon.planners.base import (
     InfeasiblePlanError,
     InfeasiblePlanWarning,
+    PlanFlags,
     PlannerBase,
+    PlanOutput,
     PlanResult,
 )
 from torchrl_recon.planners.beta import cost_to_u_ratio, relative_beta, window_uncertainty
 from torchrl_recon.planners.bounds import bounds_from_spec, check_bounds_match
-from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.cem import CEMPlanner, Gaussian
 from torchrl_recon.planners.cpu_threads import run_aside, run_blocks
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.gradient import GradientPlanner
@@ -34,6 +36,7 @@ from torchrl_recon.planners.registry import (
     get_planner_class,
     make_planner,
 )
+from torchrl_recon.planners.sampling import Iteration, SamplingPlanner
 from torchrl_recon.planners.shooting import RandomShootingPlanner
 from torchrl_recon.planners.torchrl_models import (
     CONTEXT_ACTION,
@@ -51,19 +54,24 @@ __all__ = [
     "compile_mode",
     "CEMPlanner",
     "EliteMemory",
+    "Gaussian",
     "GradientPlanner",
     "ICEMPlanner",
+    "Iteration",
     "PLANNERS",
     "InfeasiblePlanError",
     "InfeasiblePlanWarning",
     "LSTMWorldModelModule",
     "MPPIPlanner",
     "Objective",
+    "PlanFlags",
+    "PlanOutput",
     "PlanResult",
     "PlannerBase",
     "PlanningModel",
     "Prediction",
     "RandomShootingPlanner",
+    "SamplingPlanner",
     "TerminationFn",
     "TorchRLWorldModelAdapter",
     "UncertaintyBand",

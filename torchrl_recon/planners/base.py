@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Literal
@@ -53,11 +54,69 @@ class PlanResult:
     feasible: torch.Tensor
 
 
+@dataclass
+class PlanFlags:
+    """What :meth:`PlannerBase.plan` reads on the host after a plan's graph, to raise or warn.
+
+    Attributes:
+        undefined: ``[*B, 1]`` bool: the chosen candidate's objective or violation is NaN,
+            which happens only when every candidate's is (NaN ranks last).
+        cost_nan: ``[]`` bool: every predicted cost is NaN.
+        u_nan: ``[]`` bool: every u is NaN; None without an estimator.
+    """
+
+    undefined: torch.Tensor
+    cost_nan: torch.Tensor
+    u_nan: torch.Tensor | None
+
+
+@dataclass
+class PlanOutput:
+    """What :meth:`PlannerBase.plan_graph` returns: the plan, its flags, and what the planner
+    keeps for its next call.
+
+    Attributes:
+        result: the chosen plan, as :meth:`PlannerBase.plan` returns it once the flags are read.
+        flags: the :class:`PlanFlags` the host checks read.
+        kept: what the planner keeps for its next call (iCEM's last elites), handed to
+            ``_remember`` after the checks; None for most planners.
+
+    Examples:
+        >>> t, f = torch.zeros(2, 3, 1), torch.tensor([True, True])
+        >>> result = PlanResult(t, t, t[..., 0], None, torch.zeros(2), f)
+        >>> flags = PlanFlags(torch.zeros(2, 1, dtype=torch.bool), torch.tensor(False), None)
+        >>> out = PlanOutput(result, flags)
+        >>> out.copied().result.actions is t, out.copied().flags.u_nan is None
+        (False, True)
+    """
+
+    result: PlanResult
+    flags: PlanFlags
+    kept: torch.Tensor | None = None
+
+    def copied(self) -> PlanOutput:
+        """A copy of every tensor in it, out of a compiled graph's memory (a CUDA graph's next
+        replay overwrites its outputs)."""
+        return _copied(self)
+
+
+def _copied(x):
+    """``x`` with every tensor in it (a dataclass's fields, nested) cloned."""
+    if isinstance(x, torch.Tensor):
+        return x.clone()
+    if dataclasses.is_dataclass(x):
+        fields = {f.name: _copied(getattr(x, f.name)) for f in dataclasses.fields(x)}
+        return dataclasses.replace(x, **fields)
+    return x
+
+
 class PlannerBase(nn.Module):
     """Optimise action sequences over a :class:`PlanningModel` for an :class:`Objective`.
 
     Subclasses implement ``_optimise``, returning candidates ``[*B, K, H, M]`` with their
-    prediction; the base class picks the best feasible one. When no candidate is feasible
+    prediction; the base class picks the best feasible one. An iterative sampling planner
+    subclasses :class:`SamplingPlanner` instead, which runs the loop and asks for two methods,
+    ``sample`` and ``update``. When no candidate is feasible
     the planner falls back to the least-violating candidate and reports ``feasible=False``
     (``on_infeasible="fallback"``, with an :class:`InfeasiblePlanWarning`), or raises :class:`InfeasiblePlanError`
     (``on_infeasible="raise"``).
@@ -180,9 +239,9 @@ class PlannerBase(nn.Module):
         self.model.check_fitted()  # here, not in the graph: a compiled graph skips it
         carry = self._recall(init)
         with inputs_checked():  # checked above: the passes read no input values on the host
-            *out, kept = self._run(context_obs, context_action, observation, init, generator, carry)
-        result = self._checked(*out)
-        self._remember(result, kept)
+            out = self._run(context_obs, context_action, observation, init, generator, carry)
+        result = self._checked(out)
+        self._remember(result, out.kept)
         return result
 
     def _check_init(self, init: torch.Tensor, observation: torch.Tensor) -> None:
@@ -199,7 +258,7 @@ class PlannerBase(nn.Module):
             )
         check_finite("init", init)
 
-    def _run(self, context_obs, context_action, observation, init, generator, carry) -> tuple:
+    def _run(self, context_obs, context_action, observation, init, generator, carry) -> PlanOutput:
         """:meth:`plan_graph`, compiled where the planning model's ``compile`` asks for it; a
         compiled graph's outputs copied out of its memory (a CUDA graph's next replay
         overwrites them)."""
@@ -233,7 +292,7 @@ class PlannerBase(nn.Module):
                 "without it (planning_compile=false, PlanningModel(compile=False)) and report "
                 "it; the CLI's --debug prints torch.compile's trace."
             ) from error
-        return tuple(x.clone() if isinstance(x, torch.Tensor) else x for x in out)
+        return out.copied()
 
     def _graph(self, mode: str):
         """This planner's compiled :meth:`plan_graph` for ``mode``, made at its first call."""
@@ -256,8 +315,9 @@ class PlannerBase(nn.Module):
         return None
 
     def _remember(self, result: PlanResult, kept: torch.Tensor | None) -> None:
-        """Keep ``kept`` (what :meth:`_optimise` returned to keep, copied out of a compiled
-        graph's memory) for later calls, once the plan passed its checks; nothing by default."""
+        """Keep ``kept`` (:attr:`PlanOutput.kept`, what :meth:`_optimise` returned to keep,
+        copied out of a compiled graph's memory) for later calls, once the plan passed its
+        checks; nothing by default."""
 
     compiles_whole_call: bool = False
     """Whether ``planning_compile`` (the planning model's ``compile``) compiles :meth:`plan_graph`
@@ -272,16 +332,16 @@ class PlannerBase(nn.Module):
         init: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
         carry: tuple[torch.Tensor, ...] | None = None,
-    ) -> tuple:
+    ) -> PlanOutput:
         """The whole planning call as tensor operations with no host synchronisation, so that
         it is one graph (``torch.compile(..., fullgraph=True)``; with ``mode="reduce-overhead"``
         on a GPU, one CUDA graph replayed per call): the warm-up on the context, every
         iteration's sampling, rollout, cost, u, ranking and refit, and the final choice.
-        Returns the chosen actions, states, cost, u (or None) and objective, and the flags that
-        :meth:`plan` reads on the host afterwards: feasible ``[*B]``, NaN objective ``[*B, 1]``,
-        every cost NaN, every u NaN; last, what the planner keeps for its next call (or None).
-        :meth:`plan` checks its inputs first and raises or warns from the flags after (the
-        same messages as uncompiled). ``carry``: what ``_recall`` found for this call."""
+        Returns a :class:`PlanOutput`: the chosen plan (:class:`PlanResult`), the
+        :class:`PlanFlags` that :meth:`plan` reads on the host afterwards, and what the planner
+        keeps for its next call (or None). :meth:`plan` checks its inputs first and raises or
+        warns from the flags after (the same messages as uncompiled). ``carry``: what
+        ``_recall`` found for this call."""
         state = self.model.warmup(context_obs, context_action)  # once per plan
         more = {} if carry is None else {"carry": carry}
         candidates, prediction, bounds, *kept = self._optimise(
@@ -291,21 +351,22 @@ class PlannerBase(nn.Module):
         violation = self.objective.violation(prediction, bounds)
         best = self._pick(objective, violation)  # [*B, 1]
         best_objective, best_violation = objective.gather(-1, best), violation.gather(-1, best)
-        undefined = best_objective.isnan() | best_violation.isnan()
         u = prediction.uncertainty
         chosen, dim = prediction.take(best), best.ndim - 1
-        return (
-            gather_candidates(candidates, best).squeeze(dim),
-            chosen.states.squeeze(dim),
-            chosen.cost.squeeze(dim),
-            None if chosen.uncertainty is None else chosen.uncertainty.squeeze(dim),
-            best_objective.squeeze(-1),
-            (best_violation <= 0).squeeze(-1),
-            undefined,
-            prediction.cost.isnan().all(),
-            None if u is None else u.isnan().all(),
-            kept[0] if kept else None,
+        result = PlanResult(
+            actions=gather_candidates(candidates, best).squeeze(dim),
+            states=chosen.states.squeeze(dim),
+            cost=chosen.cost.squeeze(dim),
+            uncertainty=None if chosen.uncertainty is None else chosen.uncertainty.squeeze(dim),
+            objective=best_objective.squeeze(-1),
+            feasible=(best_violation <= 0).squeeze(-1),
         )
+        flags = PlanFlags(
+            undefined=best_objective.isnan() | best_violation.isnan(),
+            cost_nan=prediction.cost.isnan().all(),
+            u_nan=None if u is None else u.isnan().all(),
+        )
+        return PlanOutput(result, flags, kept[0] if kept else None)
 
     def _optimise(self, context_obs, context_action, observation, init, state, generator):
         """Candidates ``[*B, K, H, M]``, their :class:`Prediction` and the band's bounds (or
@@ -319,13 +380,13 @@ class PlannerBase(nn.Module):
         least-violating one (:func:`rank_key`)."""
         return rank_key(objective, violation).argmax(-1, keepdim=True)
 
-    def _checked(
-        self, actions, states, cost, u, objective, feasible, undefined, cost_nan, u_nan, kept=None
-    ) -> PlanResult:
-        """The :class:`PlanResult` of :meth:`plan_graph`'s tensors, once its flags are read: a
+    def _checked(self, out: PlanOutput) -> PlanResult:
+        """The :class:`PlanResult` of :meth:`plan_graph`'s output, once its flags are read: a
         NaN objective raises, an infeasible plan warns (or raises with ``on_infeasible="raise"``).
-        ``kept`` (what the planner keeps) is not part of the result: :meth:`plan` hands it to
-        :meth:`_remember`."""
+        ``out.kept`` (what the planner keeps) is not part of the result: :meth:`plan` hands it
+        to :meth:`_remember`."""
+        flags, feasible = out.flags, out.result.feasible
+        undefined, cost_nan, u_nan = flags.undefined, flags.cost_nan, flags.u_nan
         if undefined.any():  # NaN ranks last: the best is NaN only when every candidate is
             raise FloatingPointError(
                 f"every candidate's predicted objective is NaN for {int(undefined.sum())} of "
@@ -343,4 +404,4 @@ class PlannerBase(nn.Module):
             if self.on_infeasible == "raise":
                 raise InfeasiblePlanError(message)
             warnings.warn(message, InfeasiblePlanWarning, stacklevel=3)
-        return PlanResult(actions, states, cost, u, objective, feasible)
+        return out.result

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
@@ -12,16 +14,29 @@ from torchrl_recon.planners.planning_model import (
     PlanningModel,
     Prediction,
     gather_candidates,
-    without_grad,
 )
 from torchrl_recon.planners.sampling import (
-    WARM_START_STD,
-    BestSeen,
+    Iteration,
     SamplingPlanner,
     check_num_elites,
     check_smoothing,
     refit_gaussian,
 )
+
+
+@dataclass
+class Gaussian:
+    """CEM's (and iCEM's) search state: the sampling Gaussian and the last elites.
+
+    Attributes:
+        mean: ``[*B, 1, H, M]``, or None before the first refit (CEM's first batch).
+        std: ``[*B, 1, H, M]``, or None with ``mean``.
+        elites: the last iteration's elites ``[*B, num_elites, H, M]``, best first, or None.
+    """
+
+    mean: torch.Tensor | None = None
+    std: torch.Tensor | None = None
+    elites: torch.Tensor | None = None
 
 
 class CEMPlanner(SamplingPlanner):
@@ -113,52 +128,52 @@ class CEMPlanner(SamplingPlanner):
             )
         self.warm_start_uniform = warm_start_uniform
 
-    def _elite_update(
-        self,
-        candidates: torch.Tensor,
-        prediction: Prediction,
-        bounds,
-        mean: torch.Tensor | None,
-        std: torch.Tensor | None,
-        seen: BestSeen,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rank the candidates, keep the best in ``seen`` and refit the Gaussian to the top
-        ``num_elites`` (std floored at ``min_std``·range): the new mean and std ``[*B, 1, H, M]``
-        and the elites ``[*B, num_elites, H, M]``, best first."""
+    def start(self, batch: torch.Size, init: torch.Tensor | None) -> Gaussian:
+        """No Gaussian yet: the first iteration samples the first batch."""
+        return Gaussian()
+
+    def sample(self, search: Gaussian, step: Iteration) -> torch.Tensor:
+        """The first batch, then N(mean, std) clipped to the bounds.
+
+        Examples:
+            >>> from torchrl_recon.modules import LSTMWorldModel
+            >>> model = PlanningModel(LSTMWorldModel(1, 1), lambda s, a, s2: s2[..., 0])
+            >>> planner = CEMPlanner(model, Objective(), horizon=2, num_candidates=4, num_elites=2)
+            >>> noise = torch.tensor([[[0.1], [-1.0]]])  # one candidate [K, H, M] = [1, 2, 1]
+            >>> step = Iteration(1, True, None, noise, torch.Size(), None, None, None)
+            >>> gaussian = Gaussian(torch.zeros(1, 2, 1), torch.full((1, 2, 1), 2.0))
+            >>> planner.sample(gaussian, step)[0, :, 0]  # mean + std·noise, clipped to [-1, 1]
+            tensor([ 0.2000, -1.0000])
+        """
+        if step.first_batch is not None:
+            return step.first_batch
+        return self._clamp(search.mean + search.std * step.noise)
+
+    def update(
+        self, search: Gaussian, candidates: torch.Tensor, prediction: Prediction, bounds
+    ) -> tuple[Gaussian, torch.Tensor]:
+        """Rank the candidates and refit the Gaussian to the top ``num_elites`` (std floored
+        at ``min_std``·range): the new :class:`Gaussian` ``[*B, 1, H, M]`` with the elites,
+        best first, and the best candidate ``[*B, 1]``, kept for the final choice."""
         elite_idx = self._rank(prediction, bounds).topk(self.num_elites, dim=-1).indices
         elites = gather_candidates(candidates, elite_idx)
-        mean, std = refit_gaussian(elites, mean, std, self.smoothing)
+        mean, std = refit_gaussian(elites, search.mean, search.std, self.smoothing)
         std = torch.maximum(std, self.min_std * self._span)
-        # Keep each iteration's best sample; the final choice is made among them.
-        seen.add(candidates, prediction, elite_idx[..., :1])
-        return mean, std, elites
+        return Gaussian(mean, std, elites), elite_idx[..., :1]
 
-    @without_grad
-    def _optimise(self, context_obs, context_action, observation, init, state, generator):
-        batch = observation.shape[:-1]
-        mean = std = bounds = None
-        seen = BestSeen()
-        next_noise = None  # drawn after each pass (see _noise_later)
-        for it in range(self.iterations):
-            if mean is None:
-                candidates, uniform = self._first_candidates(
-                    batch, init, WARM_START_STD, self._normal, generator, self.warm_start_uniform
-                )
-            else:
-                candidates = self._clamp(mean + std * next_noise())
-            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
-            if it + 1 < self.iterations:
-                next_noise = self._noise_later(self._normal, batch, self.num_candidates, generator)
-            if it == 0:
-                bounds = self._reference_bounds(prediction, uniform, batch)
-            mean, std, _ = self._elite_update(candidates, prediction, bounds, mean, std, seen)
-        candidates, prediction = seen.result()
-        # With return_mean_elites the mean leads; _pick returns it unless it breaks a constraint.
-        if self.return_mean_elites:
-            at_mean = self._evaluate(context_obs, context_action, observation, mean, state)
-            candidates = torch.cat([mean, candidates], -3)
-            prediction = Prediction.concat([at_mean, prediction])
-        return candidates, prediction, bounds
+    def finish(
+        self,
+        search: Gaussian,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        evaluate: Callable[[torch.Tensor], Prediction],
+    ) -> tuple[torch.Tensor, Prediction]:
+        """With ``return_mean_elites``, the final mean scored and put first (``_pick``
+        returns it unless it breaks a constraint); else the best samples as they are."""
+        if not self.return_mean_elites:
+            return candidates, prediction
+        at_mean = evaluate(search.mean)
+        return torch.cat([search.mean, candidates], -3), Prediction.concat([at_mean, prediction])
 
     def _pick(self, objective: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
         best = super()._pick(objective, violation)

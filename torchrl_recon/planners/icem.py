@@ -7,12 +7,12 @@ import math
 import torch
 
 from torchrl_recon.planners.base import OnInfeasible, PlanResult
-from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.cem import CEMPlanner, Gaussian
 from torchrl_recon.planners.elite_memory import EliteMemory
 from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, without_grad
-from torchrl_recon.planners.sampling import WARM_START_STD, BestSeen
+from torchrl_recon.planners.planning_model import PlanningModel
+from torchrl_recon.planners.sampling import WARM_START_STD, Iteration
 
 
 class ICEMPlanner(CEMPlanner):
@@ -130,7 +130,7 @@ class ICEMPlanner(CEMPlanner):
             for i in range(self.iterations)
         ]
 
-    def _colored(
+    def noise(
         self, batch: torch.Size, k: int, generator: torch.Generator | None = None
     ) -> torch.Tensor:
         """Unit-variance colored noise ``[*B, k, H, M]``, correlated along H."""
@@ -148,7 +148,7 @@ class ICEMPlanner(CEMPlanner):
         """The kept elites of the plan each row's ``init`` continues (``carry``, from
         :meth:`_recall`; recalled here when not given, outside a compiled graph), else draws
         around ``init``."""
-        spread = WARM_START_STD * self._span * self._colored(batch, self.num_kept, generator)
+        spread = WARM_START_STD * self._span * self.noise(batch, self.num_kept, generator)
         drawn = self._clamp(init.unsqueeze(-3) + spread)
         if carry is None and not torch.compiler.is_compiling():
             carry = self._recall(init)
@@ -180,41 +180,31 @@ class ICEMPlanner(CEMPlanner):
         rows = result.actions.reshape(-1, *result.actions.shape[-2:])
         self.memory.remember(rows, kept.reshape(len(rows), -1, *rows.shape[-2:]))
 
-    @without_grad
-    def _optimise(
-        self, context_obs, context_action, observation, init, state, generator, carry=None
-    ):
-        batch = observation.shape[:-1]
+    def start(self, batch: torch.Size, init: torch.Tensor | None) -> Gaussian:
+        """mean = ``init`` clipped (or the middle of the bounds), std = 0.25·range."""
         low, high = self.model.action_low, self.model.action_high
         shape = (*batch, 1, self.horizon, self.model.action_dim)
         mean = ((low + high) / 2).expand(shape) if init is None else self._clamp(init.unsqueeze(-3))
-        std = (WARM_START_STD * self._span).expand(shape)
-        bounds = kept = None
-        seen = BestSeen()
-        sizes = self.population_sizes()
-        next_noise = None  # drawn after each pass (see _noise_later)
-        for it in range(self.iterations):
-            if it == 0:
-                candidates, uniform = self._first_candidates(
-                    batch, init, WARM_START_STD, self._colored, generator
-                )
-                extra = (
-                    []
-                    if init is None or not self.num_kept
-                    else [self._carried(init, batch, generator, carry)]
-                )
-            else:
-                candidates = self._clamp(mean + std * next_noise())
-                extra = [kept] if self.num_kept else []
-                if it == self.iterations - 1:
-                    extra.append(self._clamp(mean))
-            candidates = torch.cat([candidates, *extra], -3)
-            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
-            if it + 1 < self.iterations:
-                next_noise = self._noise_later(self._colored, batch, sizes[it + 1], generator)
-            if it == 0:
-                bounds = self._reference_bounds(prediction, uniform, batch)
-            mean, std, elites = self._elite_update(candidates, prediction, bounds, mean, std, seen)
-            kept = elites[..., : self.num_kept, :, :]
-        # the last kept elites: plan() remembers them (copied out of a compiled graph's memory)
-        return *seen.result(), bounds, kept if self.num_kept else None
+        return Gaussian(mean, (WARM_START_STD * self._span).expand(shape))
+
+    def sample(self, search: Gaussian, step: Iteration) -> torch.Tensor:
+        """CEM's candidates (colored noise), then the kept elites: in the first iteration those
+        of the plan ``init`` continues (``_carried``), later the previous iteration's; in
+        the last, the mean too."""
+        candidates = super().sample(search, step)
+        if step.index == 0:
+            extra = (
+                []
+                if step.init is None or not self.num_kept
+                else [self._carried(step.init, step.batch, step.generator, step.carry)]
+            )
+        else:
+            extra = [self.keep(search)] if self.num_kept else []
+            if step.last:
+                extra.append(self._clamp(search.mean))
+        return torch.cat([candidates, *extra], -3)
+
+    def keep(self, search: Gaussian) -> torch.Tensor | None:
+        """The best ⌈keep_elites·num_elites⌉ elites of the last iteration, remembered for the
+        next plan (``_remember``; copied out of a compiled graph's memory), or None."""
+        return search.elites[..., : self.num_kept, :, :] if self.num_kept else None

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from torchrl_recon.planners.base import OnInfeasible
 from torchrl_recon.planners.objective import Objective
-from torchrl_recon.planners.planning_model import PlanningModel, Prediction, without_grad
-from torchrl_recon.planners.sampling import BestSeen, SamplingPlanner, check_positive
+from torchrl_recon.planners.planning_model import PlanningModel, Prediction
+from torchrl_recon.planners.sampling import Iteration, SamplingPlanner, check_positive
 
 
 class MPPIPlanner(SamplingPlanner):
@@ -104,28 +106,43 @@ class MPPIPlanner(SamplingPlanner):
         key = torch.where(feasible.any(-1, keepdim=True), score, -violation)
         return torch.softmax(key / self.temperature, dim=-1)
 
-    @without_grad
-    def _optimise(self, context_obs, context_action, observation, init, state, generator):
-        batch = observation.shape[:-1]
-        bounds = mean = None
-        seen = BestSeen()
-        next_noise = None  # drawn after each pass (see _noise_later)
-        for it in range(self.iterations):
-            if mean is None:
-                candidates, uniform = self._first_candidates(
-                    batch, init, self.noise_std, self._normal, generator
-                )
-            else:
-                candidates = self._clamp(mean + self.noise_std * self._span * next_noise())
-            prediction = self._evaluate(context_obs, context_action, observation, candidates, state)
-            if it + 1 < self.iterations:
-                next_noise = self._noise_later(self._normal, batch, self.num_candidates, generator)
-            if it == 0:
-                bounds = self._reference_bounds(prediction, uniform, batch)
-            weights = self._weights(prediction, bounds)
-            mean = (weights[..., None, None] * candidates).sum(-3, keepdim=True)
-            seen.add(candidates, prediction, self._rank(prediction, bounds).argmax(-1, True))
-        final = self._evaluate(context_obs, context_action, observation, mean, state)
-        first = torch.zeros(*batch, 1, dtype=torch.long, device=mean.device)
-        seen.add(mean, final, first)
-        return *seen.result(), bounds
+    @property
+    def warm_start_std(self) -> float:
+        """The first batch's spread around a warm start, as a fraction of the action range
+        (``noise_std``)."""
+        return self.noise_std
+
+    def sample(self, mean: torch.Tensor | None, step: Iteration) -> torch.Tensor:
+        """The first batch, then ``mean + noise_std·range·ε`` clipped to the bounds.
+
+        Examples:
+            >>> from torchrl_recon.modules import LSTMWorldModel
+            >>> model = PlanningModel(LSTMWorldModel(1, 1), lambda s, a, s2: s2[..., 0])
+            >>> planner = MPPIPlanner(model, Objective(), horizon=2, num_candidates=4)
+            >>> noise = torch.tensor([[[1.0], [-8.0]]])  # one candidate [K, H, M] = [1, 2, 1]
+            >>> step = Iteration(1, True, None, noise, torch.Size(), None, None, None)
+            >>> planner.sample(torch.zeros(1, 2, 1), step)[0, :, 0]  # range 2, noise_std 0.25
+            tensor([ 0.5000, -1.0000])
+        """
+        if step.first_batch is not None:
+            return step.first_batch
+        return self._clamp(mean + self.noise_std * self._span * step.noise)
+
+    def update(
+        self, mean: torch.Tensor | None, candidates: torch.Tensor, prediction: Prediction, bounds
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The new mean Σ_k w_k·a_k ``[*B, 1, H, M]`` (``_weights``) and the best-ranked
+        candidate ``[*B, 1]``, kept for the final choice."""
+        weights = self._weights(prediction, bounds)
+        mean = (weights[..., None, None] * candidates).sum(-3, keepdim=True)
+        return mean, self._rank(prediction, bounds).argmax(-1, True)
+
+    def finish(
+        self,
+        mean: torch.Tensor,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        evaluate: Callable[[torch.Tensor], Prediction],
+    ) -> tuple[torch.Tensor, Prediction]:
+        """The best samples and, last, the final mean, scored."""
+        return torch.cat([candidates, mean], -3), Prediction.concat([prediction, evaluate(mean)])

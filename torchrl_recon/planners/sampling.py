@@ -1,10 +1,13 @@
-"""What the iterative sampling planners (CEM, MPPI, iCEM) share: the first batch, scoring, the
-Gaussian refit and the best sample of every iteration."""
+"""What the iterative sampling planners (CEM, MPPI, iCEM) share: one sampling loop (the first
+batch, scoring, the reference bounds, the best sample of every iteration), the Gaussian refit
+and the checks; each planner supplies how it samples and how it updates."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -17,6 +20,7 @@ from torchrl_recon.planners.planning_model import (
     Prediction,
     check_block_rows,
     gather_candidates,
+    without_grad,
 )
 
 WARM_START_STD = 0.25
@@ -103,16 +107,87 @@ class BestSeen:
         return torch.cat(self.candidates, -3), Prediction.concat(self.predictions)
 
 
+@dataclass
+class Iteration:
+    """Where the sampling loop is, as a planner's :meth:`SamplingPlanner.sample` sees it.
+
+    Attributes:
+        index: 0 … ``iterations − 1``.
+        last: True in the last iteration.
+        first_batch: in the first iteration only, the first batch ``[*B, K, H, M]`` the loop
+            drew (uniform within the bounds; with a warm start, a share around it); else None.
+        noise: in later iterations only, unit-variance noise ``[*B, K_i, H, M]`` the loop drew
+            with the planner's :meth:`~SamplingPlanner.noise` (K_i: its
+            :meth:`~SamplingPlanner.population_sizes`); else None.
+        batch: the batch dims ``*B``.
+        init: the warm start ``[*B, H, M]``, or None.
+        generator: the plan's ``generator`` (draw any more random numbers from it), or None.
+        carry: what the planner's ``_recall`` found for this plan, or None.
+
+    Examples:
+        >>> step = Iteration(0, False, torch.zeros(4, 3, 1), None, torch.Size(), None, None, None)
+        >>> step.first_batch.shape, step.noise
+        (torch.Size([4, 3, 1]), None)
+    """
+
+    index: int
+    last: bool
+    first_batch: torch.Tensor | None
+    noise: torch.Tensor | None
+    batch: torch.Size
+    init: torch.Tensor | None
+    generator: torch.Generator | None
+    carry: Any
+
+
 class SamplingPlanner(PlannerBase):
     """Base of the planners that sample candidate batches for several iterations.
 
-    They share the budget arguments and checks, the first batch (uniform within the bounds; with
-    a warm start ``init``, half uniform and half around ``init``), the relative band resolved
-    once from the uniform part, the feasible-first ranking and the best sample of each
-    iteration, among which (and whatever else a planner adds) the final choice is made.
+    They all run one loop (``_optimise``). Each iteration it samples the candidates
+    (:meth:`sample`), scores them in one call to the planning model, draws the next
+    iteration's noise (:meth:`noise`), resolves a relative band once from the uniform part of
+    the first batch, updates the planner's search state (:meth:`update`) and keeps the sample
+    :meth:`update` names as the iteration's best; after the last, :meth:`finish` may add
+    candidates, and the final choice is made among them. They share the budget arguments and
+    checks, the first batch (uniform within the bounds; with a warm start ``init``,
+    ``warm_start_uniform`` of it uniform and the rest around ``init``) and the feasible-first
+    ranking.
+
+    A new sampling planner writes :meth:`sample` and :meth:`update`; :meth:`start` (the search
+    state before the first update), :meth:`noise`, :meth:`population_sizes`,
+    ``warm_start_std``, :meth:`finish` and :meth:`keep` have defaults. The search state is
+    whatever :meth:`start` and :meth:`update` return (a tensor, a dataclass of tensors). The
+    loop is one graph when compiled: ``sample`` and ``update`` must not branch on tensor values
+    or read them on the host.
+
+    Examples:
+        A random search around the best candidate of the last iteration:
+
+        >>> class AroundBest(SamplingPlanner):
+        ...     def sample(self, best, step):
+        ...         if step.first_batch is not None:
+        ...             return step.first_batch
+        ...         return self._clamp(best + 0.1 * self._span * step.noise)
+        ...
+        ...     def update(self, best, candidates, prediction, bounds):
+        ...         index = self._rank(prediction, bounds).argmax(-1, keepdim=True)  # [*B, 1]
+        ...         return gather_candidates(candidates, index), index
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> from torchrl_recon.envs.drone import drone_cost
+        >>> world_model = LSTMWorldModel(12, 4)
+        >>> world_model.fit_normalization(torch.randn(50, 12), torch.rand(50, 4), torch.randn(50, 12))
+        >>> planner = AroundBest(PlanningModel(world_model, drone_cost), Objective(), horizon=20,
+        ...                      num_candidates=64, iterations=3, block_rows=None,
+        ...                      on_infeasible="fallback")
+        >>> planner.plan(torch.zeros(10, 12), torch.zeros(10, 4), torch.zeros(12)).actions.shape
+        torch.Size([20, 4])
     """
 
     compiles_whole_call = True  # tests/planners/test_plan_graph.py
+
+    warm_start_uniform: float = 0.5
+    """The share of the first batch drawn uniformly when the plan has a warm start (the rest
+    around it)."""
 
     def __init__(
         self,
@@ -134,6 +209,109 @@ class SamplingPlanner(PlannerBase):
             iterations,
             block_rows,
         )
+
+    @property
+    def warm_start_std(self) -> float:
+        """Spread of the first batch's candidates around a warm start ``init``, as a fraction
+        of the action range (``WARM_START_STD``, 0.25)."""
+        return WARM_START_STD
+
+    def noise(
+        self, batch: torch.Size, k: int, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Unit-variance noise ``[*B, k, H, M]``, drawn for every iteration after the first
+        (``step.noise`` in :meth:`sample`) and for the first batch's candidates around a warm
+        start; white Gaussian by default."""
+        return self._normal(batch, k, generator)
+
+    def population_sizes(self) -> list[int]:
+        """K_i, the number of noise draws of every iteration (``num_candidates`` each by
+        default)."""
+        return [self.num_candidates] * self.iterations
+
+    def start(self, batch: torch.Size, init: torch.Tensor | None) -> Any:
+        """The search state before the first :meth:`update` (None by default)."""
+        return None
+
+    def sample(self, search: Any, step: Iteration) -> torch.Tensor:
+        """The candidates ``[*B, K', H, M]`` of iteration ``step``, from the search state
+        ``search``: in the first iteration at least ``step.first_batch`` (it leads, for the
+        reference bounds), in later ones from ``step.noise``.
+
+        Examples:
+            CEM's: ``step.first_batch`` first, then ``clamp(mean + std · noise)``.
+        """
+        raise NotImplementedError
+
+    def update(
+        self,
+        search: Any,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        bounds: tuple[torch.Tensor, torch.Tensor] | None,
+    ) -> tuple[Any, torch.Tensor]:
+        """The search state after scoring ``candidates`` (their :class:`Prediction`; the band's
+        ``bounds`` or None), and the index ``[*B, 1]`` of the candidate the final choice is
+        made among (the iteration's best).
+
+        Examples:
+            MPPI's: the mean Σ w·a with w = softmax(J / λ), and the best-ranked candidate.
+        """
+        raise NotImplementedError
+
+    def finish(
+        self,
+        search: Any,
+        candidates: torch.Tensor,
+        prediction: Prediction,
+        evaluate: Callable[[torch.Tensor], Prediction],
+    ) -> tuple[torch.Tensor, Prediction]:
+        """The candidates the final choice is made among and their prediction, from every
+        iteration's best (``candidates``, ``prediction``) and the last search state; by default
+        those. ``evaluate(actions)`` scores more, e.g. MPPI's final mean."""
+        return candidates, prediction
+
+    def keep(self, search: Any) -> torch.Tensor | None:
+        """What the planner keeps for its next call (``_remember`` gets it), from the last
+        search state: iCEM's last elites; None by default."""
+        return None
+
+    @without_grad
+    def _optimise(
+        self, context_obs, context_action, observation, init, state, generator, carry=None
+    ):
+        """The sampling loop every sampling planner runs (see the class docstring): the
+        candidates the final choice is made among, their prediction, the band's bounds and
+        what the planner keeps."""
+        batch = observation.shape[:-1]
+        sizes = self.population_sizes()
+
+        def evaluate(candidates: torch.Tensor) -> Prediction:
+            return self._evaluate(context_obs, context_action, observation, candidates, state)
+
+        search = self.start(batch, init)
+        seen, bounds, next_noise = BestSeen(), None, None
+        for i in range(self.iterations):
+            first = noise = None
+            if i == 0:
+                first, uniform = self._first_candidates(
+                    batch, init, self.warm_start_std, self.noise, generator, self.warm_start_uniform
+                )
+            else:
+                noise = next_noise()
+            step = Iteration(
+                i, i == self.iterations - 1, first, noise, batch, init, generator, carry
+            )
+            candidates = self.sample(search, step)
+            prediction = evaluate(candidates)
+            if i + 1 < self.iterations:  # drawn after each pass (see _noise_later)
+                next_noise = self._noise_later(self.noise, batch, sizes[i + 1], generator)
+            if i == 0:
+                bounds = self._reference_bounds(prediction, uniform, batch)
+            search, best = self.update(search, candidates, prediction, bounds)
+            seen.add(candidates, prediction, best)
+        candidates, prediction = self.finish(search, *seen.result(), evaluate)
+        return candidates, prediction, bounds, self.keep(search)
 
     @property
     def _span(self) -> torch.Tensor:

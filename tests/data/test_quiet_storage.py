@@ -76,3 +76,17 @@ def test_sequence_buffers_and_the_fits_log_no_storage_line():
         stepper.step(None, None)  # the first fit
         stepper.step(None, None)  # a refit
     assert not [m for m in records.messages if m.startswith(INIT_LINE)]
+
+
+def test_the_online_trainers_buffer_fills_without_the_storage_line():
+    """``OnlineTrainer`` extends its buffer through ``quiet_extend`` (a TorchRL
+    ``ReplayBufferTrainer``'s extend): its first batch logs no storage line."""
+    from torchrl.trainers import ReplayBufferTrainer
+
+    from torchrl_recon.trainers.online import quiet_extend
+
+    rb = ReplayBuffer(storage=LazyTensorStorage(100))
+    with _Records() as records:
+        quiet_extend(ReplayBufferTrainer(rb))(_steps())
+    assert len(rb) == 60
+    assert not [m for m in records.messages if m.startswith(INIT_LINE)]

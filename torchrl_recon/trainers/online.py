@@ -13,6 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from torchrl.trainers import ReplayBufferTrainer
 
+from torchrl_recon.data import quiet_storage_init
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_type
 from torchrl_recon.objectives import WorldModelPredictionLoss
@@ -24,6 +25,26 @@ from torchrl_recon.trainers.collector import OnlineCollector, check_schedule
 from torchrl_recon.trainers.fit import ModelFitStepper
 from torchrl_recon.trainers.log_iteration import LogIteration
 from torchrl_recon.training.online import FitSchedule, IterationRecord
+
+
+def quiet_extend(extender: ReplayBufferTrainer) -> Callable[[TensorDictBase], Any]:
+    """``extender.extend`` without TorchRL's ``Initialized LazyTensorStorage`` INFO line at the
+    first batch (:func:`~torchrl_recon.data.quiet_storage_init`).
+
+    Examples:
+        >>> from torchrl.data import LazyTensorStorage, ReplayBuffer
+        >>> from tensordict import TensorDict
+        >>> buffer = ReplayBuffer(storage=LazyTensorStorage(4))
+        >>> _ = quiet_extend(ReplayBufferTrainer(buffer))(TensorDict({"x": [1.0, 2.0]}, [2]))
+        >>> len(buffer)
+        2
+    """
+
+    def extend(batch: TensorDictBase) -> Any:
+        with quiet_storage_init():
+            return extender.extend(batch)
+
+    return extend
 
 
 class OnlineTrainer(VerifiedTrainer):
@@ -121,7 +142,7 @@ class OnlineTrainer(VerifiedTrainer):
             **trainer_kwargs,
         )
         self.buffer = replay_buffer  # not Trainer's replay_buffer: see ReplayBufferSteps
-        self.register_op("batch_process", ReplayBufferTrainer(replay_buffer).extend)
+        self.register_op("batch_process", quiet_extend(ReplayBufferTrainer(replay_buffer)))
         ReplayBufferSteps(replay_buffer).register(self)
         self.log_iteration = LogIteration(
             world_model, estimator, slice_len=schedule.slice_len, on_iteration=on_iteration

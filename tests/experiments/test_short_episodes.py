@@ -105,6 +105,7 @@ def _episodes(count: int, steps: int) -> TensorDict:
 def test_model_error_on_episodes_shorter_than_a_slice_counts_each_real_step_once():
     torch.manual_seed(0)
     world, data = LSTMWorldModel(2, 1, window=2), _episodes(5, 3)
+    world.fit_normalization(data["observation"], data["action"], data["next", "observation"])
     errors = []
     with torch.no_grad():
         for episode in data.reshape(5, 3):  # each whole episode, no padding

@@ -388,6 +388,7 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
         >>> world = LSTMWorldModel(2, 1, window=2)
         >>> data = TensorDict({"observation": torch.randn(9, 2), "action": torch.rand(9, 1),
         ...     ("next", "observation"): torch.randn(9, 2), TRAJ_KEY: torch.arange(9) // 3}, [9])
+        >>> world.fit_normalization(data["observation"], data["action"], data["next", "observation"])
         >>> model_error(world, data, 5) > 0  # episodes of 3 steps, windows of 5
         True
     """

@@ -10,7 +10,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from torchrl_recon.modules.checks import check_finite, check_int, check_type
+from torchrl_recon.modules.checks import check_int, check_type
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
@@ -250,13 +250,7 @@ class PlannerBase(nn.Module):
         expected = (*observation.shape[:-1], self.horizon, self.model.action_dim)
         if init.shape != expected:
             raise ValueError(f"init has shape {tuple(init.shape)}; expected {expected}.")
-        low = self.model.action_low
-        if init.device != low.device or init.dtype != low.dtype:
-            raise ValueError(
-                f"init is {init.dtype} on {init.device}; expected {low.dtype} on {low.device}, "
-                "the planning model's."
-            )
-        check_finite("init", init)
+        self.model.check_placed("init", init)
 
     def _run(self, context_obs, context_action, observation, init, generator, carry) -> PlanOutput:
         """:meth:`plan_graph`, compiled where the planning model's ``compile`` asks for it; a

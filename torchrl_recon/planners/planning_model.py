@@ -667,23 +667,37 @@ class PlanningModel(nn.Module):
                 f"context_obs {tuple(context_obs.shape)}, context_action {tuple(context_action.shape)} and "
                 f"observation {tuple(observation.shape)} disagree on batch dims."
             )
-        device, dtype = self.action_low.device, self.action_low.dtype
         for name, x in (
             ("observation", observation),
             ("context_obs", context_obs),
             ("context_action", context_action),
         ):
-            if x.device != device:
-                raise ValueError(
-                    f"{name} is on {x.device} but the planning model is on {device}; move the "
-                    f"inputs with .to({str(device)!r}) (or the planner with .to({str(x.device)!r}))."
-                )
-            if x.dtype != dtype:
-                raise ValueError(
-                    f"{name} has dtype {x.dtype} but the planning model computes in {dtype}; "
-                    f"pass {name}.to({dtype})."
-                )
-            check_finite(name, x)
+            self.check_placed(name, x)
+
+    def check_placed(self, name: str, x: torch.Tensor) -> None:
+        """Refuse ``x`` (called ``name``) off the planning model's device or dtype, or holding
+        NaN or inf.
+
+        Examples:
+            >>> from torchrl_recon.modules import LSTMWorldModel
+            >>> model = PlanningModel(LSTMWorldModel(2, 1), lambda s, a, s2: s2[..., 0])
+            >>> model.check_placed("init", torch.zeros(3, 1, dtype=torch.float64))
+            Traceback (most recent call last):
+            ...
+            ValueError: init has dtype torch.float64 but the planning model computes in torch.float32; pass init.to(torch.float32).
+        """
+        device, dtype = self.action_low.device, self.action_low.dtype
+        if x.device != device:
+            raise ValueError(
+                f"{name} is on {x.device} but the planning model is on {device}; move the "
+                f"inputs with .to({str(device)!r}) (or the planner with .to({str(x.device)!r}))."
+            )
+        if x.dtype != dtype:
+            raise ValueError(
+                f"{name} has dtype {x.dtype} but the planning model computes in {dtype}; "
+                f"pass {name}.to({dtype})."
+            )
+        check_finite(name, x.detach())
 
     def check_actions(self, actions: torch.Tensor, observation: torch.Tensor) -> None:
         """Validate candidates ``[*B, K, H, M]`` for ``observation`` ``[*B, N]``: shape, device,
@@ -695,13 +709,7 @@ class PlanningModel(nn.Module):
                 f"actions has shape {tuple(actions.shape)}; expected [*B, K, H, {self.action_dim}] "
                 f"with observation's batch dims {batch}."
             )
-        low = self.action_low
-        if actions.device != low.device or actions.dtype != low.dtype:
-            raise ValueError(
-                f"actions is {actions.dtype} on {actions.device}; expected {low.dtype} on "
-                f"{low.device}, the planning model's (pass actions.to({str(low.device)!r}, {low.dtype}))."
-            )
-        check_finite("actions", actions.detach())
+        self.check_placed("actions", actions)
 
     def forward(
         self,

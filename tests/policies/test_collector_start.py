@@ -63,15 +63,17 @@ class _OnAnotherDevice(TensorDictModuleBase):
         return self.policy(tensordict.clone())
 
 
-def _pendulum_policy(warmup: str, fitted: bool) -> tuple[MPCPolicy, object]:
+def _pendulum_policy(warmup: str) -> tuple[MPCPolicy, object]:
+    """An MPC policy on Pendulum-v1 whose world model's normalisation is fitted, and its env."""
     torch.manual_seed(0)
     env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
     world = LSTMWorldModel(3, 1, window=4)
-    if fitted:
-        obs = torch.randn(64, 3)
-        world.fit_normalization(obs, torch.rand(64, 1) * 4 - 2, obs + 0.1 * torch.randn(64, 3))
+    obs = torch.randn(64, 3)
+    world.fit_normalization(obs, torch.rand(64, 1) * 4 - 2, obs + 0.1 * torch.randn(64, 3))
     model = PlanningModel.from_env(world, pendulum, env)
-    planner = CEMPlanner(model, Objective(), horizon=5, num_candidates=16, iterations=2, num_elites=4)
+    planner = CEMPlanner(
+        model, Objective(), horizon=5, num_candidates=16, iterations=2, num_elites=4
+    )
     policy = MPCPolicy(planner, warmup=warmup)
     env.append_transform(policy.make_tensordict_primer())
     return policy, env
@@ -82,7 +84,7 @@ def test_a_collector_takes_back_every_output_when_the_policy_runs_on_a_copy():
     outputs from one call, the path TorchRL 0.14 gets right across devices (with a spec its
     update stops on a set of keys); every step's plan state comes back to the env (four random context steps, then a plan
     each step)."""
-    policy, env = _pendulum_policy("random", fitted=True)
+    policy, env = _pendulum_policy("random")
     assert policy.spec is None
     collector = Collector(env, _OnAnotherDevice(policy), frames_per_batch=8, total_frames=8)
     batch = next(iter(collector))
@@ -95,7 +97,7 @@ def test_a_collector_takes_back_every_output_when_the_policy_runs_on_a_copy():
 def test_plan_from_the_first_step_on_a_copy_with_use_buffers_off():
     """``warmup="plan"`` with the env on another device: ``use_buffers=False`` (the remedy the
     spec's docstring gives) collects, planning from the first step."""
-    policy, env = _pendulum_policy("plan", fitted=True)
+    policy, env = _pendulum_policy("plan")
     collector = Collector(
         env, _OnAnotherDevice(policy), frames_per_batch=4, total_frames=4, use_buffers=False
     )

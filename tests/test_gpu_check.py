@@ -62,6 +62,7 @@ def test_every_device_benchmark_is_a_step_of_the_check():
     assert check.BUDGET_S + 30 <= 8 * 60  # room for the start and the report
 
 
+@pytest.mark.slow  # 20 s; a GPU session's tool, its unit checks stay
 def test_dry_run_finds_every_step_wired(tmp_path):
     proc = _check(tmp_path, "--dry-run")
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -138,6 +139,7 @@ for argv in json.loads(sys.argv[2]):
 """
 
 
+@pytest.mark.slow  # 7 s; as above
 def test_every_full_size_benchmark_argv_passes_its_setup_on_the_cpu(tmp_path):
     """Each benchmark step's full-size argv (the GPU check's own), on the CPU, runs to the end of
     its setup (arguments accepted, recipes resolved: ``TORCHRL_RECON_SETUP_ONLY`` stops it

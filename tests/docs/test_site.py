@@ -82,6 +82,7 @@ def site(tmp_path_factory) -> tuple[Path, dict]:
     return shared / "html", json.loads(record.read_text())
 
 
+@pytest.mark.slow  # the Sphinx build (39 s); `make docs` builds it too
 def test_builds_without_warnings(site):
     _, outcome = site
     assert outcome["warnings"] == [], "\n".join(outcome["warnings"])
@@ -103,6 +104,7 @@ def inventory(html: Path) -> dict[str, tuple[str, str]]:
     return entries
 
 
+@pytest.mark.slow  # the Sphinx build (39 s); `make docs` builds it too
 def test_every_public_name_has_an_api_page(site):
     html, outcome = site
     assert (html / "objects.inv").exists(), outcome["stderr"]
@@ -123,6 +125,7 @@ def test_every_public_name_has_an_api_page(site):
     assert not empty, f"API entries whose page lacks the object's description: {empty}"
 
 
+@pytest.mark.slow  # the Sphinx build (39 s); `make docs` builds it too
 def test_api_pages_show_signature_docstring_and_example(site):
     html, _ = site
     page = (html / "api/generated/torchrl_recon.planners.CEMPlanner.html").read_text()
@@ -152,6 +155,7 @@ class Links(HTMLParser):
             self.hrefs.append(attrs["href"])
 
 
+@pytest.mark.slow  # the Sphinx build (39 s); `make docs` builds it too
 def test_internal_links_resolve(site):
     html, outcome = site
     pages = sorted(html.rglob("*.html"))
@@ -181,6 +185,7 @@ def test_internal_links_resolve(site):
     assert not broken, f"{len(broken)} broken internal links:\n" + "\n".join(broken[:50])
 
 
+@pytest.mark.slow  # the Sphinx build (39 s); `make docs` builds it too
 def test_guides_and_figures_are_in_the_site(site):
     html, _ = site
     guides = [p.relative_to(DOCS).with_suffix(".html") for p in DOCS.rglob("*.md")]

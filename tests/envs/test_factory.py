@@ -145,6 +145,7 @@ def _check_batched(env, cls) -> None:
     assert not torch.equal(td["observation"][0, 0], td["observation"][1, 0])
 
 
+@pytest.mark.slow  # 12 s of process start-up; the batched env tests cover num_envs
 def test_parallel_env(build):
     # The only ParallelEnv test: worker processes take seconds to start. Under pytest the
     # spawned workers never import torchrl_recon through __main__, so this also checks that the

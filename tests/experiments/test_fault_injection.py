@@ -17,9 +17,9 @@ Kill points, for every stage of the recipe:
 - ``writing``: as soon as the stage's first output appears (its buffer folder, checkpoint,
   first ``part_<i>.json`` or RNG state), before its record.
 
-``make test`` runs the unmarked tests: per recipe one chain of three kills (two boundaries, one
-mid-stage), each resume a fresh process. The single kill points are ``slow``:
-``make test-faults`` (``pytest tests/experiments/test_fault_injection.py``) runs them all.
+The whole file is ``slow`` (its reference runs and kill chains took 70 s of make test's time;
+``test_cli_errors`` kills and resumes a run in make test): ``make test-faults``
+(``pytest tests/experiments/test_fault_injection.py``) and ``make test-all`` run it.
 
 Damage: each kind of file of a finished control run is truncated, garbled or deleted and the
 same command run again. The run must refuse with one ``error:`` line naming the file (exit code
@@ -51,6 +51,7 @@ from torchrl_recon.experiments.common import batches
 from torchrl_recon.experiments.compose import compose_recipe
 from torchrl_recon.experiments.registry import get_type
 
+pytestmark = pytest.mark.slow
 INTEGRITY_CHECKS_MERGED = True
 """Set to True once run directories check their files: the damaged-file tests then must pass."""
 
@@ -445,10 +446,7 @@ def kill_and_resume(
     assert_same_run(run_dir, reference(kind).run_dir, "; ".join(where))
 
 
-@pytest.mark.parametrize(
-    "kind",  # control's chain (43 s) runs in make test-faults / test-all; explore's in make test
-    [k if k == "explore" else pytest.param(k, marks=pytest.mark.slow) for k in sorted(CHAINS)],
-)
+@pytest.mark.parametrize("kind", sorted(CHAINS))
 def test_killed_three_times_resumes_to_the_same_run(kind, reference, tmp_path, request):
     """Two boundaries and one mid-stage kill, each resumed by the same command in a new process."""
     points = [KillPoint(stage, where) for stage, where in CHAINS[kind]]

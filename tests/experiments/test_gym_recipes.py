@@ -104,6 +104,7 @@ def test_pendulum_control_smoke_through_the_cli_and_resumed(costs, tmp_path, cap
     assert results["beta_unit"] > 0
 
 
+@pytest.mark.slow  # 6 s; the Pendulum control smoke covers the gym path
 def test_pendulum_explore_smoke_through_the_cli(costs, tmp_path, capsys):
     out = tmp_path / "explore"
     code = main(
@@ -115,6 +116,7 @@ def test_pendulum_explore_smoke_through_the_cli(costs, tmp_path, capsys):
     assert results["env"] == "Pendulum-v1" and results["data"]["active_arm_steps"] == 50
 
 
+@pytest.mark.slow  # 12.5 s; test_custom_env_tutorial runs a user env
 def test_a_user_env_and_cost_from_their_own_module(tmp_path):
     """The user's module (env registered with gymnasium + torch cost) on PYTHONPATH only."""
     module, env_id = f"user_envs_{uuid.uuid4().hex[:8]}", "Drift-v0"

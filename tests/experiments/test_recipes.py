@@ -16,8 +16,12 @@ import yaml
 from torchrl_recon.cli import main
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+# make test runs each kind on the IB and control on the Drone; the Minitaur's (29 s) and the
+# Drone's explore in make test-all
 SMOKE = [
     (kind, env)
+    if env == "industrial_benchmark" or (env, kind) == ("drone", "control")
+    else pytest.param(kind, env, marks=pytest.mark.slow)
     for env in ("industrial_benchmark", "drone", "minitaur")
     for kind in ("explore", "control")
 ]
@@ -69,6 +73,7 @@ def test_smoke_recipe_runs_end_to_end(kind, env, tmp_path):
     )
 
 
+@pytest.mark.slow  # 15 s; test_experiments' explore resume covers stop_after
 def test_stopped_recipe_resumes_to_the_same_results(tmp_path):
     recipe = RECIPES / "industrial_benchmark" / "explore_smoke.yaml"
     assert _run("explore", recipe, f"output_dir={tmp_path / 'full'}").returncode == 0
@@ -92,8 +97,10 @@ CALIBRATION_METRICS = (
 )
 
 
-@pytest.mark.parametrize(  # IB's (19 s) in make test-all; the Drone's and Minitaur's here
-    "env", (pytest.param("industrial_benchmark", marks=pytest.mark.slow), "drone", "minitaur")
+@pytest.mark.parametrize(  # IB's (19 s) and the Minitaur's (13 s) in make test-all; the Drone's here
+    "env",
+    [pytest.param(e, marks=pytest.mark.slow) for e in ("industrial_benchmark", "minitaur")]
+    + ["drone"],
 )
 def test_calibrate_smoke_recipe_runs_end_to_end(env, tmp_path):
     """All five estimators fitted, judged and timed; the outcome runs on IB only (time)."""

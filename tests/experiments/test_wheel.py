@@ -10,12 +10,15 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
 from torchrl_recon.cli import main, shipped_recipes
 from torchrl_recon.experiments.compose import RECIPES_DIR
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow  # 11 s wheel build
 def test_the_wheel_holds_the_recipes_and_an_install_finds_them_by_name(tmp_path):
     source = tmp_path / "source"  # built from a copy: the checkout gets no build/ or egg-info
     source.mkdir()

@@ -214,7 +214,10 @@ def _linear_system(num: int, length: int, generator: torch.Generator):
     return torch.stack(obs, 1), action
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize(  # the ensemble of world models (11 s) in make test-all
+    "kind",
+    [pytest.param(k, marks=pytest.mark.slow) if k == "world_model_ensemble" else k for k in KINDS],
+)
 def test_u_is_higher_out_of_distribution(kind):
     generator = torch.Generator().manual_seed(0)
     obs, action = _linear_system(32, 30, generator)

@@ -59,7 +59,7 @@ def test_fused_rollout_passes_gradcheck(activation):
     )
 
 
-@pytest.mark.parametrize("activation", ["relu", "tanh"])
+@pytest.mark.parametrize("activation", ["relu", pytest.param("tanh", marks=pytest.mark.slow)])
 def test_a_populations_fused_rollout_passes_gradcheck(activation):
     """The member path (one sigmoid over the gates, one weight-gradient matmul after the loop)
     against finite differences (float64), two members apart, weights included."""

@@ -83,7 +83,9 @@ PLANNERS = {
 }
 
 
-@pytest.mark.parametrize("kind", sorted(PLANNERS))
+@pytest.mark.parametrize(  # MPPI and iCEM (8 s) in make test-all; CEM here
+    "kind", [k if k == "cem" else pytest.param(k, marks=pytest.mark.slow) for k in sorted(PLANNERS)]
+)
 def test_pendulum_mpc_beats_random(kind, pendulum_models):
     env, data, world, estimator = pendulum_models
     # The cost's scale on the random data makes β meaningful (a raw 0.1 would be ~nothing).

@@ -56,7 +56,13 @@ PLANNERS = {
 }
 
 
-@pytest.mark.parametrize("kind", sorted(PLANNERS))
+@pytest.mark.parametrize(  # MPPI and shooting (11 s) in make test-all; CEM and iCEM here
+    "kind",
+    [
+        k if k in ("cem", "icem") else pytest.param(k, marks=pytest.mark.slow)
+        for k in sorted(PLANNERS)
+    ],
+)
 def test_the_whole_plan_is_one_graph_and_plans_what_eager_does(kind):
     planner = PLANNERS[kind](_model(), Objective(beta=0.1))
     ctx = _context()

@@ -363,6 +363,7 @@ def ib_policy_factory(trained_models):
     return trained, build
 
 
+@pytest.mark.slow  # 50 s with its trained IB models; the drone policy's u re-plan tests cover the logic
 @pytest.mark.parametrize("kind", ["cem", "mppi", "icem"])
 def test_uncertainty_triggered_replanning_on_a_trained_model(ib_policy_factory, kind):
     trained, build = ib_policy_factory
@@ -408,6 +409,7 @@ def test_policy_in_a_collector_with_two_parallel_envs():
     assert torch.isfinite(batch["mpc_predicted_next_observation"][planned]).all()
 
 
+@pytest.mark.slow  # 12 s; the two-env collector test covers the policy in a collector
 def test_policy_in_a_multisync_collector():
     policy = _small_drone_policy(replan="every_n", replan_every=3)
     primer = policy.make_tensordict_primer()

@@ -232,3 +232,18 @@ def test_cpu_blocks_accepts_make_cpu_cores_arguments(threads, monkeypatch):
     with pytest.raises(SystemExit) as stop:
         _run("cpu_blocks.py", "--block-threads", threads, "--repeats", "10")
     assert stop.value.code == 0
+
+
+def test_code_shape_prints_each_measure_with_its_target_and_measures_a_body():
+    """Issue 59's measures come from the source: six lines ``name: value (target <= n)``, and a
+    function body's length leaves its docstring out."""
+    import ast
+
+    with mock.patch.object(sys, "argv", [str(BENCHMARKS / "code_shape.py")]):
+        out = io.StringIO()
+        with redirect_stdout(out):
+            shape = runpy.run_path(str(BENCHMARKS / "code_shape.py"), run_name="__main__")
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 6 and all(re.fullmatch(r".+: \d+ \(target <= \d+\)", s) for s in lines)
+    source = 'def f():\n    """Doc\n    string."""\n    a = 1\n    return a\n'
+    assert shape["body_lines"](ast.parse(source).body[0]) == 2

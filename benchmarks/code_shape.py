@@ -1,0 +1,101 @@
+"""The shape measures of issue 59 over ``torchrl_recon/``, measured from the source each time.
+
+Prints one line per measure: its value now and its target. Counts a file once however often it
+spells the pattern; reads only ``.py`` files; needs no install beyond the package itself.
+
+    python benchmarks/code_shape.py            # the table
+    python benchmarks/code_shape.py --longest 5  # and the five longest function bodies
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import re
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "torchrl_recon"
+SPELLINGS = {  # measure -> (regex, target): files that spell the speed path
+    "files that spell CUDA-graph capture": (r"CUDAGraph|cuda_graph|torch\.cuda\.graph", 3),
+    "files that spell CPU row-block threads": (
+        r"run_aside|run_blocks|threaded_pass|blocks_in_threads|cpu_threads",
+        2,
+    ),
+    "files that spell torch.compile or its helpers": (
+        r"torch\.compile\b|torch\.compiler\.|torch\._dynamo|compile_mode|mark_dynamic",
+        5,
+    ),
+}
+LONGEST_TARGET = 60
+EXPORTS_TARGET = 16
+ROOT_TARGET = 5
+
+
+def sources() -> list[Path]:
+    """Every ``.py`` file of the package, sorted."""
+    return sorted(PACKAGE.rglob("*.py"))
+
+
+def files_spelling(pattern: str) -> list[Path]:
+    """The files whose text matches ``pattern``."""
+    found = re.compile(pattern)
+    return [p for p in sources() if found.search(p.read_text())]
+
+
+def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines of a function's body, its docstring left out."""
+    body = node.body
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        if isinstance(body[0].value.value, str):
+            body = body[1:]
+    if not body:
+        return 0
+    return body[-1].end_lineno - body[0].lineno + 1
+
+
+def function_bodies() -> list[tuple[int, str]]:
+    """``(body lines, "path:line name")`` of every function and method, longest first."""
+    rows = []
+    for path in sources():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                where = f"{path.relative_to(PACKAGE.parent)}:{node.lineno} {node.name}"
+                rows.append((body_lines(node), where))
+    return sorted(rows, reverse=True)
+
+
+def planners_exports() -> int:
+    """``len(torchrl_recon.planners.__all__)``, read from its source (nothing imported)."""
+    tree = ast.parse((PACKAGE / "planners" / "__init__.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets
+        ):
+            return len(ast.literal_eval(node.value))
+    return 0
+
+
+def root_modules() -> list[str]:
+    """Modules at the package root, ``__init__`` aside."""
+    return sorted(p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--longest", type=int, default=0, help="list this many longest bodies")
+    args = parser.parse_args(argv)
+    bodies = function_bodies()
+    rows = [(name, len(files_spelling(rx)), target) for name, (rx, target) in SPELLINGS.items()]
+    rows += [
+        ("longest function body (lines, docstring excluded)", bodies[0][0], LONGEST_TARGET),
+        ("names torchrl_recon.planners exports", planners_exports(), EXPORTS_TARGET),
+        ("modules at the package root", len(root_modules()), ROOT_TARGET),
+    ]
+    for name, value, target in rows:
+        print(f"{name}: {value} (target <= {target})")
+    for lines, where in bodies[: args.longest]:
+        print(f"  {lines:4d}  {where}")
+
+
+if __name__ == "__main__":
+    main()

@@ -152,13 +152,15 @@ def make_online_trainer(
     logger: Logger | None = None,
     hooks: list[TrainerHookBase] | None = None,
 ) -> OnlineTrainer:
-    """The online agent's :class:`~torchrl_recon.trainers.OnlineTrainer` from partial configs:
-    the world model and the estimator get the env's observation and action sizes, one
-    planning model holds them, the planner gets it with ``objective`` (and, for the first
-    ``explore_iterations``, a second planner with ``exploration``, an
-    :func:`~torchrl_recon.policies.exploration_objective`), the policy gets the planner, and
-    an :class:`~torchrl_recon.trainers.OnlineCollector` plays them. ``hooks``: more Trainer
-    hooks (TorchRL's or the library's), each registered at its default stage.
+    """The online agent's :class:`~torchrl_recon.trainers.OnlineTrainer` from partial configs
+    (the config store's ``trainer: online``): the world model and the estimator get the env's
+    observation and action sizes, one planning model holds them, and
+    :meth:`OnlineTrainer.from_env <torchrl_recon.trainers.OnlineTrainer.from_env>` (the one
+    builder) gets the planner on it with ``objective`` (and, for the first
+    ``explore_iterations``, with ``exploration``, an
+    :func:`~torchrl_recon.policies.exploration_objective`) and ``policy`` to wrap it.
+    ``hooks``: more Trainer hooks (TorchRL's or the library's), each registered at its default
+    stage.
 
     Examples:
         >>> import functools
@@ -189,29 +191,23 @@ def make_online_trainer(
         compile=planning_compile,
         threads=planning_threads,
     )
-    explorer = None
-    if explore_iterations:
-        explorer = ExplorationPolicy(planner(model, exploration or exploration_objective()))
-    trainer = OnlineTrainer.from_env(
+    return OnlineTrainer.from_env(
         env,
         world,
         uncertainty,
-        policy(planner(model, objective)) if iterations > explore_iterations else None,
+        lambda: planner(model, objective),
         iterations=iterations,
         steps_per_iteration=steps_per_iteration,
         random_steps=random_steps,
-        explorer=explorer,
+        schedule=schedule,
+        make_policy=policy,
         explore_iterations=explore_iterations,
+        make_explorer=lambda: planner(model, exploration or exploration_objective()),
         seed=seed,
         progress=progress,
-        schedule=schedule,
         logger=logger,
+        hooks=hooks,
     )
-    for hook in hooks or []:
-        if not isinstance(hook, TrainerHookBase):
-            raise TypeError(f"hooks must be TrainerHookBase instances, got {type(hook).__name__}.")
-        hook.register(trainer)
-    return trainer
 
 
 def _planner_name(kind: str) -> str:

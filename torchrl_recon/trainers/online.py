@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from tensordict import TensorDictBase
@@ -11,7 +12,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
-from torchrl.trainers import ReplayBufferTrainer
+from torchrl.trainers import ReplayBufferTrainer, TrainerHookBase
 
 from torchrl_recon.data import quiet_storage_init
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
@@ -71,6 +72,8 @@ class OnlineTrainer(VerifiedTrainer):
         reward_model: a learned reward and termination the planners read
             (:class:`~torchrl_recon.modules.RewardModel`), fitted with the world model and in
             the Trainer's checkpoints; None (default) when the cost is given.
+        hooks: more Trainer hooks (TorchRL's or the library's), each registered at its default
+            stage after the above.
         trainer_kwargs: more of ``Trainer``'s keywords (``save_trainer_file``, ``checkpoint``,
             ``log_timings``, ...). Checkpoints are a :class:`VerifiedTrainer`'s: checked
             against a manifest of their files' sizes and SHA-256 before anything is loaded.
@@ -107,6 +110,7 @@ class OnlineTrainer(VerifiedTrainer):
         logger: Logger | None = None,
         on_iteration: Callable[[IterationRecord], None] | None = None,
         reward_model: RewardModel | None = None,
+        hooks: Sequence[TrainerHookBase] | None = None,
         **trainer_kwargs: Any,
     ) -> None:
         check_type(
@@ -152,6 +156,12 @@ class OnlineTrainer(VerifiedTrainer):
             self.register_module("uncertainty", estimator)
         if reward_model is not None:
             self.register_module("reward_model", reward_model)
+        for hook in hooks or ():
+            if not isinstance(hook, TrainerHookBase):
+                raise TypeError(
+                    f"hooks must be TrainerHookBase instances, got {type(hook).__name__}."
+                )
+            hook.register(self)
 
     @classmethod
     def from_env(
@@ -159,19 +169,68 @@ class OnlineTrainer(VerifiedTrainer):
         env: EnvBase,
         world_model: LSTMWorldModel,
         estimator: UncertaintyEstimator | None,
-        policy: MPCPolicy | None,
+        make_planner: Callable[[], PlannerBase] | None,
         *,
         iterations: int,
         steps_per_iteration: int,
         random_steps: int,
-        explorer: MPCPolicy | None = None,
+        schedule: FitSchedule | None = None,
+        make_policy: Callable[[PlannerBase], MPCPolicy] = MPCPolicy,
         explore_iterations: int = 0,
+        make_explorer: Callable[[], PlannerBase] | None = None,
         seed: int = 0,
         progress: bool = True,
         **kwargs: Any,
     ) -> OnlineTrainer:
-        """The Trainer of an :class:`OnlineCollector` playing ``policy`` (``explorer`` in the
-        first ``explore_iterations``) on ``env``; ``kwargs``: this class's other keywords."""
+        """The online agent's Trainer from its planners: the one builder, which
+        :func:`learn_online` and the config store's ``trainer: online``
+        (:func:`~torchrl_recon.configs.make_online_trainer`) call. An :class:`OnlineCollector`
+        plays ``make_policy(make_planner())`` on ``env`` (an
+        :class:`~torchrl_recon.policies.ExplorationPolicy` of ``make_explorer()`` in the first
+        ``explore_iterations``); the learned reward model the planners read, if any, is fitted
+        with the networks (``learned_reward``). Every argument is checked before the env
+        is touched (the schedule before a planner is built).
+
+        Args:
+            env, world_model, estimator: as in :func:`learn_online`.
+            make_planner: returns the controlling planner; called once, here (None when every
+                iteration explores).
+
+        Keyword Args:
+            make_policy: wraps the planner into the MPC policy (default
+                :class:`~torchrl_recon.policies.MPCPolicy`).
+            make_explorer: returns the exploring planner (needs an ``estimator``).
+            kwargs: this class's other keywords (``logger``, ``on_iteration``, ``hooks``, ...).
+
+        Examples:
+            >>> from torchrl_recon.envs import make_env
+            >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+            >>> env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
+            >>> world = LSTMWorldModel(3, 1, window=4)
+            >>> cost = lambda s, a, s1: s1[..., 2].pow(2) + (1 - s1[..., 0])
+            >>> model = PlanningModel.from_env(world, cost, env)
+            >>> trainer = OnlineTrainer.from_env(env, world, None,
+            ...     lambda: CEMPlanner(model, Objective(), horizon=5, num_candidates=16,
+            ...                        num_elites=4),
+            ...     iterations=1, steps_per_iteration=20, random_steps=60, progress=False)
+            >>> trainer.collector.policy_name(1), trainer.collector.total_frames
+            ('mpc', 80)
+        """
+        controls = iterations > explore_iterations
+        check_online(iterations, steps_per_iteration, random_steps, explore_iterations, schedule)
+        if explore_iterations and (make_explorer is None or estimator is None):
+            raise ValueError(
+                f"explore_iterations={explore_iterations} needs make_explorer and an estimator "
+                "(exploration seeks the estimator's uncertainty)."
+            )
+        if controls and make_planner is None:
+            raise ValueError(
+                f"iterations={iterations} with explore_iterations={explore_iterations}: the "
+                "MPC iterations need make_planner."
+            )
+        explorer = ExplorationPolicy(make_explorer()) if explore_iterations else None
+        policy = make_policy(make_planner()) if controls else None
+        planners = [p.planner for p in (policy, explorer) if p is not None]
         collector = OnlineCollector(
             env,
             policy,
@@ -187,8 +246,10 @@ class OnlineTrainer(VerifiedTrainer):
             collector=collector,
             world_model=world_model,
             estimator=estimator,
+            schedule=schedule,
             seed=seed,
             progress=progress,
+            reward_model=learned_reward(planners),
             **kwargs,
         )
 
@@ -262,42 +323,50 @@ def learn_online(
         >>> [r.iteration for r in records], [r.env_steps for r in records], len(data)
         ([0, 1], [60, 80], 80)
     """
-    # checked before the random data are collected and the first fit runs
-    check_schedule(iterations, steps_per_iteration, random_steps, explore_iterations)
-    if schedule is not None and not isinstance(schedule, FitSchedule):
-        raise TypeError(f"schedule must be a FitSchedule or None, got {type(schedule).__name__}.")
-    try:
+    try:  # checked, like every argument, before the random data are collected
         inspect.signature(MPCPolicy).bind(None, **(policy_kwargs or {}))
     except TypeError as err:
         raise TypeError(f"policy_kwargs: {err} (they are MPCPolicy's keywords).") from None
-    if explore_iterations and (make_explorer is None or estimator is None):
-        raise ValueError(
-            f"explore_iterations={explore_iterations} needs make_explorer and an estimator "
-            "(exploration seeks the estimator's uncertainty)."
-        )
-    explorer = ExplorationPolicy(make_explorer()) if explore_iterations else None
-    controls = iterations > explore_iterations
-    planner = make_planner() if controls else None
-    planners = [p for p in (planner, explorer and explorer.planner) if p is not None]
     trainer = OnlineTrainer.from_env(
         env,
         world_model,
         estimator,
-        MPCPolicy(planner, **(policy_kwargs or {})) if controls else None,
+        make_planner,
         iterations=iterations,
         steps_per_iteration=steps_per_iteration,
         random_steps=random_steps,
-        explorer=explorer,
+        schedule=schedule,
+        make_policy=functools.partial(MPCPolicy, **(policy_kwargs or {})),
         explore_iterations=explore_iterations,
+        make_explorer=make_explorer,
         seed=seed,
         progress=progress,
-        schedule=schedule,
         logger=logger,
         on_iteration=on_iteration,
-        reward_model=learned_reward(planners),
     )
     trainer.train()
     return trainer.records, trainer.data()
+
+
+def check_online(
+    iterations: int,
+    steps_per_iteration: int,
+    random_steps: int,
+    explore_iterations: int,
+    schedule: Any,
+) -> None:
+    """Refuse an online schedule out of range (:func:`~.collector.check_schedule`) or a
+    ``schedule`` that is not a :class:`~torchrl_recon.training.online.FitSchedule` (or None).
+
+    Examples:
+        >>> check_online(2, 10, 20, 0, {"steps": 2})
+        Traceback (most recent call last):
+        ...
+        TypeError: schedule must be a FitSchedule or None, got dict.
+    """
+    check_schedule(iterations, steps_per_iteration, random_steps, explore_iterations)
+    if schedule is not None and not isinstance(schedule, FitSchedule):
+        raise TypeError(f"schedule must be a FitSchedule or None, got {type(schedule).__name__}.")
 
 
 def learned_reward(planners: list[PlannerBase]) -> RewardModel | None:

@@ -258,15 +258,24 @@ def test_env_termination_is_imported_and_checked_before_any_work(costs, tmp_path
     assert model.termination_fn.__name__ == "fallen"
 
 
-PUBLISHED_ONLINE = ROOT / "docs" / "results" / "online"
+PUBLISHED = ROOT / "docs" / "results"
 
 
 @pytest.mark.parametrize(
     "recipe, env_id, published",
     [
-        ("online_pendulum", "Pendulum-v1", "Pendulum-v1_one_step"),
-        ("online_mountain_car", "MountainCarContinuous-v0", "MountainCarContinuous-v0"),
-        ("online_inverted_pendulum", "InvertedPendulum-v5", "InvertedPendulum-v5_upright"),
+        ("online_pendulum", "Pendulum-v1", "online/Pendulum-v1_one_step"),
+        ("online_mountain_car", "MountainCarContinuous-v0", "online/MountainCarContinuous-v0"),
+        (
+            "online_inverted_pendulum",
+            "InvertedPendulum-v5",
+            "standard_tasks/InvertedPendulum-v5_one_step_beta2",
+        ),
+        (
+            "online_inverted_pendulum_shaped",
+            "InvertedPendulum-v5",
+            "online/InvertedPendulum-v5_upright",
+        ),
     ],
 )
 def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(
@@ -279,7 +288,7 @@ def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(
     cfg = load_recipe(GYM / f"{recipe}.yaml", ["seed=0"])
     assert cfg.env.id == env_id and cfg.env.cost.startswith("torchrl_recon.envs.gym_costs:")
     assert cfg.random_steps >= cfg.env.episode_steps == cfg.steps_per_iteration
-    published = PUBLISHED_ONLINE / published / "seed0" / "config.yaml"
+    published = PUBLISHED / published / "seed0" / "config.yaml"
     if not published.exists():
         pytest.skip(f"no published run of {recipe}")
     from torchrl_recon.experiments.run_dir import config_differences, read_config

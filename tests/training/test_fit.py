@@ -355,6 +355,28 @@ def test_best_weights_are_restored_at_the_end():
     assert result.best_val_loss == pytest.approx(-w_at_10, rel=1e-9)
 
 
+def test_a_users_loss_that_turns_nan_stops_the_fit_at_its_best_weights():
+    """A loss module that returns NaN without raising (a user's, unlike the library's, which
+    check their own loss): the one loop checks every member's loss, so one model's fit stops
+    at that step with one sentence and its best weights back, as a member's does."""
+    loss = _LinearLoss(1.0)
+    calls = [0]
+
+    def nan_from_the_7th_step(module, inputs, output):
+        calls[0] += 1
+        return output.apply(lambda v: v * math.nan) if calls[0] > 6 + 2 else output
+
+    handle = loss.register_forward_hook(nan_from_the_7th_step)  # 6 steps, 2 validations
+    fit = dict(steps=20, eval_every=3, val_batches=1, lr=0.1, lr_decay=False, progress=False)
+    with pytest.raises(FloatingPointError) as info:
+        train_loss_module(loss, _ones_buffer(), **fit)
+    handle.remove()
+    assert str(info.value) == (
+        "Training stopped at step 7: the loss is not finite; check the data and the learning rate."
+    )
+    assert float(loss.w.detach()) == pytest.approx(1.0 - 6 * 0.1 / (1 + ADAM_EPS), rel=1e-6)
+
+
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])
 

@@ -1,18 +1,21 @@
-"""Fit the world model and the uncertainty estimators from TorchRL replay buffers."""
+"""Fit the world model and the uncertainty estimators from TorchRL replay buffers.
+
+Every fit runs one loop, :func:`_fit_loop`, over R members (one model: R = 1): what it trains
+is a :class:`~torchrl_recon.training.fit_data.FitData`, its settings one :class:`FitSettings`,
+its step one :class:`~torchrl_recon.training.fit_step.FitStep` (eager, compiled or captured),
+its early stopping and best weights one :class:`~torchrl_recon.training.early_stopping.EarlyStopping`.
+The entry points check their arguments, fit the normalisation and build those four.
+"""
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import inspect
-import math
 import numbers
-import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
-from functools import partial
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 from tensordict import TensorDictBase
@@ -22,29 +25,27 @@ from torchrl.objectives import LossModule
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from torchrl_recon.data.buffers import MASK_KEY, buffer_contents
+from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.devices import check_compile_support
 from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real, check_type
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
-from torchrl_recon.modules.population import ReconstructionPopulation
-from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.reward_model import RewardModel
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives import (
-    RewardLoss,
-    UncertaintyLoss,
-    WorldModelPredictionLoss,
-    as_sequences,
-)
+from torchrl_recon.objectives import RewardLoss, UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.training.checkpoint import save_checkpoint
-from torchrl_recon.training.fit_graph import (
-    CapturedStep,
-    capturable_adam,
-    check_cuda_graph,
-    restore_frozen,
+from torchrl_recon.training.early_stopping import EarlyStopping
+from torchrl_recon.training.fit_data import (
+    Batches,
+    FitData,
+    MemberRNG,
+    ProcessRNG,
+    one_member,
+    population_loss,
 )
+from torchrl_recon.training.fit_graph import CapturedStep, capturable_adam, check_cuda_graph
+from torchrl_recon.training.fit_step import COMPILING, FitStep, GraphStep, Update
 
 
 @dataclass
@@ -56,9 +57,41 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
 
 
-def _loss_value(loss_module: LossModule, batch) -> torch.Tensor:
-    out = loss_module(batch)
-    return sum(v for k, v in out.items() if k.startswith("loss"))
+@dataclass(frozen=True)
+class FitSettings:
+    """The settings of a fit's loop, every fit's: :func:`train_loss_module`'s keywords (and
+    :func:`fit_population`'s ``cuda_graph``), checked when made (:func:`check_fit_settings`).
+
+    Examples:
+        >>> FitSettings(steps=10, eval_every=5).clip_norm
+        10.0
+        >>> FitSettings(lr=0.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: lr must be a finite number > 0, got 0.0.
+    """
+
+    steps: int = 2000
+    lr: float = 1e-3
+    lr_decay: bool = True
+    weight_decay: float = 0.0
+    clip_norm: float | None = 10.0
+    eval_every: int = 100
+    val_batches: int = 8
+    patience: int | None = 10
+    logger: Logger | None = None
+    log_prefix: str = ""
+    progress: bool = True
+    compile: bool = False
+    cuda_graph: bool = False
+
+    def __post_init__(self) -> None:
+        check_fit_settings(**{f.name: getattr(self, f.name) for f in fields(self)})
+
+    @classmethod
+    def of(cls, arguments: dict[str, Any]) -> FitSettings:
+        """The settings among an entry point's ``arguments`` (its ``locals()``), the others left."""
+        return cls(**{f.name: arguments[f.name] for f in fields(cls) if f.name in arguments})
 
 
 def _check_compile(compile: bool, module: nn.Module) -> None:
@@ -68,17 +101,11 @@ def _check_compile(compile: bool, module: nn.Module) -> None:
         check_compile_support(module_device(module))
 
 
-def _training_loss(fn: Callable[..., torch.Tensor], compile: bool) -> Callable[..., torch.Tensor]:
-    """``fn`` for the training steps: itself, or with ``compile`` under ``torch.compile``
-    (static shapes: every batch of a fit has one shape). Validation stays eager."""
-    return torch.compile(fn, dynamic=False) if compile else fn
-
-
 def _input_error(eager_fn: Callable[..., torch.Tensor], batch) -> ValueError | None:
-    """After a compiled training step's non-finite loss: the ``ValueError`` the eager step's
-    input checks (left out while compiled, see :func:`~torchrl_recon.modules.checks.check_finite`)
-    raise on the same ``batch``, naming the input as an eager fit would; None where the inputs
-    are finite (the loss itself diverged)."""
+    """After a compiled or captured training step's non-finite loss: the ``ValueError`` the
+    eager step's input checks (left out there, see
+    :func:`~torchrl_recon.modules.checks.check_finite`) raise on the same ``batch``, naming the
+    input as an eager fit would; None where the inputs are finite (the loss itself diverged)."""
     try:
         with torch.no_grad():
             eager_fn(batch)
@@ -132,11 +159,6 @@ def _stopped(step: int, err: BaseException, where: str = "") -> str:
     return f"Training stopped at step {step}: {str(err).rstrip('.')}{where}."
 
 
-COMPILING = "torch.compile: the first step compiles"
-"""What a compiled fit's progress bar says until its first step is done (on a CPU a cold
-compile takes tens of seconds, with the bar at 0)."""
-
-
 def _fit_bar(steps: int, log_prefix: str, progress: bool, compile: bool) -> tqdm:
     """The fit's progress bar over steps ``1..steps``; with ``compile`` it says so (see
     :data:`COMPILING`) until the caller clears it after the first step."""
@@ -145,11 +167,6 @@ def _fit_bar(steps: int, log_prefix: str, progress: bool, compile: bool) -> tqdm
     if compile:
         bar.set_postfix_str(COMPILING)
     return bar
-
-
-@torch.no_grad()
-def _evaluate(loss_module: LossModule, batches: list) -> float:
-    return float(sum(_loss_value(loss_module, b) for b in batches) / len(batches))
 
 
 @contextlib.contextmanager
@@ -252,123 +269,180 @@ def train_loss_module(
         20
     """
     check_type("loss_module", loss_module, nn.Module, "a torchrl LossModule")
+    check_type("loss_module", loss_module, nn.Module, "a torchrl LossModule")
     _check_buffer("buffer", buffer)
-    counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
-    check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
+    settings = FitSettings.of(locals())
     _check_seed(seed)
     _check_compile(compile, loss_module)
     if len(buffer) == 0:
         raise ValueError("The training replay buffer is empty; collect data before fitting.")
+    val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
     with _cached_boundaries(buffer, val_buffer):
-        return _train_loss_module(
+        data = FitData(
             loss_module,
-            buffer,
-            val_buffer=val_buffer,
-            steps=steps,
-            lr=lr,
-            lr_decay=lr_decay,
-            weight_decay=weight_decay,
-            clip_norm=clip_norm,
-            eval_every=eval_every,
-            val_batches=val_batches,
-            patience=patience,
-            seed=seed,
-            logger=logger,
-            log_prefix=log_prefix,
-            progress=progress,
-            checkpoint_path=checkpoint_path,
-            checkpoint_modules=checkpoint_modules,
-            compile=compile,
+            one_member(loss_module),
+            [buffer],
+            [val_source],
+            ProcessRNG(seed),  # the process's RNG, seeded: as this fit has always drawn
+            data_keys=_loss_keys(loss_module),
         )
+        (result,) = _fit_loop(data, settings, checkpoint_path, checkpoint_modules)
+    return result
 
 
-def _train_loss_module(
-    loss_module: LossModule,
-    buffer: TensorDictReplayBuffer,
-    *,
-    val_buffer: TensorDictReplayBuffer | None,
-    steps: int,
-    lr: float,
-    lr_decay: bool,
-    weight_decay: float,
-    clip_norm: float | None,
-    eval_every: int,
-    val_batches: int,
-    patience: int | None,
-    seed: int,
-    logger: Logger | None,
-    log_prefix: str,
-    progress: bool,
-    checkpoint_path: str | Path | None,
-    checkpoint_modules: dict[str, nn.Module] | None,
-    compile: bool,
-) -> FitResult:
-    """The loop of :func:`train_loss_module` (arguments checked)."""
-    torch.manual_seed(seed)
-    params = [p for p in loss_module.parameters() if p.requires_grad]
-    optimizer = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+def _fit_loop(
+    data: FitData,
+    settings: FitSettings,
+    checkpoint_path: str | Path | None = None,
+    checkpoint_modules: dict[str, nn.Module] | None = None,
+) -> list[FitResult]:
+    """The loop of every fit, for R = ``data.count`` members (arguments checked): Adam on the
+    members' summed losses, each member validated every ``eval_every`` steps, stopped on its
+    own and given back its best weights at the end. One model (R = 1) saves its best weights to
+    ``checkpoint_path`` (``checkpoint_modules``) when given."""
+    s, device, count = settings, module_device(data.module), data.count
+    stopping = EarlyStopping(data.module, count, s.patience)
+    fixed_val = data.validation(s.val_batches, device)
+    step_fn = _fit_step(data, s, stopping, device)
+    where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""
+    save = (checkpoint_path, checkpoint_modules) if checkpoint_path and checkpoint_modules else None
+    histories: list[list[dict]] = [[] for _ in range(count)]
+    bar = _fit_bar(s.steps, s.log_prefix, s.progress, s.compile)
+    for step in bar:
+        batches = data.sample(stopping.active, device)
+        losses = _run_step(step_fn, batches, step, data, stopping, where)
+        stopping.ran(step)
+        if s.compile and step == 1:
+            bar.set_postfix_str("")
+        if step % s.eval_every == 0 or step == s.steps:
+            val = _validation_losses(data.losses_of, fixed_val)
+            for r in range(count):
+                if not stopping.active[r]:
+                    continue
+                train_loss, val_loss = float(losses[r].detach()), float(val[r])
+                histories[r].append({"step": step, "train_loss": train_loss, "val_loss": val_loss})
+                _log(s, histories[r][-1], member=r if count > 1 else None)
+                if stopping.validated(r, val_loss) and save is not None:
+                    save_checkpoint(*save, extra={"step": step, "val_loss": val_loss})
+            _postfix(bar, stopping, histories)
+            if not any(stopping.active):
+                break
+    stopping.restore_all()
+    return [
+        FitResult(steps=stopping.last_step[r], best_val_loss=stopping.best_loss[r], history=h)
+        for r, h in enumerate(histories)
+    ]
+
+
+def _fit_step(
+    data: FitData, s: FitSettings, stopping: EarlyStopping, device: torch.device
+) -> FitStep:
+    """The fit's step: Adam (``capturable`` with ``cuda_graph``) on ``data.module``'s trainable
+    parameters, the cosine schedule from ``lr`` to ``lr / 20`` (with ``lr_decay``), eager,
+    compiled or captured as ``s`` says."""
+    params = [p for p in data.module.parameters() if p.requires_grad]
+    optimizer = (
+        capturable_adam(params, s.lr, s.weight_decay)
+        if s.cuda_graph
+        else torch.optim.Adam(params, lr=s.lr, weight_decay=s.weight_decay)
+    )
     schedule = (
-        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05)
-        if lr_decay
+        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, s.steps, eta_min=s.lr * 0.05)
+        if s.lr_decay
         else None
     )
-    val_source = val_buffer if val_buffer is not None and len(val_buffer) > 0 else buffer
-    device = module_device(loss_module)  # the buffers' storage may stay on the CPU
-    eager_loss = partial(_loss_value, loss_module)
-    train_loss = _training_loss(eager_loss, compile)
-    data_keys = _loss_keys(loss_module)
-    fixed_val = [val_source.sample().to(device) for _ in range(val_batches)]
-    best_loss, best_state, since_best = math.inf, copy.deepcopy(loss_module.state_dict()), 0
-    history: list[dict] = []
-    bar = _fit_bar(steps, log_prefix, progress, compile)
-    step = 0
-    for step in bar:
-        batch = buffer.sample().to(device)
-        try:
-            loss = train_loss(batch)
-        except (FloatingPointError, ValueError) as err:
-            if (data := _data_error(batch, data_keys)) is not None:  # NaN or inf in the data
-                loss_module.load_state_dict(best_state)
-                raise ValueError(_stopped(step, data)) from err
-            if isinstance(err, ValueError):
-                raise
-            if compile and (named := _input_error(eager_loss, batch)) is not None:
-                raise named from None
-            loss_module.load_state_dict(best_state)
-            where = f"; the last good checkpoint is {checkpoint_path}" if checkpoint_path else ""
-            raise FloatingPointError(_stopped(step, err, where)) from err
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if clip_norm is not None:
-            torch.nn.utils.clip_grad_norm_(params, clip_norm)
-        optimizer.step()
-        if schedule is not None:
-            schedule.step()
-        if compile and step == 1:
-            bar.set_postfix_str("")
-        if step % eval_every == 0 or step == steps:
-            val_loss = _evaluate(loss_module, fixed_val)
-            record = {"step": step, "train_loss": float(loss.detach()), "val_loss": val_loss}
-            history.append(record)
-            bar.set_postfix(train=f"{record['train_loss']:.4g}", val=f"{val_loss:.4g}")
-            if logger is not None:
-                logger.log_scalar(f"{log_prefix}train_loss", record["train_loss"], step=step)
-                logger.log_scalar(f"{log_prefix}val_loss", val_loss, step=step)
-            if val_loss < best_loss:
-                best_loss, since_best = val_loss, 0
-                best_state = copy.deepcopy(loss_module.state_dict())
-                if checkpoint_path is not None and checkpoint_modules:
-                    save_checkpoint(
-                        checkpoint_path,
-                        checkpoint_modules,
-                        extra={"step": step, "val_loss": val_loss},
-                    )
-            else:
-                since_best += 1
-                if patience is not None and since_best >= patience:
-                    break
-    loss_module.load_state_dict(best_state)
-    return FitResult(steps=step, best_val_loss=best_loss, history=history)
+    update = Update(params, optimizer, s.clip_norm, stopping)
+    if s.cuda_graph:
+        capture = lambda whole_step: CapturedStep(whole_step, device)  # noqa: E731
+        return GraphStep(data.losses_of, update, schedule, capture)
+    return FitStep(data.losses_of, update, schedule, compile=s.compile)
+
+
+def _run_step(
+    step_fn: FitStep,
+    batches: Batches,
+    step: int,
+    data: FitData,
+    stopping: EarlyStopping,
+    where: str,
+) -> torch.Tensor:
+    """One training step on ``batches``: the members' losses, checked, then applied."""
+    try:
+        losses = step_fn.losses(batches)
+        _check_losses(losses, stopping.active)
+    except (FloatingPointError, ValueError) as err:
+        _stop(err, step, batches, step_fn, data, stopping, where)
+    step_fn.apply(losses)
+    return losses
+
+
+def _check_losses(losses: torch.Tensor, active: list[bool]) -> None:
+    """Refuse a non-finite loss of an active member (one host read when all are finite)."""
+    finite = torch.isfinite(losses.detach())
+    if bool(finite.all()):
+        return
+    bad = [r for r in range(len(active)) if active[r] and not finite[r]]
+    if bad:
+        which = "the loss" if len(active) == 1 else f"the loss of member(s) {bad}"
+        raise FloatingPointError(f"{which} is not finite; check the data and the learning rate")
+
+
+def _stop(
+    err: FloatingPointError | ValueError,
+    step: int,
+    batches: Batches,
+    step_fn: FitStep,
+    data: FitData,
+    stopping: EarlyStopping,
+    where: str,
+) -> NoReturn:
+    """End the fit whose ``step`` failed with ``err``: NaN or inf in the data named with its
+    buffer row, a compiled or captured step's bad input named as the eager fit names it, else
+    ``err`` (a ``ValueError`` as it is, a non-finite loss with ``where`` the last checkpoint is).
+    The members are back at their best weights unless the step raised an input's ``ValueError``
+    before any update."""
+    restored = step_fn.applies_early
+    if restored:  # the captured step applied its update: undo it before anything else
+        stopping.restore_all()
+    if (bad := _data_error(batches, data.data_keys)) is not None:  # NaN or inf in the data
+        if not restored:
+            stopping.restore_all()
+        raise ValueError(_stopped(step, bad)) from err
+    if isinstance(err, ValueError):
+        raise err
+    if step_fn.skips_input_checks and (named := _input_error(data.losses_of, batches)) is not None:
+        raise named from None
+    if not restored:
+        stopping.restore_all()
+    raise FloatingPointError(_stopped(step, err, where)) from err
+
+
+@torch.no_grad()
+def _validation_losses(
+    losses_of: Callable[[Batches], torch.Tensor], fixed_val: list[list[TensorDictBase]]
+) -> torch.Tensor:
+    """The members' mean losses ``[R]`` over their fixed validation batches."""
+    count, batches = len(fixed_val), len(fixed_val[0])
+    total = sum(losses_of([fixed_val[r][b] for r in range(count)]) for b in range(batches))
+    return total / batches
+
+
+def _log(s: FitSettings, record: dict, member: int | None) -> None:
+    """``record``'s losses to ``s.logger`` (a member's under ``member_<r>/``)."""
+    if s.logger is None:
+        return
+    prefix = s.log_prefix if member is None else f"{s.log_prefix}member_{member}/"
+    for name in ("train_loss", "val_loss"):
+        s.logger.log_scalar(f"{prefix}{name}", record[name], step=record["step"])
+
+
+def _postfix(bar: tqdm, stopping: EarlyStopping, histories: list[list[dict]]) -> None:
+    """The bar's note after a validation: one model's last losses, else the members' state."""
+    if stopping.count == 1:
+        last = histories[0][-1]
+        bar.set_postfix(train=f"{last['train_loss']:.4g}", val=f"{last['val_loss']:.4g}")
+    else:
+        bar.set_postfix(active=sum(stopping.active), val=f"{min(stopping.best_loss):.4g}")
 
 
 def _slice_len(buffer: TensorDictReplayBuffer) -> int:
@@ -593,140 +667,63 @@ def _per_member(name: str, value, count: int, *, optional: bool = False) -> list
     return value
 
 
-class _MemberRNG:
-    """One global-RNG stream per member: member r samples as if ``torch.manual_seed(seeds[r])`` ran first."""
-
-    def __init__(self, seeds: list[int]) -> None:
-        self.states = [torch.Generator().manual_seed(int(s)).get_state() for s in seeds]
-
-    def sample(self, r: int, buffer: TensorDictReplayBuffer, device: torch.device):
-        with torch.random.fork_rng(devices=[]):
-            torch.set_rng_state(self.states[r])
-            batch = buffer.sample()
-            self.states[r] = torch.get_rng_state()
-        return batch.to(device)
-
-
-def _sample_shared(
-    rng: _MemberRNG, buffers: list, active: list[bool], device: torch.device
-) -> TensorDictBase:
-    """One sample per buffer for all its active members (``fit_population(shared_sampling=True)``),
-    as one ``[R, batch_size]`` batch: member r's rows are its slice of its buffer's sample. A
-    stopped member (frozen, its loss unused) gets the first active member's rows."""
-    groups: dict[int, list[int]] = {}
-    for r, buffer in enumerate(buffers):
-        if active[r]:
-            groups.setdefault(id(buffer), []).append(r)
-    parts, order = [], []
-    for members in groups.values():
-        first, buffer = members[0], buffers[members[0]]
-        size = buffer.batch_size
-        with torch.random.fork_rng(devices=[]), warnings.catch_warnings():
-            # TorchRL warns that the size differs from the buffer's: it is meant to.
-            warnings.filterwarnings("ignore", message="Got conflicting batch_sizes")
-            torch.set_rng_state(rng.states[first])
-            batch = buffer.sample(size * len(members))
-            rng.states[first] = torch.get_rng_state()
-        parts.append(batch.reshape(len(members), size))
-        order += members
-    _fill_masks(parts)
-    rows = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
-    if order != list(range(len(buffers))):  # members out of order, or stopped ones
-        block = dict(zip(order, range(len(order)), strict=True))
-        rows = rows[torch.tensor([block.get(r, 0) for r in range(len(buffers))])]
-    return rows.to(device)
+def _check_models(models: object) -> list[nn.Module]:
+    """``models`` as a list of one kind of single models, or one line saying what is wrong."""
+    check_type("models", models, list | tuple, "a list of models")
+    models = list(models)
+    if not models:
+        raise ValueError("fit_population needs at least one model.")
+    for i, model in enumerate(models):
+        check_type(f"models[{i}]", model, nn.Module, "a model (LSTMWorldModel or an estimator)")
+    kinds = sorted({type(m).__name__ for m in models})
+    if len({isinstance(m, LSTMWorldModel) for m in models}) > 1:
+        raise TypeError(
+            f"fit_population fits models of one kind (world models or estimators), got {kinds}."
+        )
+    stacked = [i for i, m in enumerate(models) if isinstance(m, StackedMembers) and m.num_members]
+    if stacked:
+        raise ValueError(
+            f"fit_population fits one model per entry; models {stacked} hold several "
+            "(num_members is set): pass their split() instead."
+        )
+    return models
 
 
-def _fill_masks(batches: list[TensorDictBase]) -> None:
-    """Give the batches without a mask of real steps an all-True one when another has one (a
-    padded buffer's samples carry :data:`MASK_KEY`, a plain buffer's do not), so they stack."""
-    if len(batches) < 2 or all(b.get(MASK_KEY, None) is None for b in batches):
-        return
-    for b in batches:
-        if b.get(MASK_KEY, None) is None:
-            b.set(MASK_KEY, torch.ones(b.shape, dtype=torch.bool, device=b.device))
+def _check_seeds(seeds: Sequence[int] | None, count: int) -> list[int]:
+    """One int seed per member (default ``0..count-1``)."""
+    seeds = list(range(count)) if seeds is None else list(seeds)
+    if len(seeds) != count:
+        raise ValueError(f"seeds has {len(seeds)} entries; expected one per member ({count}).")
+    if any(isinstance(s, bool) or not isinstance(s, numbers.Integral) for s in seeds):
+        raise TypeError(f"seeds must be ints, got {seeds!r}.")
+    return seeds
 
 
-GRAPH_KEYS = ("observation", "action", ("next", "observation"), MASK_KEY)
-"""What a population's training loss reads from a batch (a captured step's static inputs)."""
+def _check_member_buffers(buffers: list[TensorDictReplayBuffer]) -> None:
+    """Refuse an empty member buffer, or buffers that sample different shapes."""
+    for i, buffer in enumerate(buffers):
+        if len(buffer) == 0:
+            raise ValueError(
+                f"The training replay buffer of member {i} is empty; collect data first."
+            )
+    shapes = {(_slice_len(b), b.batch_size) for b in buffers}
+    if len(shapes) != 1:
+        raise ValueError(
+            f"Every member's buffer must sample one shape (slice_len, batch_size); got {sorted(shapes)}."
+        )
 
 
-def _graph_inputs(batches: list[TensorDictBase] | TensorDictBase) -> TensorDictBase:
-    """The members' batches as one ``[R, B·L]`` tensordict of :data:`GRAPH_KEYS` (the layout of
-    a shared sample, which the population losses read alike): a captured step's inputs."""
-    if isinstance(batches, TensorDictBase):
-        return batches.select(*GRAPH_KEYS, strict=False)
-    _fill_masks(batches)
-    return torch.stack([b.select(*GRAPH_KEYS, strict=False) for b in batches])
-
-
-def _clip_per_member(grads: list[torch.Tensor], members: int, max_norm: float) -> None:
-    """``clip_grad_norm_`` applied to each member's slice ``[r]`` of every gradient on its own."""
-    norms = torch.stack([torch.linalg.vector_norm(g.reshape(members, -1), dim=1) for g in grads])
-    coef = (max_norm / (torch.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(coef.reshape(members, *([1] * (g.dim() - 1))))
-
-
-def _member_sequences(
-    batches: list[TensorDictBase] | TensorDictBase, slice_len: int, keys: tuple
-) -> list[torch.Tensor]:
-    """``keys`` of R members' batches as ``[R, B, L, ...]``: from a list of R flat batches, or
-    one ``[R, B·L]`` batch (shared sampling)."""
-    if isinstance(batches, TensorDictBase):
-        members = batches.shape[0]
-        seqs = as_sequences(batches.reshape(-1), slice_len)
-        return [seqs.get(k).reshape(members, -1, *seqs.get(k).shape[1:]) for k in keys]
-    seqs = [as_sequences(b, slice_len) for b in batches]
-    return [torch.stack([s.get(k) for s in seqs]) for k in keys]
-
-
-def _member_mask(
-    batches: list[TensorDictBase] | TensorDictBase, slice_len: int
-) -> torch.Tensor | None:
-    """The members' masks of real steps ``[R, B, L]`` (padded buffers' samples), None when no
-    batch carries one; a member's batch without one is all real steps."""
-    if isinstance(batches, TensorDictBase):
-        mask = batches.get(MASK_KEY, None)
-        return None if mask is None else mask.reshape(batches.shape[0], -1, slice_len)
-    if all(b.get(MASK_KEY, None) is None for b in batches):
-        return None
-    batches = [b.clone(False) for b in batches]
-    _fill_masks(batches)
-    return _member_sequences(batches, slice_len, (MASK_KEY,))[0]
-
-
-def _population_loss(models: list[nn.Module], mode: str, slice_len: int):
-    """``(module, losses(batches) -> [R])`` for R models: the models' own loss for one, else a population's."""
-    first = models[0]
-    if len(models) == 1:
-        if isinstance(first, LSTMWorldModel):
-            loss_module = WorldModelPredictionLoss(first, mode=mode, slice_len=slice_len)
+def _fit_normalizations(models: list[nn.Module], buffers: list[TensorDictReplayBuffer]) -> None:
+    """Each model's normalisation from its buffer's contents (checked finite)."""
+    for model, buffer in zip(models, buffers, strict=True):
+        if isinstance(model, LSTMWorldModel):
+            data = _checked_contents(buffer, WORLD_MODEL_KEYS)
+            model.fit_normalization(
+                data["observation"], data["action"], data["next", "observation"]
+            )
         else:
-            loss_module = UncertaintyLoss(first, slice_len=slice_len)
-        return loss_module, lambda batches: _loss_value(loss_module, batches[0]).reshape(1)
-    if isinstance(first, LSTMWorldModel):
-        pop = LSTMWorldModel.from_members(models)
-        keys = ("observation", "action", ("next", "observation"))
-
-        def losses(batches):
-            obs, action, next_obs = _member_sequences(batches, slice_len, keys)
-            mask = _member_mask(batches, slice_len)
-            return pop.prediction_loss(obs, action, next_obs, mode, mask=mask)
-
-        return pop, losses
-    if isinstance(first, ReconstructionUncertainty):
-        pop = ReconstructionPopulation.from_members(models)
-
-        def losses(batches):
-            obs, action = _member_sequences(batches, slice_len, ("observation", "action"))
-            return pop.loss(obs, action, mask=_member_mask(batches, slice_len))
-
-        return pop, losses
-    raise TypeError(
-        f"fit_population runs populations of LSTMWorldModel or ReconstructionUncertainty; got "
-        f"{type(first).__name__} (fit those one at a time with fit_uncertainty)."
-    )
+            data = _checked_contents(buffer, ESTIMATOR_KEYS)
+            model.fit_normalization(data["observation"], data["action"])
 
 
 def fit_population(
@@ -798,260 +795,36 @@ def fit_population(
         [10, 10, 10]
     """
     counts = dict(steps=steps, eval_every=eval_every, val_batches=val_batches, patience=patience)
-    check_fit_settings(**counts, lr=lr, weight_decay=weight_decay, clip_norm=clip_norm)
-    check_type("models", models, list | tuple, "a list of models")
-    models = list(models)
-    if not models:
-        raise ValueError("fit_population needs at least one model.")
-    for i, model in enumerate(models):
-        check_type(f"models[{i}]", model, nn.Module, "a model (LSTMWorldModel or an estimator)")
-    kinds = sorted({type(m).__name__ for m in models})
-    if len({isinstance(m, LSTMWorldModel) for m in models}) > 1:
-        raise TypeError(
-            f"fit_population fits models of one kind (world models or estimators), got {kinds}."
-        )
-    stacked = [i for i, m in enumerate(models) if isinstance(m, StackedMembers) and m.num_members]
-    if stacked:
-        raise ValueError(
-            f"fit_population fits one model per entry; models {stacked} hold several "
-            "(num_members is set): pass their split() instead."
-        )
+    settings = FitSettings.of(locals())
+    models = _check_models(models)
     count = len(models)
     buffers = _per_member("buffers", buffers, count)
     val_buffers = _per_member("val_buffers", val_buffers, count, optional=True)
-    seeds = list(range(count)) if seeds is None else list(seeds)
-    if len(seeds) != count:
-        raise ValueError(f"seeds has {len(seeds)} entries; expected one per member ({count}).")
-    if any(isinstance(s, bool) or not isinstance(s, numbers.Integral) for s in seeds):
-        raise TypeError(f"seeds must be ints, got {seeds!r}.")
-    for i, buffer in enumerate(buffers):
-        if len(buffer) == 0:
-            raise ValueError(
-                f"The training replay buffer of member {i} is empty; collect data first."
-            )
-    shapes = {(_slice_len(b), b.batch_size) for b in buffers}
-    if len(shapes) != 1:
-        raise ValueError(
-            f"Every member's buffer must sample one shape (slice_len, batch_size); got {sorted(shapes)}."
-        )
+    seeds = _check_seeds(seeds, count)
+    _check_member_buffers(buffers)
     _check_compile(compile, models[0])
     check_cuda_graph(cuda_graph, module_device(models[0]), compile)
     world = isinstance(models[0], LSTMWorldModel)
-    data_keys = WORLD_MODEL_KEYS if world else ESTIMATOR_KEYS
     if fit_normalization:
-        for model, buffer in zip(models, buffers, strict=True):
-            data = _checked_contents(buffer, data_keys)
-            if world:
-                model.fit_normalization(
-                    data["observation"], data["action"], data["next", "observation"]
-                )
-            else:
-                model.fit_normalization(data["observation"], data["action"])
+        _fit_normalizations(models, buffers)
     if log_prefix is None:
-        log_prefix = "world_model/" if world else "uncertainty/"
-    module, losses_of = _population_loss(models, mode, _slice_len(buffers[0]))
+        settings = replace(settings, log_prefix="world_model/" if world else "uncertainty/")
+    module, losses_of = population_loss(models, mode, _slice_len(buffers[0]))
+    val_sources = [
+        v if v is not None and len(v) > 0 else b for v, b in zip(val_buffers, buffers, strict=True)
+    ]
     with _cached_boundaries(*buffers, *val_buffers):
-        results = _train_members(
+        data = FitData(
             module,
             losses_of,
-            count,
             buffers,
-            [
-                v if v is not None and len(v) > 0 else b
-                for v, b in zip(val_buffers, buffers, strict=True)
-            ],
-            _MemberRNG(seeds),
+            val_sources,
+            MemberRNG(seeds),
+            data_keys=WORLD_MODEL_KEYS if world else ESTIMATOR_KEYS,
             shared_sampling=shared_sampling,
-            steps=steps,
-            lr=lr,
-            lr_decay=lr_decay,
-            weight_decay=weight_decay,
-            clip_norm=clip_norm,
-            eval_every=eval_every,
-            val_batches=val_batches,
-            patience=patience,
-            logger=logger,
-            log_prefix=log_prefix,
-            progress=progress,
-            compile=compile,
-            cuda_graph=cuda_graph,
-            data_keys=data_keys,
         )
+        results = _fit_loop(data, settings)
     if count > 1:
         for i, model in enumerate(models):
             model.load_state_dict(module.member(i).state_dict())
     return results
-
-
-def _train_members(
-    module: nn.Module,
-    losses_of,
-    count: int,
-    buffers: list,
-    val_sources: list,
-    rng: _MemberRNG,
-    *,
-    steps: int,
-    lr: float,
-    lr_decay: bool,
-    weight_decay: float,
-    clip_norm: float | None,
-    eval_every: int,
-    val_batches: int,
-    patience: int | None,
-    logger: Logger | None,
-    log_prefix: str,
-    progress: bool,
-    shared_sampling: bool = False,
-    compile: bool = False,
-    cuda_graph: bool = False,
-    data_keys: Sequence | None = None,
-) -> list[FitResult]:
-    """:func:`train_loss_module`'s loop for ``count`` members; ``losses_of(batches)`` gives ``[count]``.
-    With ``cuda_graph`` each step is one :class:`~torchrl_recon.training.CapturedStep`."""
-    stacked = count > 1  # else: one plain model, no member dim
-    params = [p for p in module.parameters() if p.requires_grad]
-    optimizer = (
-        capturable_adam(params, lr, weight_decay)
-        if cuda_graph
-        else torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
-    )
-    schedule = (
-        torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=lr * 0.05)
-        if lr_decay
-        else None
-    )
-    device = module_device(module)
-    train_losses = _training_loss(losses_of, compile)
-    fixed_val = [
-        [rng.sample(r, val_sources[r], device) for _ in range(val_batches)] for r in range(count)
-    ]
-    state = module.state_dict()
-    best_state = {k: v.detach().clone() for k, v in state.items()}
-    best_loss = [math.inf] * count
-    since_best, last_step = [0] * count, [0] * count
-    histories: list[list[dict]] = [[] for _ in range(count)]
-    active = [True] * count
-    batches: list = [None] * count
-
-    def keep_best(r: int) -> None:
-        for key, value in state.items():
-            (best_state[key][r] if stacked else best_state[key]).copy_(
-                value[r] if stacked else value
-            )
-
-    @torch.no_grad()
-    def restore_all() -> None:
-        for key, value in state.items():
-            value.copy_(best_state[key])
-
-    frozen_mask = torch.zeros(count, dtype=torch.bool, device=device)  # the stopped members
-
-    def clip_gradients() -> None:
-        if clip_norm is None:
-            return
-        if stacked:
-            _clip_per_member([p.grad for p in params if p.grad is not None], count, clip_norm)
-        else:
-            torch.nn.utils.clip_grad_norm_(params, clip_norm)
-
-    def whole_step(inputs: TensorDictBase) -> torch.Tensor:
-        """Losses, backward, clip, Adam and the stopped members' restore, with no host sync."""
-        step_losses = losses_of(inputs)
-        optimizer.zero_grad(set_to_none=True)
-        step_losses.sum().backward()
-        clip_gradients()
-        optimizer.step()
-        if stacked:
-            restore_frozen(state, best_state, frozen_mask)
-        return step_losses.detach()
-
-    captured = CapturedStep(whole_step, device) if cuda_graph else None
-    bar = _fit_bar(steps, log_prefix, progress, compile)
-    for step in bar:
-        if shared_sampling and count > 1:
-            batches = _sample_shared(rng, buffers, active, device)
-        else:
-            for r in range(count):
-                if active[r]:  # a stopped member's batch stays: it is frozen anyway
-                    batches[r] = rng.sample(r, buffers[r], device)
-        try:
-            if captured is not None:  # the whole step: checked after it, restored below if bad
-                losses = captured(_graph_inputs(batches))
-            else:
-                losses = train_losses(batches)
-            finite = torch.isfinite(losses.detach())
-            bad = (
-                []
-                if bool(finite.all())
-                else [r for r in range(count) if active[r] and not finite[r]]
-            )
-            if bad:
-                raise FloatingPointError(
-                    f"the loss of member(s) {bad} is not finite; check the data and the learning rate"
-                )
-        except (FloatingPointError, ValueError) as err:
-            if cuda_graph:  # the captured step applied its update: undo it before anything else
-                restore_all()
-            if (data := _data_error(batches, data_keys)) is not None:  # NaN or inf in the data
-                if not cuda_graph:
-                    restore_all()
-                raise ValueError(_stopped(step, data)) from err
-            if isinstance(err, ValueError):
-                raise
-            if (compile or cuda_graph) and (named := _input_error(losses_of, batches)) is not None:
-                raise named from None
-            if not cuda_graph:  # (restored above)
-                restore_all()
-            raise FloatingPointError(_stopped(step, err)) from err
-        if captured is None:
-            optimizer.zero_grad(set_to_none=True)
-            losses.sum().backward()
-            clip_gradients()
-            optimizer.step()
-            if stacked and not all(active):
-                restore_frozen(state, best_state, frozen_mask)
-        if schedule is not None:
-            schedule.step()
-        if compile and step == 1:
-            bar.set_postfix_str("")
-        if step % eval_every == 0 or step == steps:
-            with torch.no_grad():
-                val = sum(
-                    losses_of([fixed_val[r][b] for r in range(count)]) for b in range(val_batches)
-                )
-                val = val / val_batches
-            for r in range(count):
-                if not active[r]:
-                    continue
-                last_step[r] = step
-                record = {
-                    "step": step,
-                    "train_loss": float(losses[r].detach()),
-                    "val_loss": float(val[r]),
-                }
-                histories[r].append(record)
-                if logger is not None:
-                    prefix = f"{log_prefix}member_{r}/" if stacked else log_prefix
-                    logger.log_scalar(f"{prefix}train_loss", record["train_loss"], step=step)
-                    logger.log_scalar(f"{prefix}val_loss", record["val_loss"], step=step)
-                if record["val_loss"] < best_loss[r]:
-                    best_loss[r], since_best[r] = record["val_loss"], 0
-                    keep_best(r)
-                else:
-                    since_best[r] += 1
-                    if patience is not None and since_best[r] >= patience:
-                        active[r] = False
-                        frozen_mask[r] = True  # restored after each step from the next on
-            bar.set_postfix(active=sum(active), val=f"{min(best_loss):.4g}")
-            if not any(active):
-                break
-        else:
-            for r in range(count):
-                if active[r]:
-                    last_step[r] = step
-    restore_all()
-    return [
-        FitResult(steps=last_step[r], best_val_loss=best_loss[r], history=histories[r])
-        for r in range(count)
-    ]

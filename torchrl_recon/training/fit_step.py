@@ -84,7 +84,9 @@ class Update:
 class FitStep:
     """The eager (or, with ``compile``, ``torch.compile``'d) step: ``losses(batches)`` runs
     ``losses_of`` (static shapes: every batch of a fit has one shape), ``apply(losses)`` the
-    ``update`` and the ``schedule`` (None: a constant learning rate).
+    ``update`` and the ``schedule`` (None: a constant learning rate). ``skips_input_checks``:
+    the losses run without the eager input checks (compiled, captured), so the fit runs the
+    eager losses on a failed step's batch to name a bad input.
 
     Examples:
         >>> layer = torch.nn.Linear(1, 1, bias=False)

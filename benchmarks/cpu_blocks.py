@@ -43,7 +43,9 @@ import torch
 from _common import COST, context, paper_models, parse_args, setup_done
 
 from torchrl_recon.allocator import keep_freed_memory
-from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, run_blocks, threaded_pass
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.planners.cpu_threads import run_blocks
+from torchrl_recon.planners.planning_model import threaded_pass
 from torchrl_recon.timing import interleaved_median_ms
 
 

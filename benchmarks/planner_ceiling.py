@@ -32,7 +32,8 @@ import torch
 from mujoco import rollout
 
 from torchrl_recon.envs import gym_costs
-from torchrl_recon.planners import PLANNERS, Objective, PlanningModel
+from torchrl_recon.planners import Objective, PlanningModel
+from torchrl_recon.planners.registry import PLANNERS
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 

@@ -5,10 +5,12 @@ here touches the network: there is no intersphinx (its inventories are downloade
 torch, TorchRL, tensordict and the other libraries are left unlinked (``nitpick_ignore_regex``).
 
 The API reference is written when a build starts into ``docs/api/`` (ignored by git): one page per
-package listing the names of its ``__all__`` (``API_PACKAGES``), and one page per name made
-by autosummary from its docstring. Each object is documented once, under the package that
-exports it; a reference to it by its defining module
-(``:class:`~torchrl_recon.planners.cem.CEMPlanner```) is resolved to that page.
+package listing the names of its ``__all__`` (``API_PACKAGES``), then, one section each, the
+names its modules make public (their ``__all__``) that the package does not export itself
+(``API_MODULES``), and one page per name made by autosummary from its docstring. Each object is
+documented once, under the package that exports it (or else its module); a reference to it by
+its defining module (``:class:`~torchrl_recon.planners.cem.CEMPlanner```) is resolved to that
+page.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from docutils import nodes
 from sphinx import addnodes
-from sphinx.ext import autosummary
+from sphinx.ext import autosummary, viewcode
 from sphinx.pycode import ModuleAnalyzer
 from sphinx.transforms.post_transforms import SphinxPostTransform
 from sphinx.util import inspect as sphinx_inspect
@@ -126,6 +128,16 @@ API_PACKAGES = (
     "torchrl_recon.errors",
 )
 
+# Modules whose public names (their ``__all__``) their package does not export: each has a
+# section on its package's page, in this order.
+API_MODULES = {
+    "torchrl_recon.planners": tuple(
+        f"torchrl_recon.planners.{module}"
+        for module in ("base", "sampling", "cem", "elite_memory", "noise", "registry", "bounds")
+        + ("beta", "planning_model", "cpu_threads", "torchrl_models", "model_env")
+    ),
+}
+
 # The site's navigation, by caption, in the order of the sidebar. docs/index.md links every
 # guide for GitHub; the toctrees are added to it here (SITE_TOCTREES) so that GitHub does not
 # show them as code.
@@ -161,6 +173,30 @@ def public_names(package: str) -> list[str]:
     return list(importlib.import_module(package).__all__)
 
 
+def module_names(module: str) -> list[str]:
+    """The names of ``module``'s ``__all__`` that its package does not export (the same object)."""
+    package = importlib.import_module(module.rsplit(".", 1)[0])
+    own = importlib.import_module(module)
+    exported = {id(getattr(package, name)) for name in package.__all__}
+    return [name for name in own.__all__ if id(getattr(own, name)) not in exported]
+
+
+def api_names() -> list[str]:
+    """The full name of every object the API reference documents, in the order of its pages."""
+    names = []
+    for pkg in API_PACKAGES:
+        names += [f"{pkg}.{name}" for name in public_names(pkg)]
+        for module in API_MODULES.get(pkg, ()):
+            names += [f"{module}.{name}" for name in module_names(module)]
+    return names
+
+
+def summary_table(module: str, names: list[str]) -> list[str]:
+    """A page's table of ``names`` of ``module``, each with a page of its own."""
+    page = [f".. currentmodule:: {module}", "", ".. autosummary::", "   :toctree: generated"]
+    return page + ["   :nosignatures:", ""] + [f"   {name}" for name in names] + [""]
+
+
 def write_if_changed(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` unless it already holds it (keeps incremental builds cheap)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -169,25 +205,16 @@ def write_if_changed(path: Path, text: str) -> None:
 
 
 def write_api_pages() -> None:
-    """One page per package in ``docs/api/``: its docstring and a table of its ``__all__``."""
+    """One page per package in ``docs/api/``: its docstring and a table of its ``__all__``, then
+    a section per module of ``API_MODULES``: its docstring and a table of its other names."""
     api = DOCS / "api"
     for pkg in API_PACKAGES:
-        page = [
-            pkg,
-            "=" * len(pkg),
-            "",
-            f".. automodule:: {pkg}",
-            "   :no-members:",
-            "",
-            f".. currentmodule:: {pkg}",
-            "",
-            ".. autosummary::",
-            "   :toctree: generated",
-            "   :nosignatures:",
-            "",
-        ]
-        page += [f"   {name}" for name in public_names(pkg)]
-        write_if_changed(api / f"{pkg.rsplit('.', 1)[-1]}.rst", "\n".join(page) + "\n")
+        page = [pkg, "=" * len(pkg), "", f".. automodule:: {pkg}", "   :no-members:", ""]
+        page += summary_table(pkg, public_names(pkg))
+        for module in API_MODULES.get(pkg, ()):
+            page += [module, "-" * len(module), "", f".. automodule:: {module}", "   :no-members:"]
+            page += [""] + summary_table(module, module_names(module))
+        write_if_changed(api / f"{pkg.rsplit('.', 1)[-1]}.rst", "\n".join(page).rstrip() + "\n")
     # a page of a name (or package) no longer exported would fail the build
     stale = [p for p in api.glob("generated/*.rst") if p.stem not in _api_names()]
     packages = {pkg.rsplit(".", 1)[-1] for pkg in API_PACKAGES}
@@ -197,12 +224,11 @@ def write_api_pages() -> None:
 
 
 def _public_objects() -> dict[int, str]:
-    """``id(object) -> public path`` for every object an API package exports."""
+    """``id(object) -> public path`` for every object the API reference documents."""
     found = {}
-    for pkg in API_PACKAGES:
-        module = importlib.import_module(pkg)
-        for name in module.__all__:
-            found.setdefault(id(getattr(module, name)), f"{pkg}.{name}")
+    for path in api_names():
+        module, name = path.rsplit(".", 1)
+        found.setdefault(id(getattr(importlib.import_module(module), name)), path)
     return found
 
 
@@ -237,7 +263,7 @@ def defining_attr_doc(fullname: str) -> list[str]:
 
 @functools.cache
 def _api_names() -> frozenset[str]:
-    return frozenset(f"{pkg}.{name}" for pkg in API_PACKAGES for name in public_names(pkg))
+    return frozenset(api_names())
 
 
 def process_docstring(app, what, name, obj, options, lines) -> None:
@@ -379,6 +405,24 @@ def resolve_by_object(app, env, node, contnode):
     return None
 
 
+def viewcode_backlink_ids(app, doctree, docname) -> None:
+    """Give each object the id that the ``[docs]`` link of its source page points at.
+
+    viewcode keeps one documenting module per source module (the first it meets) and links every
+    object of that source back to ``that module.name``. A module whose names are documented partly
+    under its package (``planners.base.PlannerBase`` as ``planners.PlannerBase``) and partly
+    under itself (``planners.base.PlanFlags``) would link some of them to no anchor."""
+    modules = getattr(app.env, "_viewcode_modules", {})
+    for signode in doctree.findall(addnodes.desc_signature):
+        module, fullname = signode.get("module"), signode.get("fullname")
+        if not module or not fullname:
+            continue
+        entry = modules.get(viewcode._get_full_modname(module, fullname) or "")
+        anchor = f"{entry[3]}.{fullname}" if entry else None
+        if anchor and entry[3] != module and anchor not in signode["ids"]:
+            signode["ids"].append(anchor)
+
+
 class FolderLinks(SphinxPostTransform):
     """A guide's link to a repository folder (``[...](results/control_bands/)``) or to a page
     the site leaves out (``results/README.md``) becomes its path in the repository: GitHub
@@ -435,4 +479,5 @@ def setup(app) -> None:
     app.connect("autodoc-skip-member", skip_foreign_member)
     app.connect("autodoc-process-bases", public_bases)
     app.connect("missing-reference", resolve_by_object)
+    app.connect("doctree-resolved", viewcode_backlink_ids)
     app.add_post_transform(FolderLinks)

@@ -38,13 +38,8 @@ from torchrl_recon.collectors import collect_random  # noqa: E402
 from torchrl_recon.data import make_sequence_buffer  # noqa: E402
 from torchrl_recon.envs import make_env  # noqa: E402
 from torchrl_recon.modules import ReconstructionUncertainty  # noqa: E402
-from torchrl_recon.planners import (  # noqa: E402
-    BatchedWorldModelEnv,
-    CEMPlanner,
-    Objective,
-    PlanningModel,
-    relative_beta,
-)
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, relative_beta  # noqa: E402
+from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv  # noqa: E402
 from torchrl_recon.policies import MPCPolicy  # noqa: E402
 from torchrl_recon.training import fit_uncertainty  # noqa: E402
 from torchrl_recon.transforms import UncertaintyPenalty  # noqa: E402

@@ -1,7 +1,8 @@
 """A probe of the public API with wrong inputs (issue 56 item 4).
 
 Every public constructor and entry point of ``torchrl_recon.planners``, ``policies``,
-``modules``, ``objectives``, ``training``, ``trainers`` and ``data`` (their ``__all__``) is
+``modules``, ``objectives``, ``training``, ``trainers`` and ``data`` (their ``__all__``, and the
+``__all__`` of the planners' modules, where the names the package does not export are public) is
 called with wrong shapes, dtypes, types, NaN/inf, out-of-range and unknown values. Each call
 must raise one clear line before any work: a ``ValueError`` or ``TypeError`` (a
 ``FileNotFoundError`` for a missing file, a ``KeyError`` where the library names a missing
@@ -37,11 +38,28 @@ from torchrl_recon import policies as Po
 from torchrl_recon import trainers as Tr
 from torchrl_recon import training as T
 from torchrl_recon.envs import make_env
+from torchrl_recon.planners.beta import cost_to_u_ratio, window_uncertainty
+from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec, check_bounds_match
+from torchrl_recon.planners.cpu_threads import run_aside, run_blocks
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
+from torchrl_recon.planners.noise import colored_noise
+from torchrl_recon.planners.planning_model import check_step_fn, compile_mode, threaded_pass
+from torchrl_recon.planners.registry import check_planner_kwargs, get_planner_class
+from torchrl_recon.planners.torchrl_models import (
+    LSTMWorldModelModule,
+    TorchRLWorldModelAdapter,
+    planning_model_from_torchrl,
+)
 
 NAN, INF = float("nan"), float("inf")
 N, A = 3, 1  # the probe's obs and action dims
 PACKAGE = Path(torchrl_recon.__file__).resolve().parent
 PROBED = ("planners", "policies", "modules", "objectives", "training", "trainers", "data")
+PROBED += tuple(
+    f"planners.{module}"
+    for module in ("base", "beta", "bounds", "cem", "cpu_threads", "elite_memory", "model_env")
+    + ("noise", "planning_model", "registry", "sampling", "torchrl_models")
+)
 SETTINGS = settings(
     max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None
 )
@@ -308,10 +326,10 @@ case(
     lambda: P.Prediction.concat([]),
     "predictions",
 )
-case("compile_mode/unknown", lambda: P.compile_mode("fast"), "compile")
+case("compile_mode/unknown", lambda: compile_mode("fast"), "compile")
 case(
     "threaded_pass/mode",
-    lambda: P.threaded_pass(cost, "fast"),
+    lambda: threaded_pass(cost, "fast"),
     "mode",
 )
 
@@ -486,81 +504,84 @@ case("Objective/cost_threshold-inf", lambda: P.Objective(cost_threshold=INF), "c
 case("UncertaintyBand/order", lambda: P.UncertaintyBand(2.0, 1.0), "low")
 case("UncertaintyBand/kind", lambda: P.UncertaintyBand(1.0, 2.0, kind="relative"), "kind")
 case("UncertaintyBand/nan", lambda: P.UncertaintyBand(NAN, 1.0), "low")
-case("get_planner_class/unknown", lambda: P.get_planner_class("pets"), "pets")
+case("get_planner_class/unknown", lambda: get_planner_class("pets"), "pets")
 case(
     "make_planner/unknown-keyword",
     lambda: P.make_planner("cem", model(), P.Objective(), horizon=3, top_k=2),
     "top_k",
 )
-case("check_planner_kwargs/cls", lambda: P.check_planner_kwargs("cem", {}), "cls")
-case("check_step_fn/not-callable", lambda: P.check_step_fn("cost_fn", 3, N, A), "cost_fn")
-case("bounds_from_spec/type", lambda: P.bounds_from_spec("Box"), "action_spec")
-case("bounds_from_spec/unbounded", lambda: P.bounds_from_spec(Unbounded(shape=(2,))), "Unbounded")
+case("check_planner_kwargs/cls", lambda: check_planner_kwargs("cem", {}), "cls")
+case("check_step_fn/not-callable", lambda: check_step_fn("cost_fn", 3, N, A), "cost_fn")
+case("action_bounds/shape", lambda: action_bounds(torch.zeros(2), 1.0, 1), r"action_low.*\[2\]")
+case("action_bounds/order", lambda: action_bounds(1.0, -1.0, 1), "action_low")
+case("bounds_from_spec/type", lambda: bounds_from_spec("Box"), "action_spec")
+case("bounds_from_spec/unbounded", lambda: bounds_from_spec(Unbounded(shape=(2,))), "Unbounded")
 case(
     "check_bounds_match/list",
-    lambda: P.check_bounds_match([-1.0], [1.0], Bounded(-1.0, 1.0, shape=(1,))),
+    lambda: check_bounds_match([-1.0], [1.0], Bounded(-1.0, 1.0, shape=(1,))),
     "low",
 )
 case(
     "check_bounds_match/range",
-    lambda: P.check_bounds_match(
+    lambda: check_bounds_match(
         torch.tensor([-1.0]), torch.tensor([1.0]), Bounded(-2.0, 2.0, shape=(1,))
     ),
     "differs",
 )
-case("colored_noise/white-type", lambda: P.colored_noise([0.0], 4, 1.0), "white")
-case("colored_noise/beta", lambda: P.colored_noise(torch.zeros(2, 3), 4, -1.0), "beta")
-case("colored_noise/white-shape", lambda: P.colored_noise(torch.zeros(2, 5), 4, 1.0), "white")
-case("run_blocks/blocks", lambda: P.run_blocks(lambda i: i, 0, 1), "blocks")
-case("run_blocks/threads", lambda: P.run_blocks(lambda i: i, 2, 0), "threads")
-case("run_aside/threads", lambda: P.run_aside(lambda: 1, -1), "threads")
-case(
-    "WorldModelPlanningEnv/world_model", lambda: P.WorldModelPlanningEnv("wm", cost), "world_model"
-)
-case("WorldModelPlanningEnv/beta", lambda: P.WorldModelPlanningEnv(world(), cost, beta=NAN), "beta")
+case("colored_noise/white-type", lambda: colored_noise([0.0], 4, 1.0), "white")
+case("colored_noise/beta", lambda: colored_noise(torch.zeros(2, 3), 4, -1.0), "beta")
+case("colored_noise/white-shape", lambda: colored_noise(torch.zeros(2, 5), 4, 1.0), "white")
+case("run_blocks/blocks", lambda: run_blocks(lambda i: i, 0, 1), "blocks")
+case("run_blocks/threads", lambda: run_blocks(lambda i: i, 2, 0), "threads")
+case("run_aside/threads", lambda: run_aside(lambda: 1, -1), "threads")
+case("WorldModelPlanningEnv/world_model", lambda: WorldModelPlanningEnv("wm", cost), "world_model")
+case("WorldModelPlanningEnv/beta", lambda: WorldModelPlanningEnv(world(), cost, beta=NAN), "beta")
 case(
     "WorldModelPlanningEnv/action_low",
-    lambda: P.WorldModelPlanningEnv(world(), cost, action_low=torch.zeros(2)),
+    lambda: WorldModelPlanningEnv(world(), cost, action_low=torch.zeros(2)),
     r"action_low has shape \[2\]",
 )
 case(
     "WorldModelPlanningEnv/cost_fn",
-    lambda: P.WorldModelPlanningEnv(world(), lambda s, a, s1: s1),
+    lambda: WorldModelPlanningEnv(world(), lambda s, a, s1: s1),
     "cost_fn",
 )
-case("window_uncertainty/data", lambda: P.window_uncertainty("data", estimator()), "data")
-case("window_uncertainty/estimator", lambda: P.window_uncertainty(steps(), "ae"), "estimator")
+case("window_uncertainty/data", lambda: window_uncertainty("data", estimator()), "data")
+case("window_uncertainty/estimator", lambda: window_uncertainty(steps(), "ae"), "estimator")
 case(
     "window_uncertainty/missing-key",
-    lambda: P.window_uncertainty(steps().exclude("action"), estimator()),
+    lambda: window_uncertainty(steps().exclude("action"), estimator()),
     "'action'",
 )
 case(
     "window_uncertainty/sequence_length",
-    lambda: P.window_uncertainty(steps(), estimator(), sequence_length=0),
+    lambda: window_uncertainty(steps(), estimator(), sequence_length=0),
     "sequence_length",
 )
 case("relative_beta/nan", lambda: P.relative_beta(NAN, steps(), estimator()), "beta")
 case(
     "cost_to_u_ratio/missing-reward",
-    lambda: P.cost_to_u_ratio(steps().exclude(("next", "reward")), torch.ones(3)),
+    lambda: cost_to_u_ratio(steps().exclude(("next", "reward")), torch.ones(3)),
     "reward",
 )
-case("cost_to_u_ratio/u-type", lambda: P.cost_to_u_ratio(steps(), [1.0]), "per_window_u")
+case("cost_to_u_ratio/u-type", lambda: cost_to_u_ratio(steps(), [1.0]), "per_window_u")
 case(
     "LSTMWorldModelModule/world_model",
-    lambda: P.LSTMWorldModelModule("wm", cost),
+    lambda: LSTMWorldModelModule("wm", cost),
     "wraps one LSTMWorldModel",
 )
 case(
     "LSTMWorldModelModule.make_env/action_low",
-    lambda: P.LSTMWorldModelModule(world(), cost).make_env(
+    lambda: LSTMWorldModelModule(world(), cost).make_env(
         action_low=torch.tensor([-1.0, -1.0]), action_high=1.0
     ),
     r"action_low has shape \[2\]; expected .*\[1\]",
 )
+case("TorchRLWorldModelAdapter/world_model", lambda: TorchRLWorldModelAdapter("wm"), "world_model")
 case(
-    "TorchRLWorldModelAdapter/world_model", lambda: P.TorchRLWorldModelAdapter("wm"), "world_model"
+    "planning_model_from_torchrl/world_model",
+    lambda: planning_model_from_torchrl("wm", cost_fn=cost, action_low=-1.0, action_high=1.0),
+    "world_model",
 )
 
 # ----------------------------------------------------------------------------------- policies

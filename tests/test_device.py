@@ -55,8 +55,8 @@ from torchrl_recon.planners import (
     PlanningModel,
     RandomShootingPlanner,
     UncertaintyBand,
-    WorldModelPlanningEnv,
 )
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.training import (
     fit_population,

@@ -47,13 +47,9 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.envs.registry import import_cost
 from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.planners import (
-    PLANNERS,
-    LSTMWorldModelModule,
-    Objective,
-    PlanningModel,
-    TorchRLWorldModelAdapter,
-)
+from torchrl_recon.planners import Objective, PlanningModel
+from torchrl_recon.planners.registry import PLANNERS
+from torchrl_recon.planners.torchrl_models import LSTMWorldModelModule, TorchRLWorldModelAdapter
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.trainers import (
     FitNormalization,
@@ -231,7 +227,7 @@ PLANNER_CONFIGS = {
     kind: target_config(cls, _planner_name(kind), partial=True, given=("model", "objective"))
     for kind, cls in PLANNERS.items()
 }
-"""The config of each planner of :data:`~torchrl_recon.planners.PLANNERS`, by its name."""
+"""The config of each planner of :data:`~torchrl_recon.planners.registry.PLANNERS`, by its name."""
 ReconstructionUncertaintyConfig = ESTIMATOR_CONFIGS["reconstruction"]
 EnsembleUncertaintyConfig = ESTIMATOR_CONFIGS["ensemble"]
 MCDropoutUncertaintyConfig = ESTIMATOR_CONFIGS["mc_dropout"]

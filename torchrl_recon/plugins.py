@@ -1,7 +1,7 @@
 """Parts named in a recipe: a key of a registry (a shipped class) or a class of the user's own
 (``my_planners:MyPlanner``), with the keywords of that class.
 
-A registry is a plain ``{name: class}`` dict (:data:`torchrl_recon.planners.PLANNERS`,
+A registry is a plain ``{name: class}`` dict (:data:`torchrl_recon.planners.registry.PLANNERS`,
 :data:`torchrl_recon.modules.ESTIMATORS`); :func:`resolve_class` looks a name up there or
 imports ``module:Class`` and checks it subclasses the part's base class;
 :func:`check_keywords` checks a recipe's ``kwargs`` against the class's signature before

@@ -16,7 +16,7 @@ from torchrl_recon.experiments import common, control, explore
 from torchrl_recon.experiments.common import build_env, planning_model
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
-from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.planners.beta import window_uncertainty
 
 RECIPES = Path(torchrl_recon.__file__).parents[1] / "recipes" / "drone"
 # A drone that tilts past 0.01 rad ends its episode: episodes of a batch end at different steps.

@@ -18,7 +18,7 @@ from torchrl_recon.experiments.common import build_models, fit_stage, planning_m
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
-from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.reports.stats import mean_std
 
 PACKAGE = Path(torchrl_recon.__file__).parent

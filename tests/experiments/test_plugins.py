@@ -22,7 +22,8 @@ from torchrl_recon.experiments.config import upgrade_legacy_config
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe
 from torchrl_recon.experiments.run_dir import check_run_dir, read_config
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.planners import PLANNERS, Objective, PlanningModel
+from torchrl_recon.planners import Objective, PlanningModel
+from torchrl_recon.planners.registry import PLANNERS
 
 ROOT = Path(torchrl_recon.__file__).parents[1]
 DRONE = ROOT / "recipes" / "drone"

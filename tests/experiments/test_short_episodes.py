@@ -15,7 +15,7 @@ from tests.experiments.tiny import TINY, short_env
 from torchrl_recon.cli import main
 from torchrl_recon.data import TRAJ_KEY
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.training.online import mean_uncertainty, model_error
 
 FAST_CONTROL = [*TINY, "episodes=2", "random_episodes=4", "random_episode_steps=12"]

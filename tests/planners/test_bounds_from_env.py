@@ -17,9 +17,9 @@ from torchrl_recon.planners import (
     Objective,
     PlanningModel,
     RandomShootingPlanner,
-    WorldModelPlanningEnv,
-    bounds_from_spec,
 )
+from torchrl_recon.planners.bounds import bounds_from_spec
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 
 

@@ -9,16 +9,15 @@ import torch
 
 from torchrl_recon.modules import LinearDeltaModel
 from torchrl_recon.planners import (
-    EliteMemory,
     ICEMPlanner,
     MPPIPlanner,
     Objective,
     PlanningModel,
     RandomShootingPlanner,
     UncertaintyBand,
-    colored_noise,
 )
-from torchrl_recon.planners.elite_memory import MEMORY_ROWS
+from torchrl_recon.planners.elite_memory import MEMORY_ROWS, EliteMemory
+from torchrl_recon.planners.noise import colored_noise
 from torchrl_recon.planners.planning_model import Prediction
 
 from .conftest import integrator_cost, integrator_model, optimal_cost

@@ -24,8 +24,8 @@ from torchrl_recon.planners import (
     Objective,
     PlanningModel,
     relative_beta,
-    window_uncertainty,
 )
+from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.policies import MPCPolicy
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)

@@ -22,8 +22,8 @@ from torchrl_recon.planners import (
     Objective,
     PlanningModel,
     RandomShootingPlanner,
-    WorldModelPlanningEnv,
 )
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 
 LIMIT, HORIZON = 1.0, 8
 

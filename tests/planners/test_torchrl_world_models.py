@@ -30,14 +30,12 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.objectives import WorldModelPredictionLoss
-from torchrl_recon.planners import (
-    PLANNERS,
+from torchrl_recon.planners import Objective, PlanningModel, make_planner
+from torchrl_recon.planners.registry import PLANNERS
+from torchrl_recon.planners.torchrl_models import (
     BatchedWorldModelEnv,
     LSTMWorldModelModule,
-    Objective,
-    PlanningModel,
     TorchRLWorldModelAdapter,
-    make_planner,
 )
 from torchrl_recon.transforms import UncertaintyPenalty
 

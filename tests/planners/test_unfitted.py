@@ -25,13 +25,8 @@ from torchrl_recon.modules import (
     unfitted_normalizers,
 )
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.planners import (
-    CEMPlanner,
-    Objective,
-    PlanningModel,
-    RandomShootingPlanner,
-    WorldModelPlanningEnv,
-)
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, RandomShootingPlanner
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.training import fit_uncertainty, fit_world_model
 

@@ -15,7 +15,8 @@ from tests.scripts import load_script
 from torchrl_recon import configs
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel
-from torchrl_recon.planners import PLANNERS, Objective
+from torchrl_recon.planners import Objective
+from torchrl_recon.planners.registry import PLANNERS
 from torchrl_recon.trainers import OnlineTrainer
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"

@@ -23,12 +23,9 @@ from torchrl_recon.modules import (
     ReconstructionUncertainty,
     make_estimator,
 )
-from torchrl_recon.planners import (
-    BatchedWorldModelEnv,
-    PlanningModel,
-    UncertaintyBand,
-    WorldModelPlanningEnv,
-)
+from torchrl_recon.planners import PlanningModel, UncertaintyBand
+from torchrl_recon.planners.model_env import WorldModelPlanningEnv
+from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv
 from torchrl_recon.transforms import UncertaintyPenalty
 
 SMALL = {

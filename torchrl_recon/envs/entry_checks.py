@@ -89,7 +89,7 @@ def _gym_errors(
     """Build a gymnasium env once (no step): its constructor takes ``kwargs``, its observation
     is a flat Box, its action a bounded float Box, ``state_names`` fit, and ``cost`` and
     ``termination`` return one value per step."""
-    from torchrl_recon.planners import check_step_fn
+    from torchrl_recon.planners.planning_model import check_step_fn
 
     try:
         made = gym.make(gym_id, disable_env_checker=True, **kwargs)

@@ -26,7 +26,7 @@ from torchrl_recon.experiments.field_checks import (
     finite,
     positive,
 )
-from torchrl_recon.planners import COMPILE_MODES, compile_mode
+from torchrl_recon.planners.planning_model import COMPILE_MODES, compile_mode
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 """Setting and estimator names: they name stage records and folders of the run directory."""
@@ -152,9 +152,10 @@ class TrainingConfig:
 
 @dataclass
 class PlannerConfig:
-    """A planner: ``kind``, a key of :data:`torchrl_recon.planners.PLANNERS` or ``module:Class``
-    (a user's :class:`~torchrl_recon.planners.PlannerBase`), built as ``Class(model, objective,
-    **kwargs)``, e.g. ``{kind: cem, kwargs: {horizon: 30, num_elites: 50}}``."""
+    """A planner: ``kind``, a key of :data:`torchrl_recon.planners.registry.PLANNERS` or
+    ``module:Class`` (a user's :class:`~torchrl_recon.planners.PlannerBase`), built as
+    ``Class(model, objective, **kwargs)``, e.g. ``{kind: cem, kwargs: {horizon: 30,
+    num_elites: 50}}``."""
 
     kind: str = "shooting"
     kwargs: dict[str, Any] = field(default_factory=dict)

@@ -38,7 +38,8 @@ from torchrl_recon.experiments.recipe_checks import (
     duplicate_errors,
     planner_errors,
 )
-from torchrl_recon.planners import PlanningModel, cost_to_u_ratio, window_uncertainty
+from torchrl_recon.planners import PlanningModel
+from torchrl_recon.planners.beta import cost_to_u_ratio, window_uncertainty
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.reports.stats import episode_mean_std, mean_std
 

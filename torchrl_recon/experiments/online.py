@@ -39,7 +39,8 @@ from torchrl_recon.experiments.recipe_checks import (
     data_errors,
     planner_errors,
 )
-from torchrl_recon.planners import Objective, PlanningModel, window_uncertainty
+from torchrl_recon.planners import Objective, PlanningModel
+from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.reports.stats import mean_std

@@ -211,7 +211,8 @@ def planner_errors(
     estimator, on the CPU) with the recipe's objective (``objective()``, described by
     ``note``)."""
     from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-    from torchrl_recon.planners import PlanningModel, check_planner_kwargs, get_planner_class
+    from torchrl_recon.planners import PlanningModel
+    from torchrl_recon.planners.registry import check_planner_kwargs, get_planner_class
 
     window = errors.cfg.models.window
 

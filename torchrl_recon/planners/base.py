@@ -21,6 +21,15 @@ from torchrl_recon.planners.planning_model import (
     mark_batch_dynamic,
 )
 
+__all__ = [
+    "InfeasiblePlanError",
+    "InfeasiblePlanWarning",
+    "PlanFlags",
+    "PlanOutput",
+    "PlanResult",
+    "PlannerBase",
+]
+
 OnInfeasible = Literal["fallback", "raise"]
 
 

@@ -23,6 +23,8 @@ from torchrl_recon.planners.sampling import (
     refit_gaussian,
 )
 
+__all__ = ["CEMPlanner", "Gaussian"]
+
 
 @dataclass
 class Gaussian:

@@ -24,6 +24,8 @@ import torch
 
 from torchrl_recon.modules.checks import check_int
 
+__all__ = ["run_aside", "run_blocks"]
+
 
 def check_threads(threads: object) -> int:
     """``threads`` as a positive int, or a ``ValueError`` naming it.

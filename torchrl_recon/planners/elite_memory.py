@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+__all__ = ["EliteMemory"]
+
 MEMORY_ROWS = 256
 """Plans :class:`EliteMemory` keeps at most, newest first (more only while one call has more)."""
 

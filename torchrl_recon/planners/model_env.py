@@ -18,6 +18,8 @@ from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds
 from torchrl_recon.planners.planning_model import CostFn, TerminationFn, check_step_fn
 
+__all__ = ["WorldModelPlanningEnv"]
+
 H_KEY, C_KEY, U_HISTORY, ENDED = "wm_h", "wm_c", "u_history", "wm_ended"
 
 

@@ -24,6 +24,16 @@ from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.cpu_threads import check_threads, run_blocks
 
+__all__ = [
+    "COMPILE_MODES",
+    "PlanningModel",
+    "Prediction",
+    "TerminationFn",
+    "check_step_fn",
+    "compile_mode",
+    "threaded_pass",
+]
+
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 """``torch.compile``'s modes, for ``PlanningModel(compile=...)``."""
 
@@ -258,9 +268,10 @@ def threaded_pass(fn: Callable, mode: str) -> Callable:
     :data:`COMPILE_MODES`), one graph (``fullgraph=True``), made once per function and mode.
 
     The C++ wrapper releases the GIL for the whole compiled call (Inductor's
-    ``cpp_wrapper_cpu``), which is what lets :func:`~torchrl_recon.planners.run_blocks` run a
-    pass's blocks in parallel (``PlanningModel(threads=...)``). Called with Dynamo's
-    ``allow_rnn`` on, as ``compiled_plan``.
+    ``cpp_wrapper_cpu``), which is what lets
+    :func:`~torchrl_recon.planners.cpu_threads.run_blocks` run a pass's blocks in parallel
+    (``PlanningModel(threads=...)``). Called with Dynamo's ``allow_rnn`` on, as
+    ``compiled_plan``.
 
     Examples:
         >>> threaded_pass(abs, "fast")
@@ -410,13 +421,13 @@ class PlanningModel(nn.Module):
             CPU it needs a C++ compiler (refused here without one).
         threads: on the CPU, evaluate the candidates in ``threads`` row blocks (or a
             multiple) on as many threads at once, one core each
-            (:func:`~torchrl_recon.planners.run_blocks`): each block is one call compiled with
-            Inductor's C++ wrapper, which runs without the GIL
-            (:func:`~torchrl_recon.planners.threaded_pass`), so this needs ``compile``. The
-            same predictions up to float rounding. The planners then compile only this pass,
-            not their whole call. A pass with autograd (the gradient planner) and a pass on
-            another device run in one thread. Default 1: one thread. On the 2-core development
-            machine a CEM call ran 1.52–1.70× faster at 2 (``docs/benchmarks.md``).
+            (:func:`~torchrl_recon.planners.cpu_threads.run_blocks`): each block is one call
+            compiled with Inductor's C++ wrapper, which runs without the GIL
+            (:func:`~torchrl_recon.planners.planning_model.threaded_pass`), so this needs
+            ``compile``. The same predictions up to float rounding. The planners then compile
+            only this pass, not their whole call. A pass with autograd (the gradient planner)
+            and a pass on another device run in one thread. Default 1: one thread. On the
+            2-core development machine a CEM call ran 1.52–1.70× faster at 2 (``docs/benchmarks.md``).
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -556,9 +567,9 @@ class PlanningModel(nn.Module):
         **adapter_kwargs,
     ) -> PlanningModel:
         """A planning model over a TorchRL ``WorldModel`` (or the one a ``WorldModelEnv`` drives),
-        through :class:`~torchrl_recon.planners.TorchRLWorldModelAdapter`: every candidate
-        rolled out in one batch, its reward head as the cost (or ``cost_fn`` on the states it
-        predicts, decoded where it has a decoder), its done head as the termination (or
+        through :class:`~torchrl_recon.planners.torchrl_models.TorchRLWorldModelAdapter`: every
+        candidate rolled out in one batch, its reward head as the cost (or ``cost_fn`` on the
+        states it predicts, decoded where it has a decoder), its done head as the termination (or
         ``termination_fn``), ``uncertainty`` scored on those states. The action bounds are
         ``env``'s (or the ``WorldModelEnv``'s) action spec unless given; ``adapter_kwargs`` go
         to the adapter (``obs_dim``, ``latent_key``, ...).

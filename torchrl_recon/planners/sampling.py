@@ -23,6 +23,8 @@ from torchrl_recon.planners.planning_model import (
     without_grad,
 )
 
+__all__ = ["Iteration", "SamplingPlanner"]
+
 WARM_START_STD = 0.25
 """Spread of the first batch's candidates around a warm start ``init``, as a fraction of the
 action range (CEM's and iCEM's; MPPI uses its ``noise_std``)."""

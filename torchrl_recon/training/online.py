@@ -31,7 +31,7 @@ from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstima
 from torchrl_recon.modules.checks import check_finite, check_flag, check_int
 from torchrl_recon.modules.device import module_device
 from torchrl_recon.objectives import WorldModelPredictionLoss
-from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.training.fit import (
     check_fit_settings,
     fit_reward,
@@ -407,7 +407,7 @@ def model_error(world_model: LSTMWorldModel, data: TensorDictBase, length: int) 
 def mean_uncertainty(estimator: UncertaintyEstimator | None, data: TensorDictBase) -> float:
     """The estimator's mean u over the windows of ``data`` (NaN without an estimator); when no
     trajectory is as long as its window, over the windows it trains on in padded slices, each
-    short episode started at rest (:func:`~torchrl_recon.planners.window_uncertainty`).
+    short episode started at rest (:func:`~torchrl_recon.planners.beta.window_uncertainty`).
 
     Examples:
         >>> from tensordict import TensorDict

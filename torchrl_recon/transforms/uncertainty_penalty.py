@@ -23,8 +23,8 @@ class UncertaintyPenalty(Transform):
     """Score each step's (s, a) window with an uncertainty estimator, and penalise the reward.
 
     Appended to any TorchRL env, a model-based one above all (TorchRL's ``WorldModelEnv`` or
-    ``DreamerEnv``, :class:`~torchrl_recon.planners.WorldModelPlanningEnv`, a real env to log u),
-    the transform keeps the last ``T − 1`` (state, action) pairs of each trajectory in the
+    ``DreamerEnv``, :class:`~torchrl_recon.planners.model_env.WorldModelPlanningEnv`, a real env
+    to log u), the transform keeps the last ``T − 1`` (state, action) pairs of each trajectory in the
     TensorDict (``history_key``, ``[*B, T − 1, N + M]``, in the observation and state specs as a
     ``TensorDictPrimer``'s entry). At each step it scores the window of those pairs followed by
     (s_t, a_t), the state the action is taken from and the action (as

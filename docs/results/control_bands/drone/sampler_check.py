@@ -25,7 +25,7 @@ from torchrl_recon.experiments import control
 from torchrl_recon.experiments.common import build_models, fit_module
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.runner import validate
-from torchrl_recon.planners import window_uncertainty
+from torchrl_recon.planners.beta import window_uncertainty
 
 
 def cut_trajectories(ids: torch.Tensor, chunk: int) -> torch.Tensor:

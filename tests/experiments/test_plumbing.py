@@ -194,6 +194,25 @@ def test_recipe_outside_recipes_extends_a_shipped_one(tmp_path):
     )
 
 
+def test_a_kept_composition_is_copied_and_made_again_when_a_file_changes(tmp_path, monkeypatch):
+    """``compose_recipe`` keeps what Hydra composed: each call gets its own copy, and a change
+    to any YAML file of the recipe's folders (here its base, same size) or to the working
+    directory composes it again."""
+    (tmp_path / "base.yaml").write_text("seed: 1\nthreads: 1\n")
+    user = tmp_path / "mine.yaml"
+    user.write_text("defaults:\n  - base\n  - _self_\nthreads: 2\n")
+    first = compose_recipe(user, ["+extra=1"])
+    first.seed = 9  # the caller's copy
+    assert (first.seed, compose_recipe(user, ["+extra=1"]).seed) == (9, 1)
+    hydra = compose_recipe(user, ["+extra=1"], with_hydra=True)
+    assert "hydra" in hydra and "hydra" not in compose_recipe(user, ["+extra=1"])
+    (tmp_path / "base.yaml").write_text("seed: 2\nthreads: 1\n")
+    assert compose_recipe(user, ["+extra=1"]).seed == 2
+    monkeypatch.chdir(tmp_path)
+    again = compose_recipe(user, ["+extra=1"], with_hydra=True)
+    assert again.hydra.runtime.cwd == str(tmp_path) != hydra.hydra.runtime.cwd
+
+
 def test_recipe_set_is_complete():
     names = {f"{p.parent.name}/{p.name}" for p in ALL_RECIPES}
     for env in ENVS:

@@ -1,28 +1,34 @@
 """A run directory is data, never code: every loader refuses planted pickles and damaged files.
 
-One smoke run (``stop_after=initial_models``: validation, data, models) is made once; each test
-works on a copy. A payload whose unpickling would create a marker file is planted in each kind of
-file a run directory holds and reads back, and every public loader is called on it: the marker
-never appears, the refusal is one ``DamagedFileError`` line naming the file, and the run
-directory is left byte-identical.
+One smoke run (``stop_after=initial_models``: validation, data, models) is made once per test
+run (by the first pytest-xdist worker to ask); each test works on a copy. A payload whose
+unpickling would create a marker file is planted in each kind of file a run directory holds and
+reads back, and every public loader is called on it: the marker never appears, the refusal is
+one ``DamagedFileError`` line naming the file, and the run directory is left byte-identical.
 """
 
 from __future__ import annotations
 
+import copy
+import functools
+import io
 import json
 import os
 import pickle
 import shutil
 import subprocess
-import sys
 from collections.abc import Callable
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
+from filelock import FileLock
+from omegaconf import DictConfig
 from tensordict import NonTensorData, TensorDict
 
+from torchrl_recon.cli import main
 from torchrl_recon.data import load_buffer, load_buffer_data, make_sequence_buffer
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.common import build_models
@@ -57,10 +63,14 @@ class Payload:
 
 
 def _cli(run_dir: Path, *extra: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, "-m", "torchrl_recon.cli", "explore", str(RECIPE)]
-    command += [f"output_dir={run_dir}", "logger.backend=none", *extra]
-    return subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    """``torchrl-recon explore RECIPE ...`` run by the command line's ``main`` in this process
+    (a subprocess would import torch again, ~2/3 of its time; ``test_cli_errors`` runs the
+    installed entry point itself), its exit code and printed output as a finished process's."""
+    argv = ["explore", str(RECIPE), f"output_dir={run_dir}", "logger.backend=none", *extra]
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = main(argv)
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 
 def _explore_results(seed: int) -> dict:
@@ -73,15 +83,31 @@ def _explore_results(seed: int) -> dict:
     }
 
 
-@pytest.fixture(scope="module")
-def base_run(tmp_path_factory) -> Path:
+def _make_base_run(run_dir: Path) -> None:
     """A real run directory: data, models, validation; plus control-style parts and results."""
-    run_dir = tmp_path_factory.mktemp("safety") / "run"
     proc = _cli(run_dir, "stop_after=initial_models")
     assert proc.returncode == 0, proc.stderr[-2000:]
     Stages(run_dir, seed=0).run_parts("episodes", 2, lambda i: {"i": i})
     write_results(run_dir, _explore_results(0))
     release_run_dir(run_dir)
+
+
+@pytest.fixture(scope="module")
+def base_run(tmp_path_factory) -> Path:
+    """:func:`_make_base_run`'s directory, made once per test run: under pytest-xdist by the
+    first worker to ask, in this run's folder common to its workers (each test copies it)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        run_dir = tmp_path_factory.mktemp("safety") / "run"
+        _make_base_run(run_dir)
+        return run_dir
+    shared = tmp_path_factory.getbasetemp().parent / "run_dir_safety"
+    shared.mkdir(exist_ok=True)
+    run_dir, done = shared / "run", shared / "done"
+    with FileLock(str(shared / "lock")):
+        if not done.exists():
+            shutil.rmtree(run_dir, ignore_errors=True)  # a worker that failed to finish it
+            _make_base_run(run_dir)
+            done.touch()
     return run_dir
 
 
@@ -98,8 +124,18 @@ def _snapshot(run_dir: Path) -> dict[str, bytes]:
     return {str(p): p.read_bytes() for p in files}
 
 
-def _cfg(run_dir: Path):
-    return load_recipe(RECIPE, [f"output_dir={run_dir}", "logger.backend=none"])
+@functools.cache
+def _recipe() -> DictConfig:
+    """The recipe as ``load_recipe`` makes it, loaded once: only its ``output_dir`` (which no
+    other key interpolates) differs between the copies of the run."""
+    return load_recipe(RECIPE, ["output_dir=unset", "logger.backend=none"])
+
+
+def _cfg(run_dir: Path) -> DictConfig:
+    """``load_recipe(RECIPE, [f"output_dir={run_dir}", "logger.backend=none"])``."""
+    cfg = copy.deepcopy(_recipe())
+    cfg.output_dir = str(run_dir)
+    return cfg
 
 
 def _modules_of(run_dir: Path) -> dict:

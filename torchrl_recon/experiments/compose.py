@@ -4,18 +4,23 @@ shipped recipes on its search path (``defaults: [/drone/explore@_here_, _self_]`
 from __future__ import annotations
 
 import contextlib
+import copy
+import hashlib
 import itertools
 import math
+import os
+from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import OverrideType
 from hydra.errors import HydraException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_recon.errors import RecipeError
@@ -56,6 +61,11 @@ def compose_recipe(
     with its ``hydra`` node if ``with_hydra``; inside a running Hydra app too. Raises
     FileNotFoundError, or a RecipeError naming the file.
 
+    A composition is kept (each call gets its own copy) while nothing it was made from changed:
+    the YAML files of its config directories (by content), the working directory, Hydra's
+    ``ConfigStore`` and the variables of ``hydra.job.env_copy``; so the CLI's precheck, its jobs
+    and a calibrate recipe's outcome recipes compose each recipe once, not once per look.
+
     Examples:
         >>> cfg = compose_recipe(RECIPES_DIR / "drone" / "explore_smoke.yaml", ["seed=3"])
         >>> cfg.env.name, cfg.seed
@@ -64,15 +74,74 @@ def compose_recipe(
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"Recipe file not found: {path}")
+    key = (str(path.resolve()), tuple(overrides), os.getcwd())
+    kept = _COMPOSED.get(key)
+    if kept is not None and _inputs(*kept["made_of"]) == kept["inputs"]:
+        _COMPOSED.move_to_end(key)
+        if not with_hydra and "bare" not in kept:
+            kept["bare"] = _without_hydra(copy.deepcopy(kept["with_hydra"]))
+        return copy.deepcopy(kept["with_hydra" if with_hydra else "bare"])
     running = GlobalHydra.instance().hydra  # a running app's (a job loading another recipe)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(str(path.resolve().parent), version_base="1.3"):
-            return compose(path.stem, [SEARCH_PATH, *overrides], return_hydra_config=with_hydra)
+            cfg = compose(path.stem, [SEARCH_PATH, *overrides], return_hydra_config=True)
     except (HydraException, OmegaConfBaseException) as e:
         raise RecipeError(f"{path}: {hydra_error_message(e)}") from e
     finally:
         GlobalHydra.instance().hydra = running
+    sources = cfg.hydra.runtime.config_sources
+    folders = tuple(str(s.path) for s in sources if s.schema == "file")
+    made_of = (folders, tuple(cfg.hydra.job.env_copy), _store_nodes())
+    if (inputs := _inputs(*made_of)) is not None:
+        _COMPOSED[key] = {"with_hydra": copy.deepcopy(cfg), "made_of": made_of, "inputs": inputs}
+        while len(_COMPOSED) > _KEPT:
+            _COMPOSED.popitem(last=False)
+    return cfg if with_hydra else _without_hydra(cfg)
+
+
+def _without_hydra(cfg: DictConfig) -> DictConfig:
+    """``cfg`` without its ``hydra`` node, as Hydra's ``compose`` returns it by default."""
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
+
+
+_KEPT = 64  # compositions kept (the least recently used goes first)
+_MAX_FILES = 2000  # files (of any kind) in a config directory beyond which it is not kept
+_COMPOSED: OrderedDict[tuple, dict[str, Any]] = OrderedDict()
+
+
+def _store_nodes() -> tuple:
+    """Every node of Hydra's ``ConfigStore`` (the objects: one stored again is another)."""
+    nodes, stack = [], [ConfigStore.instance().repo]
+    while stack:
+        for value in stack.pop().values():
+            (stack.append if isinstance(value, dict) else nodes.append)(value)
+    return tuple(nodes)
+
+
+def _inputs(folders: tuple, env_keys: tuple, nodes: tuple) -> tuple | None:
+    """What a composition was made from, as it is now: a digest of the YAML files (names and
+    bytes) under ``folders``, the ``env_keys`` variables and whether the ConfigStore holds the
+    same ``nodes``; None (not to be kept) if a folder holds too many files or a linked folder."""
+    digest, count = hashlib.blake2b(digest_size=20), 0
+    for folder in folders:
+        for root, dirs, files in os.walk(folder):
+            count += len(files)
+            if count > _MAX_FILES or any(os.path.islink(os.path.join(root, d)) for d in dirs):
+                return None
+            dirs.sort()
+            for name in sorted(f for f in files if f.endswith((".yaml", ".yml"))):
+                file = os.path.join(root, name)
+                digest.update(file.encode() + b"\0")
+                with contextlib.suppress(OSError), open(file, "rb") as f:
+                    digest.update(f.read())
+                digest.update(b"\0")
+    env = tuple(os.environ.get(k) for k in env_keys)
+    store = _store_nodes()
+    same_store = len(store) == len(nodes) and all(a is b for a, b in zip(store, nodes, strict=True))
+    return digest.digest(), env, same_store
 
 
 def _parse(overrides: Sequence[str]) -> list[Any]:

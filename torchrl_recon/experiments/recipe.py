@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -40,10 +41,17 @@ def load_recipe(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> 
     return validate(compose_recipe(path, jobs[0]), source=str(path))
 
 
+@functools.cache
+def _structured(schema: type) -> DictConfig:
+    """``OmegaConf.structured(schema)``, made once per schema (``OmegaConf.merge`` copies its
+    first config, so this one is never changed)."""
+    return OmegaConf.structured(schema)
+
+
 def _merge_checked(schema: type, data: Any, *, prefix: str, source: str) -> DictConfig:
     """``OmegaConf.merge(structured(schema), data)`` with errors that name the full key."""
     try:
-        return OmegaConf.merge(OmegaConf.structured(schema), data)
+        return OmegaConf.merge(_structured(schema), data)
     except OmegaConfBaseException as e:
         key = (prefix + (getattr(e, "full_key", None) or "")).rstrip(".")
         line = str(e).strip().partition("\n")[0]
@@ -86,10 +94,13 @@ def validate(cfg: DictConfig | Mapping[str, Any], *, source: str = "recipe") -> 
     key, item_schema = kind.list_field or ("", None)
     if (items := data.get(key)) is None:
         data.pop(key, None)  # the schema's default
-    for i, item in enumerate(items if isinstance(items, list) else []):
-        if isinstance(item, dict):  # OmegaConf's errors inside a list do not name the index
-            _merge_checked(item_schema, item, prefix=f"{key}[{i}].", source=source)
-    merged = _merge_checked(kind.schema, data, prefix="", source=source)
+    try:
+        merged = _merge_checked(kind.schema, data, prefix="", source=source)
+    except Exception:  # OmegaConf's errors inside a list do not name the index: an item's own
+        for i, item in enumerate(items if isinstance(items, list) else []):  # merge names it
+            if isinstance(item, dict):
+                _merge_checked(item_schema, item, prefix=f"{key}[{i}].", source=source)
+        raise
     env = OmegaConf.to_container(merged.env, resolve=False)
     if env.get("name") is None and env.get("id") is not None:  # a gymnasium id names the run
         merged.env.name = "${trr_env_name:${env.id}}"

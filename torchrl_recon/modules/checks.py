@@ -14,6 +14,7 @@ from torchrl_recon.modules.activations import ACTIVATIONS
 
 __all__ = [
     "capturing_cuda_graph",
+    "in_graph",
     "check_activation",
     "check_features",
     "check_finite",
@@ -62,6 +63,20 @@ def capturing_cuda_graph() -> bool:
     return torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
 
 
+def in_graph() -> bool:
+    """True while ``torch.compile`` traces or a CUDA graph is captured: a check that reads a
+    tensor's values on the host would cut the graph or fail the capture, so such checks are left
+    out then. The speed paths that build graphs (a fit's compiled or captured step, a compiled
+    plan) check what such a check would have caught: a step whose loss is not finite is run
+    again eagerly, checks included. The one question the library's parts ask of the speed path.
+
+    Examples:
+        >>> in_graph()
+        False
+    """
+    return torch.compiler.is_compiling() or capturing_cuda_graph()
+
+
 def check_finite(name: str, x: torch.Tensor) -> None:
     """Raise if ``x`` holds NaN or inf (pass ``x.detach()`` for a tensor that requires grad).
 
@@ -75,7 +90,7 @@ def check_finite(name: str, x: torch.Tensor) -> None:
         ...
         ValueError: obs contains NaN or inf (first at index [1]); expected finite values.
     """
-    if torch.compiler.is_compiling() or capturing_cuda_graph():
+    if in_graph():
         return
     if not torch.isfinite(x).all():
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()

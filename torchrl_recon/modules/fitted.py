@@ -15,6 +15,8 @@ import warnings
 import torch
 from torch import nn
 
+from torchrl_recon.modules.checks import in_graph
+
 __all__ = [
     "FittedCheck",
     "check_fitted",
@@ -248,7 +250,7 @@ class FittedCheck:
     def __call__(self, module: nn.Module) -> None:
         """Raise as :func:`check_fitted` unless ``module`` passed before and is unchanged since
         (not checked while ``torch.compile`` traces: the eager call before it checked)."""
-        if torch.compiler.is_compiling():
+        if in_graph():
             return
         seen = self._seen(module)
         passed = self.passed

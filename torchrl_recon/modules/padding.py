@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from torchrl_recon.modules.checks import capturing_cuda_graph
+from torchrl_recon.modules.checks import in_graph
 
 
 def check_prefix_mask(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
@@ -24,7 +24,7 @@ def check_prefix_mask(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
             "batch and time dims."
         )
     mask = mask.bool()
-    if capturing_cuda_graph():  # a host read fails the capture: the eager steps checked it
+    if in_graph():  # a host read would cut the graph or fail the capture: eager steps check it
         return mask
     if bool((mask[..., 1:] & ~mask[..., :-1]).any()):
         raise ValueError(

@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_recon.modules.checks import capturing_cuda_graph, check_finite
+from torchrl_recon.modules.checks import check_finite, in_graph
 from torchrl_recon.modules.reward_model import RewardModel
 from torchrl_recon.objectives.sequences import sequence_mask
 
@@ -53,9 +53,8 @@ class RewardLoss(LossModule):
         )
         mask = sequence_mask(tensordict) if tensordict.batch_dims >= 1 else None
         loss = model.loss(obs, action, next_obs, reward, terminated, mask=mask)
-        if not capturing_cuda_graph() and not torch.compiler.is_compiling():
-            if not torch.isfinite(loss):
-                raise FloatingPointError(
-                    f"reward loss is {loss.item()}; check the data and the learning rate."
-                )
+        if not in_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
+            raise FloatingPointError(
+                f"reward loss is {loss.item()}; check the data and the learning rate."
+            )
         return TensorDict({"loss_reward": loss}, [])

@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from torchrl_recon.data.buffers import MASK_KEY
-from torchrl_recon.modules.checks import check_int, check_type
+from torchrl_recon.modules.checks import check_int, check_type, in_graph
 
 
 def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDictBase:
@@ -20,7 +20,7 @@ def as_sequences(tensordict: TensorDictBase, slice_len: int | None) -> TensorDic
         >>> as_sequences(TensorDict({"x": torch.arange(12)}, [12]), 4).batch_size
         torch.Size([3, 4])
     """
-    if not torch.compiler.is_compiling():  # (a compiled fit's graph: checked when eager)
+    if not in_graph():  # (a compiled or captured fit's graph: checked when eager)
         check_type("tensordict", tensordict, TensorDictBase, "a TensorDict of transitions")
         if slice_len is not None:
             check_int("slice_len", slice_len)

@@ -6,7 +6,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_recon.modules.checks import capturing_cuda_graph, check_int, check_type
+from torchrl_recon.modules.checks import check_int, check_type, in_graph
 from torchrl_recon.modules.fitted import ESTIMATOR, warn_unfitted
 from torchrl_recon.modules.padding import loss_takes_mask
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator
@@ -72,11 +72,11 @@ class UncertaintyLoss(LossModule):
                 "than slice_len): its loss takes no mask. Use the reconstruction or rnd estimator, "
                 "or slices no longer than the episodes."
             )
-        if not capturing_cuda_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
+        if not in_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
             raise FloatingPointError(
                 f"uncertainty loss is {loss.item()}; check the data and the learning rate."
             )
-        if not torch.compiler.is_compiling() and not self.fit_checked:
+        if not in_graph() and not self.fit_checked:
             self.fit_checked = True
             warn_unfitted(self.estimator, ESTIMATOR, type(self).__name__)
         return TensorDict({"loss_uncertainty": loss}, [])

@@ -8,7 +8,7 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
-from torchrl_recon.modules.checks import capturing_cuda_graph, check_int, check_type
+from torchrl_recon.modules.checks import check_int, check_type, in_graph
 from torchrl_recon.modules.fitted import WORLD_MODEL, warn_unfitted
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives.sequences import as_sequences, marked_slice_len, sequence_mask
@@ -109,11 +109,11 @@ class WorldModelPredictionLoss(LossModule):
                 action[..., None, window:, :],
             )[..., 0, :, :]
             loss = ((pred - next_obs[..., window:, :]) / model.obs_norm.scale).pow(2).mean()
-        if not capturing_cuda_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
+        if not in_graph() and not torch.isfinite(loss):  # a graph: the fit checks it
             raise FloatingPointError(
                 f"world-model loss is {loss.item()}; check the data and the learning rate."
             )
-        if not torch.compiler.is_compiling() and not self.fit_checked:
+        if not in_graph() and not self.fit_checked:
             self.fit_checked = True
             warn_unfitted(model, WORLD_MODEL, type(self).__name__)
         return TensorDict({"loss_world_model": loss}, [])

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from torchrl_recon.modules.checks import check_int, check_real, check_type
+from torchrl_recon.modules.checks import check_int, check_real, check_type, in_graph
 
 __all__ = ["colored_noise"]
 
@@ -40,7 +40,7 @@ def colored_noise(white: torch.Tensor, horizon: int, beta: float) -> torch.Tenso
         >>> round(lag1(colored_noise(white, 16, beta=0.0)).item(), 1), lag1(red).item() > 0.5
         (0.0, True)
     """
-    if not torch.compiler.is_compiling():  # (a compiled plan's graph: checked when eager)
+    if not in_graph():  # (a compiled plan's graph: checked when eager)
         check_type("white", white, torch.Tensor, "a tensor [..., 2, F] of standard normal draws")
         check_int("horizon", horizon)
         check_real("beta", beta, minimum=0.0)

@@ -74,11 +74,12 @@ GEMM = r"^GEMM rate \(float32 [^)]+\): ([0-9.]+) GFLOP/s$"
             r"^speed-up of 2 episodes in one call \((?:gradient|CEM, K=8)\): ([0-9.]+)x$",
             2,
         ),
-        (
+        pytest.param(  # 8 s: make test-all
             "control_batching.py",
             ["--episodes", "2", "--steps", "11", "--settings", "baseline"],
             r"^speed-up of 2 episodes as one batch \(baseline\): ([0-9.]+)x$",
             1,
+            marks=pytest.mark.slow,
         ),
         (
             "window_scoring.py",

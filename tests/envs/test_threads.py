@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from torchrl_recon.collectors import collect_random
@@ -30,6 +31,7 @@ def test_closing_an_unused_batched_env_keeps_one_thread():
         assert torch.get_num_threads() == 1
 
 
+@pytest.mark.slow  # 9 s; the batched env closing on success is tested above
 def test_a_failed_collection_closes_its_batched_env_and_keeps_one_thread():
     # A stage that raised (or was interrupted) mid-collection left its env open before
     # closing_env: a ParallelEnv's workers outlived the failed stage.

@@ -87,6 +87,7 @@ def _errors(err: str) -> list[str]:
     return [line for line in err.splitlines() if line.startswith("error:")]
 
 
+@pytest.mark.slow  # 10 s; test_online's Pendulum smoke runs the gym path and resumes
 def test_pendulum_control_smoke_through_the_cli_and_resumed(costs, tmp_path, capsys):
     out = tmp_path / "control"
     args = ["control", str(GYM / "control_smoke.yaml"), "env.id=Pendulum-v1"]

@@ -143,6 +143,7 @@ def test_refits_on_the_new_steps_and_a_sample_of_the_old_run_from_the_recipe(
     capsys.readouterr()
 
 
+@pytest.mark.slow  # 10 s; a saving of fit time, its setting checked in test_online_options
 def test_the_estimator_is_refitted_only_when_the_plans_read_u(costs, tmp_path, capsys):
     """beta = 0, re-planning every step and no exploring round: refits leave the estimator as
     the first fit made it, and the plans (which never read u) are the same as with

@@ -177,6 +177,7 @@ def test_a_feature_constant_so_far_starts_with_zero_weight_when_it_moves():
     assert torch.isfinite(before).all()
 
 
+@pytest.mark.slow  # 8 s; the reward model's fit and use stay
 def test_a_warm_refit_renormalizes_on_all_data_when_asked():
     torch.manual_seed(0)
     data = transitions(600)

@@ -40,6 +40,7 @@ def test_a_compiled_fit_is_the_eager_fit_up_to_rounding():
     assert not _close(_world(0), compiled)  # it trained
 
 
+@pytest.mark.slow  # 6 s of compiling; the one-model compiled fit stays
 @needs_cpp_compiler
 def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
     rb = _buffer(0)

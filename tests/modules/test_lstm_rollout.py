@@ -83,7 +83,7 @@ def test_multi_step_training_is_bitwise_the_recorded_graph(monkeypatch):
     """A few Adam steps of the multi-step loss land on the same weights as with the reference."""
     from tensordict import TensorDict
 
-    from torchrl_recon.modules import world_model as world_model_module
+    from torchrl_recon.modules import _lstm_rollout
     from torchrl_recon.objectives import WorldModelPredictionLoss
 
     class Recorded:  # in place of LSTMRollout: the rollout with every op recorded
@@ -100,7 +100,7 @@ def test_multi_step_training_is_bitwise_the_recorded_graph(monkeypatch):
     )
     trained = []
     for rollout in (LSTMRollout, Recorded):
-        monkeypatch.setattr(world_model_module, "LSTMRollout", rollout)
+        monkeypatch.setattr(_lstm_rollout, "LSTMRollout", rollout)
         model = _frozen_model().requires_grad_(True)
         model.window = 4
         loss = WorldModelPredictionLoss(model, slice_len=20)

@@ -1,20 +1,36 @@
-"""The world model's autoregressive rollout as one autograd node with a hand-written BPTT.
+"""The world model's LSTM: one cell, one rollout, and the accelerators that run it faster.
 
-Gradient planning differentiates a 200-step rollout 50 times per plan, and multi-step training
-a 30-step one per batch. Recorded op by op, each step is ~16 autograd nodes and its backward
-~25 more, and the per-node bookkeeping costs more than the arithmetic on these small tensors.
-:class:`LSTMRollout` runs the same ops without recording them and replays their derivatives by
-hand, with the ATen backward kernels autograd uses (``sigmoid_backward``, ``tanh_backward``,
-...) in the order autograd accumulates them, so its states and gradients (actions, start state
-and weights) are bitwise those of :func:`recorded_rollout`, the op-by-op reference
-(``tests/modules/test_lstm_rollout.py``).
+* :func:`lstm_cell` is the LSTM step, the one place its math is written: the state ``(h, c)``
+  from the gates' pre-activations, for one model (``[B, 4·hid]``) or a population (a leading
+  member dim ``P`` on every tensor). The world model's teacher-forced member loop, the
+  reference rollout and the fused node's forward call it; only the no-grad accelerator lays
+  the same math out its own way (feature-major, in place).
+* :func:`recorded_rollout` is the reference autoregressive rollout, every op recorded by
+  autograd (:func:`_unrolled`: the cell, the dense layer and the residual state update, step by
+  step).
+* :func:`rollout` picks, in one place, how a call runs: the reference, or an accelerator held
+  to it by ``tests/modules/test_lstm_rollout.py``:
 
-Both also run a population of models at once: with a leading member dim ``P`` on every
-tensor (weights ``[P, ...]``, states ``[P, R, ...]``), each matmul becomes a batched one
-(``bmm``/``baddbmm``) over the members; 2-D weights run the single model's exact ops.
+  - :class:`LSTMRollout`, when a gradient is needed: the same forward (:func:`_unrolled`)
+    without recording, as one autograd node whose backward through time is written by hand
+    with the ATen kernels autograd uses (``sigmoid_backward``, ``tanh_backward``, ...) in the
+    order autograd accumulates them. Gradient planning differentiates a 200-step rollout 50
+    times per plan and multi-step training a 30-step one per batch; recorded, each step is ~16
+    autograd nodes and ~25 more in its backward, whose bookkeeping costs more than the
+    arithmetic on these small tensors. For one model its states and gradients (actions, start
+    state and weights) are bitwise the reference's;
+  - :func:`rollout_inplace` (:func:`rollout_traced` under ``torch.compile``), when none is
+    and the model is one: preallocated feature-major buffers, in-place ops.
+
+Members: with a leading member dim ``P`` on every tensor (weights ``[P, ...]``, states
+``[P, R, ...]``) each matmul becomes a batched one (``bmm``/``baddbmm``); 2-D weights run the
+single model's exact ops (a batched matmul of one member need not be bitwise the plain one).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -37,6 +53,13 @@ def _addmm(bias: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.
     return torch.baddbmm(bias.unsqueeze(-2), mat1, mat2)
 
 
+def _addmm_step(gates: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
+    """``gates + mat1 @ mat2`` where ``gates`` already holds a full ``[*P, R, 4 hid]`` term."""
+    if mat2.dim() == 2:
+        return torch.addmm(gates, mat1, mat2)
+    return torch.baddbmm(gates, mat1, mat2)
+
+
 def _mm(mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
     """``mm`` for 2-D operands, ``bmm`` over a leading member dim."""
     return mat1.mm(mat2) if mat2.dim() == 2 else torch.bmm(mat1, mat2)
@@ -47,12 +70,72 @@ def _matvec(mat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
     return mat @ vec if mat.dim() == 2 else torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
 
 
+def _mat2_grad(grad: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
+    """Gradient of ``mat2`` in ``addmm(b, mat1, mat2)``, as autograd's ``mm_mat2_backward``."""
+    if mat2.dim() == 3:  # members: baddbmm's backward
+        return torch.bmm(mat1.transpose(-1, -2), grad)
+    if mat2.stride(0) == 1 and mat2.stride(1) == mat2.size(0):  # column-major mat2
+        return grad.t().mm(mat1).t()
+    return mat1.t().mm(grad)
+
+
 def sigmoid_tanh(x: torch.Tensor) -> torch.Tensor:
     """``tanh(x)`` as ``2·sigmoid(2x) − 1``: within float32 rounding of ``torch.tanh`` (absolute
     error ~1e-7) and several times faster on the CPU, whose ``tanh`` kernel is slow. A
     population's rollout uses it; a single model keeps ``torch.tanh`` (bitwise its reference).
     """
     return torch.sigmoid(x * 2).mul(2).sub_(1)
+
+
+class CellActivations(NamedTuple):
+    """One step's gate activations and ``tanh(c)``, what the hand-written backward reads."""
+
+    si: torch.Tensor  # sigmoid(i)
+    sf: torch.Tensor  # sigmoid(f)
+    tg: torch.Tensor  # tanh(g)
+    so: torch.Tensor  # sigmoid(o)
+    tc: torch.Tensor  # tanh(c) of the new c
+
+
+def lstm_cell(
+    gates: torch.Tensor,
+    c: torch.Tensor,
+    *,
+    tanh: Callable[[torch.Tensor], torch.Tensor] = torch.tanh,
+    one_sigmoid: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, CellActivations]:
+    """One LSTM step from its gates' pre-activations: ``c' = σ(f)·c + σ(i)·tanh(g)``,
+    ``h' = σ(o)·tanh(c')`` (``nn.LSTM``'s cell and gate order i, f, g, o).
+
+    Args:
+        gates: ``[*P, B, 4·hid]``, the input and recurrent parts and both biases summed.
+        c: the cell state ``[*P, B, hid]``.
+
+    Keyword Args:
+        tanh: ``torch.tanh`` (the reference) or :func:`sigmoid_tanh` (a population's speed).
+        one_sigmoid: compute all four gates under one ``sigmoid`` call, with ``tanh(g) =
+            2·sigmoid(2g) − 1`` (the ``g`` block of ``gates`` is doubled in place, so only
+            where nothing records autograd: the fused rollout of a population).
+
+    Returns:
+        ``(h', c', activations)``.
+
+    Examples:
+        >>> h, c, _ = lstm_cell(torch.zeros(2, 3, 4 * 5), torch.ones(2, 3, 5))
+        >>> h.shape, c[0, 0, 0].item()
+        (torch.Size([2, 3, 5]), 0.5)
+    """
+    if one_sigmoid:
+        hid = gates.shape[-1] // 4
+        gates[..., 2 * hid : 3 * hid].mul_(2)
+        si, sf, s2g, so = torch.sigmoid(gates).chunk(4, -1)
+        tg = s2g.mul(2).sub_(1)
+    else:
+        i, f, g, o = gates.chunk(4, -1)
+        si, sf, tg, so = torch.sigmoid(i), torch.sigmoid(f), tanh(g), torch.sigmoid(o)
+    c = sf * c + si * tg
+    tc = tanh(c)
+    return so * tc, c, CellActivations(si, sf, tg, so, tc)
 
 
 def fold_weights(
@@ -88,17 +171,62 @@ def fold_weights(
     return w_a.transpose(-1, -2), bias, w_sh, w_dense.transpose(-1, -2), b_dense, w_out, b_out
 
 
-def recorded_rollout(
+def rollout(
     s: torch.Tensor,
     h: torch.Tensor,
     c: torch.Tensor,
     actions: torch.Tensor,
     activation: str,
     *weights: torch.Tensor,
+    reference: bool = False,
 ) -> torch.Tensor:
-    """The reference: the same rollout with every op recorded by autograd, ``[R, H, N]``.
+    """The rollout ``[*P, R, H, N]``, run by the reference or by the accelerator for this call
+    (the one place that chooses; same arguments as :class:`LSTMRollout`).
 
-    Same arguments as :class:`LSTMRollout`. Slower; kept to test and benchmark the fused node.
+    ``reference=True``, or a population's call that needs no gradient: :func:`recorded_rollout`.
+    A gradient needed: :class:`LSTMRollout`. Neither, one model: :func:`rollout_inplace`.
+
+    Examples:
+        >>> from torchrl_recon.modules import LSTMWorldModel
+        >>> model, zeros = LSTMWorldModel(6, 3), torch.zeros(4, 32)
+        >>> states = rollout(torch.zeros(4, 6), zeros, zeros, torch.rand(4, 20, 3), "relu",
+        ...                  *model._folded_weights())
+        >>> states.shape, type(states.grad_fn).__name__
+        (torch.Size([4, 20, 6]), 'LSTMRolloutBackward')
+    """
+    inputs = (s, h, c, actions)
+    needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, *weights))
+    if reference or (not needs_grad and actions.dim() > 3):
+        return recorded_rollout(*inputs, activation, *weights)
+    if needs_grad:  # one autograd node with a hand-written backward through time
+        return LSTMRollout.apply(*inputs, activation, *weights)
+    return rollout_inplace(*inputs, activation, *weights)
+
+
+class _Step(NamedTuple):
+    """What one step of :func:`_unrolled` keeps for the hand-written backward."""
+
+    cell: CellActivations
+    c_prev: torch.Tensor  # the cell state the step started from
+    pre: torch.Tensor  # the dense layer's pre-activation
+    z: torch.Tensor  # and its output
+    x: torch.Tensor  # the step's [s; h] (the recurrent matmul's input)
+    h: torch.Tensor  # the step's new h
+
+
+def _unrolled(
+    s: torch.Tensor,
+    h: torch.Tensor,
+    c: torch.Tensor,
+    actions: torch.Tensor,
+    activation: str,
+    weights: tuple[torch.Tensor, ...],
+    **cell: object,
+) -> tuple[torch.Tensor, torch.Tensor, list[_Step]]:
+    """The rollout, step by step: the states ``[*P, R, H, N]``, the actions as one
+    ``[*P, H·R, M]`` matrix (steps major) and each step's :class:`_Step`.
+
+    ``cell``: :func:`lstm_cell`'s keywords. Recorded by autograd when grad mode is on.
     """
     w_a, bias, w_sh, w_d, b_d, w_out, b_out = weights
     act, hid = ACTIVATIONS[activation], h.shape[-1]
@@ -107,31 +235,31 @@ def recorded_rollout(
     # zero-fill a full-size gradient per step in the backward (O(H²) memory traffic).
     flat = actions.transpose(-3, -2).reshape(*members, horizon * rows, action_dim)
     gates_a = _addmm(bias, flat, w_a).reshape(*members, horizon, rows, 4 * hid)
-    states = []
+    states, steps = [], []
     for gates_t in gates_a.unbind(-3):
-        gates = _addmm_step(gates_t, torch.cat([s, h], -1), w_sh)
-        i, f, g, o = gates.chunk(4, -1)
-        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
-        h = torch.sigmoid(o) * torch.tanh(c)
-        s = s + _addmm(b_out, act(_addmm(b_d, h, w_d)), w_out)
+        x, c_prev = torch.cat([s, h], -1), c
+        h, c, activations = lstm_cell(_addmm_step(gates_t, x, w_sh), c, **cell)
+        pre = _addmm(b_d, h, w_d)
+        z = act(pre)
+        s = s + _addmm(b_out, z, w_out)
+        steps.append(_Step(activations, c_prev, pre, z, x, h))
         states.append(s)
-    return torch.stack(states, -2)
+    return torch.stack(states, -2), flat, steps
 
 
-def _addmm_step(gates: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
-    """``gates + mat1 @ mat2`` where ``gates`` already holds a full ``[*P, R, 4 hid]`` term."""
-    if mat2.dim() == 2:
-        return torch.addmm(gates, mat1, mat2)
-    return torch.baddbmm(gates, mat1, mat2)
+def recorded_rollout(
+    s: torch.Tensor,
+    h: torch.Tensor,
+    c: torch.Tensor,
+    actions: torch.Tensor,
+    activation: str,
+    *weights: torch.Tensor,
+) -> torch.Tensor:
+    """The reference: the rollout with every op recorded by autograd, ``[*P, R, H, N]``.
 
-
-def _mat2_grad(grad: torch.Tensor, mat1: torch.Tensor, mat2: torch.Tensor) -> torch.Tensor:
-    """Gradient of ``mat2`` in ``addmm(b, mat1, mat2)``, as autograd's ``mm_mat2_backward``."""
-    if mat2.dim() == 3:  # members: baddbmm's backward
-        return torch.bmm(mat1.transpose(-1, -2), grad)
-    if mat2.stride(0) == 1 and mat2.stride(1) == mat2.size(0):  # column-major mat2
-        return grad.t().mm(mat1).t()
-    return mat1.t().mm(grad)
+    Same arguments as :class:`LSTMRollout`. Slower; kept to test and benchmark the fused node.
+    """
+    return _unrolled(s, h, c, actions, activation, weights)[0]
 
 
 class LSTMRollout(torch.autograd.Function):
@@ -146,7 +274,9 @@ class LSTMRollout(torch.autograd.Function):
 
     Returns:
         states s_1..s_H, ``[*P, R, H, N]``. Differentiable once (no double backward).
-        ``P`` is the optional member dim of a population (see the module docstring).
+        ``P`` is the optional member dim of a population (see the module docstring), whose
+        forward runs the cell with :func:`sigmoid_tanh` under one sigmoid (within rounding of
+        the reference).
 
     Examples:
         >>> from torchrl_recon.modules import LSTMWorldModel
@@ -159,128 +289,141 @@ class LSTMRollout(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, s0, h0, c0, actions, activation, w_a, bias, w_sh, w_d, b_d, w_out, b_out):
-        act = ACTIVATIONS[activation]
-        *members, rows, horizon, action_dim = actions.shape
-        hid = h0.shape[-1]
-        # The same ops as recorded_rollout, so the states are bitwise the same.
-        flat_actions = actions.transpose(-3, -2).reshape(*members, horizon * rows, action_dim)
-        gates_a = _addmm(bias, flat_actions, w_a).reshape(*members, horizon, rows, 4 * hid)
-        s, h, c = s0, h0, c0
-        saved = []
-        states = []
-        tanh = sigmoid_tanh if members else torch.tanh
-        for gates_t in gates_a.unbind(-3):
-            x = torch.cat([s, h], -1)
-            gates = _addmm_step(gates_t, x, w_sh)
-            if members:  # one sigmoid over all gates: tanh(g) = 2·sigmoid(2g) − 1
-                gates[..., 2 * hid : 3 * hid].mul_(2)
-                si, sf, s2g, so = torch.sigmoid(gates).chunk(4, -1)
-                tg = s2g.mul(2).sub_(1)
-            else:
-                i, f, g, o = gates.chunk(4, -1)
-                sf, si, tg, so = torch.sigmoid(f), torch.sigmoid(i), tanh(g), torch.sigmoid(o)
-            c_prev = c
-            c = sf * c + si * tg
-            tc = tanh(c)
-            h = so * tc
-            pre = _addmm(b_d, h, w_d)
-            z = act(pre)
-            s = s + _addmm(b_out, z, w_out)
-            saved.append((si, sf, tg, so, c_prev, tc, pre, z, x, h))
-            states.append(s)
-        ctx.saved, ctx.flat_actions = saved, flat_actions
+    def forward(ctx, s0, h0, c0, actions, activation, *weights):
+        members = actions.dim() > 3
+        cell = dict(tanh=sigmoid_tanh, one_sigmoid=True) if members else {}
+        states, ctx.flat_actions, ctx.steps = _unrolled(
+            s0, h0, c0, actions, activation, weights, **cell
+        )
+        w_a, _, w_sh, w_d, _, w_out, _ = weights
         ctx.weights, ctx.activation = (w_a, w_sh, w_d, w_out), activation  # those backward needs
-        ctx.shape = (members, rows, horizon, action_dim, s0.shape[-1])
-        return torch.stack(states, -2)
+        ctx.shape = (*actions.shape[:-2], actions.shape[-1], s0.shape[-1])
+        return states
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_states):
-        w_a, w_sh, w_d, w_out = ctx.weights
-        need_weights = any(ctx.needs_input_grad[5:])
-        act_backward = ACTIVATION_BACKWARDS[ctx.activation]
-        members, rows, horizon, action_dim, obs_dim = ctx.shape
-        outputs = grad_states.unbind(-2)
-        w_out_t, w_d_t, w_sh_t = (w.transpose(-1, -2) for w in (w_out, w_d, w_sh))
-        # ds, dh, dc: gradients of s_{t+2}, h_{t+1}, c_{t+1}·f_{t+1} from step t + 1; dx: its
-        # cat's. Weight gradients sum the steps' contributions last step first, as autograd does.
-        ds = dh = dc = dx = None
-        dw = [None] * 5  # w_sh, w_d, b_d, w_out, b_out
-        dgates_all = [None] * horizon
-        # A population's weight gradients are one batched matmul over all steps after the loop
-        # (a single model sums per-step ones, bitwise as autograd does).
-        per_step = need_weights and not members
-        dpre_all, ds_all = [None] * horizon, [None] * horizon
-        for t in range(horizon - 1, -1, -1):
-            si, sf, tg, so, c_prev, tc, pre, z, x, h = ctx.saved[t]
-            # s_{t+1}: its output slice, then the residual (s_{t+2} = s_{t+1} + ...), then the
-            # next step's cat — the order the recorded graph accumulates them in.
-            if t == horizon - 1:
-                ds = outputs[t]
-            else:
-                ds = (outputs[t] + ds) + dx[..., :obs_dim]
-            dpre = act_backward(_mm(ds, w_out_t), pre, z)
-            dh_dense = _mm(dpre, w_d_t)
-            dh = dh_dense if t == horizon - 1 else dx[..., obs_dim:] + dh_dense
-            dtc = dh * so
-            dso = dh * tc
-            dc_t = _tanh_backward(dtc, tc)
-            dc = dc_t if t == horizon - 1 else dc_t + dc
-            dgates = torch.cat(
-                [
-                    _sigmoid_backward(dc * tg, si),
-                    _sigmoid_backward(dc * c_prev, sf),
-                    _tanh_backward(dc * si, tg),
-                    _sigmoid_backward(dso, so),
-                ],
-                -1,
-            )
-            dgates_all[t], dpre_all[t], ds_all[t] = dgates, dpre, ds
-            if per_step:
-                step = (
-                    _mat2_grad(dgates, x, w_sh),
-                    _mat2_grad(dpre, h, w_d),
-                    dpre.sum(-2),
-                    _mat2_grad(ds, z, w_out),
-                    ds.sum(-2),
-                )
-                dw = (
-                    list(step)
-                    if t == horizon - 1
-                    else [a + b for a, b in zip(dw, step, strict=True)]
-                )
-            dx = _mm(dgates, w_sh_t)
-            dc = dc * sf
-        ds0 = ds + dx[..., :obs_dim]
-        dh0 = dx[..., obs_dim:]
-        dgates_flat = torch.stack(dgates_all, -3).reshape(*members, horizon * rows, -1)
+        *members, rows, action_dim, obs_dim = ctx.shape
+        w_a = ctx.weights[0]
+        ds0, dh0, dc0, grads = _through_time(ctx, grad_states)
+        dgates_flat = _steps_flat([dgates for dgates, _, _ in grads], members)
         dactions = None
         if ctx.needs_input_grad[3]:  # planning: the actions' gradient; fitting: none
+            horizon = len(grads)
             dactions = (
                 _mm(dgates_flat, w_a.transpose(-1, -2))
                 .reshape(*members, horizon, rows, action_dim)
                 .transpose(-3, -2)
             )
-        dw_a = dbias = None
-        if need_weights:
-            dw_a = _mat2_grad(dgates_flat, ctx.flat_actions, w_a)
-            dbias = dgates_flat.sum(-2)
-        if need_weights and members:
+        dweights = [None] * 7
+        if any(ctx.needs_input_grad[5:]):
+            dweights = _weight_grads(ctx, grads, dgates_flat)
+        return ds0, dh0, dc0, dactions, None, *dweights
 
-            def flat(items: list[torch.Tensor]) -> torch.Tensor:
-                return torch.stack(items, -3).reshape(*members, horizon * rows, -1)
 
-            xs, hs, zs = (flat([saved[k] for saved in ctx.saved]) for k in (8, 9, 7))
-            dpre_flat, ds_flat = flat(dpre_all), flat(ds_all)
-            dw = [
-                _mat2_grad(dgates_flat, xs, w_sh),
-                _mat2_grad(dpre_flat, hs, w_d),
-                dpre_flat.sum(-2),
-                _mat2_grad(ds_flat, zs, w_out),
-                ds_flat.sum(-2),
-            ]
-        return ds0, dh0, dc, dactions, None, dw_a, dbias, *dw
+def _step_backward(
+    step: _Step,
+    ds: torch.Tensor,
+    dh_next: torch.Tensor | None,
+    dc_next: torch.Tensor | None,
+    w_out_t: torch.Tensor,
+    w_d_t: torch.Tensor,
+    act_backward: Callable,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One step's backward through the output layer, the dense layer and the cell.
+
+    Args:
+        step: what the step's forward kept.
+        ds: the gradient of the step's new state s.
+        dh_next, dc_next: those of its new h and c (times the next step's σ(f)) from the next
+            step; None at the last step.
+
+    Returns:
+        ``(dgates, dpre, dc)``: the gradients of the step's gate pre-activations, of its dense
+        pre-activation and of its new c.
+    """
+    si, sf, tg, so, tc = step.cell
+    dpre = act_backward(_mm(ds, w_out_t), step.pre, step.z)
+    dh_dense = _mm(dpre, w_d_t)
+    dh = dh_dense if dh_next is None else dh_next + dh_dense
+    dc_t = _tanh_backward(dh * so, tc)
+    dc = dc_t if dc_next is None else dc_t + dc_next
+    dgates = torch.cat(
+        [
+            _sigmoid_backward(dc * tg, si),
+            _sigmoid_backward(dc * step.c_prev, sf),
+            _tanh_backward(dc * si, tg),
+            _sigmoid_backward(dh * tc, so),
+        ],
+        -1,
+    )
+    return dgates, dpre, dc
+
+
+def _through_time(ctx, grad_states: torch.Tensor) -> tuple:
+    """The backward through time, last step first: ``(ds0, dh0, dc0, grads)`` with ``grads``
+    each step's ``(dgates, dpre, ds)``, first step first.
+
+    ``ds`` of s_{t+1} sums its output slice, then the residual (s_{t+2} = s_{t+1} + ...), then
+    the next step's cat: the order the recorded graph accumulates them in.
+    """
+    obs_dim = ctx.shape[-1]
+    _, w_sh, w_d, w_out = ctx.weights
+    w_out_t, w_d_t, w_sh_t = (w.transpose(-1, -2) for w in (w_out, w_d, w_sh))
+    act_backward = ACTIVATION_BACKWARDS[ctx.activation]
+    ds = dx = dc = None  # of s_{t+2}, of step t + 1's cat, of c_{t+1}·σ(f_{t+1})
+    grads = []
+    for step, out in zip(reversed(ctx.steps), reversed(grad_states.unbind(-2)), strict=True):
+        if dx is None:
+            ds, dh_next = out, None
+        else:
+            ds, dh_next = (out + ds) + dx[..., :obs_dim], dx[..., obs_dim:]
+        dgates, dpre, dc = _step_backward(step, ds, dh_next, dc, w_out_t, w_d_t, act_backward)
+        grads.append((dgates, dpre, ds))
+        dx = _mm(dgates, w_sh_t)
+        dc = dc * step.cell.sf
+    return ds + dx[..., :obs_dim], dx[..., obs_dim:], dc, grads[::-1]
+
+
+def _steps_flat(items: list[torch.Tensor], members: list[int]) -> torch.Tensor:
+    """Per-step ``[*P, R, D]`` tensors, first step first, as one ``[*P, H·R, D]`` (steps major)."""
+    stacked = torch.stack(items, -3)
+    return stacked.reshape(*members, stacked.shape[-3] * stacked.shape[-2], -1)
+
+
+def _weight_grads(ctx, grads: list[tuple], dgates_flat: torch.Tensor) -> list[torch.Tensor]:
+    """The gradients of the folded weights ``w_a, bias, w_sh, w_d, b_d, w_out, b_out``.
+
+    One model sums each step's contributions, last step first, as autograd does (bitwise the
+    reference's); a population's are one batched matmul over all steps.
+    """
+    w_a, w_sh, w_d, w_out = ctx.weights
+    members = ctx.shape[:-3]
+    dw_a = _mat2_grad(dgates_flat, ctx.flat_actions, w_a)
+    dbias = dgates_flat.sum(-2)
+    if members:
+        xs, hs, zs = (_steps_flat([getattr(s, k) for s in ctx.steps], members) for k in "xhz")
+        dpre, ds = (_steps_flat([g[k] for g in grads], members) for k in (1, 2))
+        return [
+            dw_a,
+            dbias,
+            _mat2_grad(dgates_flat, xs, w_sh),
+            _mat2_grad(dpre, hs, w_d),
+            dpre.sum(-2),
+            _mat2_grad(ds, zs, w_out),
+            ds.sum(-2),
+        ]
+    total = None
+    for step, (dgates, dpre, ds) in zip(reversed(ctx.steps), reversed(grads), strict=True):
+        each = (
+            _mat2_grad(dgates, step.x, w_sh),
+            _mat2_grad(dpre, step.h, w_d),
+            dpre.sum(-2),
+            _mat2_grad(ds, step.z, w_out),
+            ds.sum(-2),
+        )
+        total = each if total is None else [a + b for a, b in zip(total, each, strict=True)]
+    return [dw_a, dbias, *total]
 
 
 def _step_weights(

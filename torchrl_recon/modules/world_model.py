@@ -9,10 +9,11 @@ from torch import nn
 from torch.nn import functional as F
 
 from torchrl_recon.modules._lstm_rollout import (
-    LSTMRollout,
+    _addmm,
+    _addmm_step,
     fold_weights,
-    recorded_rollout,
-    rollout_inplace,
+    lstm_cell,
+    rollout,
     sigmoid_tanh,
 )
 from torchrl_recon.modules.activations import ACTIVATIONS
@@ -296,8 +297,14 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         """The LSTM over ``x`` ``[*R, B, L, F]`` from ``hx`` ``[*R, B, hid]`` (zeros when None).
 
         Returns the outputs ``[*R, B, L, hid]`` and the last ``(h, c)`` ``[*R, B, hid]``.
+
+        One model runs ``nn.LSTM``'s own kernel (``torch.lstm``, cuDNN on a GPU): the one
+        reference fast path, kept for its speed and for the bitwise numbers of saved models and
+        published runs (R = 1 runs it on member 0's weights). R > 1 members run
+        :func:`~torchrl_recon.modules._lstm_rollout.lstm_cell` step by step, each step's
+        recurrent part one batched matmul.
         """
-        if not self._lead:  # one model: nn.LSTM's own kernel (member 0's weights for R = 1)
+        if not self._lead:
             hx = None if hx is None else tuple(s[None].contiguous() for s in hx)
             if self.num_members is None:
                 out, (h, c) = self.lstm(x, hx)
@@ -317,7 +324,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         # `unbind`, not `gates_x[:, :, t]`: a slice's backward zero-fills a full-size gradient
         # per step (O(L²) memory traffic); unbind's is one stack.
         for gates_t in gates_x.unbind(2):
-            h, c = _lstm_cell(gates_t, h, c, w_hh_t)
+            h, c = _members_step(gates_t, h, c, w_hh_t)
             outs.append(h)
         return torch.stack(outs, 2), (h, c)
 
@@ -382,7 +389,7 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         h = c = x.new_zeros(members, rows, hid)
         w_hh_t = w_hh.transpose(-1, -2)
         for t in range(window):
-            h, c = _lstm_cell(gates_x[..., t].reshape(members, rows, -1), h, c, w_hh_t)
+            h, c = _members_step(gates_x[..., t].reshape(members, rows, -1), h, c, w_hh_t)
         out = self._head(h if self._lead else h[0])
         return out.reshape(*obs.shape[:-2], windows, self.obs_dim)
 
@@ -556,18 +563,10 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         actions: torch.Tensor,
         recorded: bool = False,
     ) -> torch.Tensor:
-        """``[*R, B, N]``, ``[*R, B, hid]`` x2, ``[*R, B, H, M]`` → ``[*R, B, H, N]`` on the fastest path."""
+        """``[*R, B, N]``, ``[*R, B, hid]`` x2, ``[*R, B, H, M]`` → ``[*R, B, H, N]``: the
+        reference when ``recorded``, else the fastest path for the call (``_lstm_rollout.rollout``)."""
         weights = self._folded_weights()
-        inputs = (s0, h, c, actions)
-        needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (*inputs, *weights))
-        if recorded:
-            return recorded_rollout(*inputs, self.activation, *weights)
-        if needs_grad:  # one autograd node with a hand-written backward through time
-            return LSTMRollout.apply(*inputs, self.activation, *weights)
-        if not self._lead:
-            return rollout_inplace(*inputs, self.activation, *weights)
-        with torch.no_grad():
-            return recorded_rollout(*inputs, self.activation, *weights)
+        return rollout(s0, h, c, actions, self.activation, *weights, reference=recorded)
 
     def prediction_loss(
         self,
@@ -632,7 +631,7 @@ def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.
     if weight.dim() == 2:
         return F.linear(x, weight, bias)
     flat = x.reshape(x.shape[0], -1, x.shape[-1])
-    out = torch.baddbmm(bias.unsqueeze(-2), flat, weight.transpose(-1, -2))
+    out = _addmm(bias, flat, weight.transpose(-1, -2))
     return out.reshape(*x.shape[:-1], weight.shape[-2])
 
 
@@ -641,17 +640,15 @@ def _input_gates(
 ) -> torch.Tensor:
     """Each member's input part of the LSTM gates, ``x`` ``[P, B, L, F]`` → ``[P, B, L, 4·hid]``."""
     members, rows, length, features = x.shape
-    bias = (b_ih + b_hh).unsqueeze(-2)
-    gates = torch.baddbmm(bias, x.reshape(members, -1, features), w_ih.transpose(-1, -2))
+    gates = _addmm(b_ih + b_hh, x.reshape(members, -1, features), w_ih.transpose(-1, -2))
     return gates.reshape(members, rows, length, -1)
 
 
-def _lstm_cell(
+def _members_step(
     gates_x: torch.Tensor, h: torch.Tensor, c: torch.Tensor, w_hh_t: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One LSTM step of every member: input gates ``[P, B, 4·hid]`` and state ``[P, B, hid]``."""
-    gates = torch.baddbmm(gates_x, h, w_hh_t)
-    i, f, g, o = gates.chunk(4, -1)
-    c = torch.sigmoid(f) * c + torch.sigmoid(i) * sigmoid_tanh(g)
-    h = torch.sigmoid(o) * sigmoid_tanh(c)
+    """One teacher-forced LSTM step of every member, from the input part of the gates
+    ``[P, B, 4·hid]`` and the state ``[P, B, hid]`` (:func:`lstm_cell`, tanh as
+    :func:`sigmoid_tanh`)."""
+    h, c, _ = lstm_cell(_addmm_step(gates_x, h, w_hh_t), c, tanh=sigmoid_tanh)
     return h, c

@@ -4,7 +4,12 @@ import pytest
 import torch
 
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.modules._lstm_rollout import LSTMRollout, recorded_rollout
+from torchrl_recon.modules._lstm_rollout import (
+    LSTMRollout,
+    recorded_rollout,
+    rollout,
+    rollout_inplace,
+)
 from torchrl_recon.planners.gradient import frozen
 
 
@@ -99,8 +104,8 @@ def test_multi_step_training_is_bitwise_the_recorded_graph(monkeypatch):
         [4 * 20],
     )
     trained = []
-    for rollout in (LSTMRollout, Recorded):
-        monkeypatch.setattr(_lstm_rollout, "LSTMRollout", rollout)
+    for node in (LSTMRollout, Recorded):
+        monkeypatch.setattr(_lstm_rollout, "LSTMRollout", node)
         model = _frozen_model().requires_grad_(True)
         model.window = 4
         loss = WorldModelPredictionLoss(model, slice_len=20)
@@ -127,6 +132,26 @@ def test_imagine_differentiates_through_the_fused_rollout():
         planned = model.imagine(*context, actions)
     assert _reaches(planned.grad_fn, "LSTMRolloutBackward")
     assert torch.equal(planned, trained)
+
+
+def test_rollout_picks_the_reference_or_an_accelerator_per_call():
+    """One place picks: the reference when asked, the fused node when a gradient is needed, the
+    in-place loop for one model without one, the reference for members without one."""
+    model = _frozen_model()
+    s0, h0, c0, actions = _inputs(3, 5)
+    weights = model._folded_weights()
+    fused = rollout(s0, h0, c0, actions, "relu", *weights)
+    assert type(fused.grad_fn).__name__ == "LSTMRolloutBackward"
+    reference = rollout(s0, h0, c0, actions, "relu", *weights, reference=True)
+    assert type(reference.grad_fn).__name__ != "LSTMRolloutBackward"
+    assert torch.equal(fused, reference)
+    plain = [x.detach() for x in (s0, h0, c0, actions)]
+    assert torch.equal(rollout(*plain, "relu", *weights), rollout_inplace(*plain, "relu", *weights))
+    members = [x.expand(2, *x.shape) for x in plain]
+    stacked = [w.expand(2, *w.shape) for w in weights]
+    got = rollout(*members, "relu", *stacked)
+    assert got.grad_fn is None
+    assert torch.equal(got, recorded_rollout(*members, "relu", *stacked))
 
 
 def test_double_backward_is_refused_not_wrong():

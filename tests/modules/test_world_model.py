@@ -155,10 +155,6 @@ def test_inplace_and_autograd_rollouts_agree(activation):
     torch.testing.assert_close(fast, slow.detach(), atol=1e-4, rtol=1e-4)
 
 
-if __name__ == "__main__":
-    pytest.main([__file__, "-q"])
-
-
 def test_step_by_step_prediction_equals_the_rollout():
     """``step`` (nn.LSTM once per step) and ``rollout`` (the fused loop) predict the same states."""
     model = _model()
@@ -203,3 +199,7 @@ def test_step_and_rollout_reject_mismatched_batches():
             torch.zeros(3, 5, 2),
             model.warmup(torch.zeros(2, 4, 3), torch.zeros(2, 4, 2)),
         )
+
+
+if __name__ == "__main__":
+    pytest.main([__file__, "-q"])

@@ -9,7 +9,6 @@ import os
 import torch
 from torch import nn
 
-from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_device, describe_device, resolve_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
@@ -21,7 +20,8 @@ from torchrl_recon.planners import (
     PlannerBase,
     RandomShootingPlanner,
 )
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.allocator import keep_freed_memory
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 OBS_DIM, ACTION_DIM, WINDOW = 6, 3, 10  # Industrial Benchmark sizes, paper's T
 
@@ -50,17 +50,17 @@ def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:
 
     Adds ``--default-malloc`` (keep glibc's default malloc thresholds), parses, calls
     ``torch.set_num_threads(args.threads)`` and, unless ``--default-malloc``,
-    :func:`~torchrl_recon.allocator.keep_freed_memory`, and prints a line that says both.
+    :func:`~torchrl_recon.runs.allocator.keep_freed_memory`, and prints a line that says both.
     """
     parser.add_argument(
         "--default-malloc",
         action="store_true",
-        help="keep glibc's default malloc thresholds instead of the runner's (torchrl_recon.allocator)",
+        help="keep glibc's default malloc thresholds instead of the runner's (torchrl_recon.runs.allocator)",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     kept = False if args.default_malloc else keep_freed_memory()
-    malloc = "keeps freed memory (torchrl_recon.allocator)" if kept else "glibc defaults"
+    malloc = "keeps freed memory (torchrl_recon.runs.allocator)" if kept else "glibc defaults"
     print(f"threads={args.threads}, malloc: {malloc}")
     return args
 
@@ -126,7 +126,7 @@ def gemm_gflops(
 
     The default shape is one large matrix product (the device's GEMM rate); a benchmark may
     pass the shape of its own hot product instead. Timed with
-    :func:`~torchrl_recon.timing.interleaved_median_ms` (synchronised on CUDA).
+    :func:`~torchrl_recon.runs.timing.interleaved_median_ms` (synchronised on CUDA).
 
     Examples:
         >>> gemm_gflops("cpu", (1, 64, 64, 64), repeats=1) > 0

@@ -42,11 +42,11 @@ from collections.abc import Callable
 import torch
 from _common import COST, context, paper_models, parse_args, setup_done
 
-from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.planners.cpu_threads import run_blocks
 from torchrl_recon.planners.planning_model import threaded_pass
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.allocator import keep_freed_memory
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 
 def _timed_passes(candidates, rows, args, barrier, results) -> None:

@@ -8,7 +8,7 @@ autoencoder 90 → 100 → 90 (T = 10) whose reconstruction uncertainty u is in 
 (β = 0.1), H = 200; the gradient planner with 16 restarts × 50 Adam steps, CEM with K = 1000
 candidates, 5 iterations, 100 elites. Each env has its own context. "one call" plans all envs
 as one ``[B, ...]`` batch; "separate calls" plans them one after another (``[1, ...]`` each).
-Both are timed round-robin (``torchrl_recon.timing.interleaved_median_ms``), so a change of
+Both are timed round-robin (``torchrl_recon.runs.timing.interleaved_median_ms``), so a change of
 machine load hits both alike.
 
 For each planner the script also prints the arithmetic limit of the one-call plan: its
@@ -42,7 +42,7 @@ from _common import (
 
 from torchrl_recon.devices import resolve_device
 from torchrl_recon.planners import CEMPlanner, GradientPlanner, Objective, PlanningModel
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 
 def batched_contexts(envs: int, device: torch.device) -> tuple[torch.Tensor, ...]:

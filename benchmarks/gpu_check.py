@@ -63,7 +63,7 @@ from pathlib import Path
 
 import torch
 
-from torchrl_recon.provenance import git_info
+from torchrl_recon.runs.provenance import git_info
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"

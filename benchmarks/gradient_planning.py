@@ -29,7 +29,7 @@ import torch
 from _common import COST, context, paper_models, parse_device_args, setup_done
 
 from torchrl_recon.planners import GradientPlanner, Objective, PlanningModel
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 
 def plain_rollout(world, s, h, c, actions: torch.Tensor) -> torch.Tensor:

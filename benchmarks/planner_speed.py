@@ -74,7 +74,7 @@ from torchrl_recon.planners import (
     RandomShootingPlanner,
 )
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 GRAPH_ROWS = (
     "ours CEM (with u, beta=0.1)",

@@ -29,7 +29,7 @@ from torchrl_recon.envs.gym_costs import pendulum
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv, LSTMWorldModelModule
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 from torchrl_recon.transforms import UncertaintyPenalty
 
 BETA, WINDOW = 0.5, 4

@@ -19,7 +19,7 @@ from _common import (
 )
 
 from torchrl_recon.planners import PlanningModel
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 
 def main() -> None:

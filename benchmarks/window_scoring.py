@@ -31,7 +31,7 @@ from _common import (
 
 from torchrl_recon.modules import ReconstructionUncertainty, WorldModelEnsembleUncertainty
 from torchrl_recon.modules.uncertainty import window_view
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 
 def window_copies_score(est: WorldModelEnsembleUncertainty, x: torch.Tensor) -> torch.Tensor:

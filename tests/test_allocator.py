@@ -6,7 +6,7 @@ import platform
 
 import pytest
 
-from torchrl_recon.allocator import MMAP_THRESHOLD_MAX, keep_freed_memory
+from torchrl_recon.runs.allocator import MMAP_THRESHOLD_MAX, keep_freed_memory
 
 
 def test_keep_freed_memory_takes_effect_on_glibc_and_refuses_bad_thresholds():

@@ -14,7 +14,7 @@ from unittest import mock
 import pytest
 import torch
 
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 

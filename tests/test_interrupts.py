@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from torchrl_recon.interrupts import RETRY_S, redeliver_dropped_interrupts
+from torchrl_recon.runs.interrupts import RETRY_S, redeliver_dropped_interrupts
 
 
 class _RaisesWhenFinalised:

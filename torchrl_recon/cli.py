@@ -31,9 +31,9 @@ from torchrl_recon.experiments.recipe import resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES
 from torchrl_recon.experiments.run_dir import RunDirConflict, check_run_dir
 from torchrl_recon.experiments.runner import interrupted_message, run, run_device
-from torchrl_recon.interrupts import redeliver_dropped_interrupts
 from torchrl_recon.reports import format_table, save_summary, summarize_by_kind
 from torchrl_recon.reports.tables import render
+from torchrl_recon.runs.interrupts import redeliver_dropped_interrupts
 
 _ARGV_ENV = "TORCHRL_RECON_ARGV"  # the command as typed, for each job's meta.json
 _STATUS_ENV = "TORCHRL_RECON_STATUS"  # each job appends its exit code to this file

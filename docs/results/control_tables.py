@@ -19,9 +19,9 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
-from torchrl_recon.archive import run_records
 from torchrl_recon.reports import save_figures
 from torchrl_recon.reports.stats import episode_mean_std
+from torchrl_recon.runs.archive import run_records
 
 
 def stage_records(run: Path) -> dict[str, bytes]:

@@ -34,7 +34,7 @@ import re
 import sys
 from pathlib import Path
 
-from torchrl_recon.archive import (
+from torchrl_recon.runs.archive import (
     ARCHIVE,
     MANIFEST,
     folder_of,

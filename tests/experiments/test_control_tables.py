@@ -35,7 +35,7 @@ def test_unfinished_setting_is_reported_with_its_finished_episodes(tmp_path, res
 
 
 def test_a_published_runs_records_are_read_from_its_folders_archive(tmp_path, results_script):
-    from torchrl_recon.archive import pack
+    from torchrl_recon.runs.archive import pack
 
     tables = results_script("control_tables")
     run = tmp_path / "control" / "drone" / "seed0"

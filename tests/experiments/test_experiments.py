@@ -14,8 +14,8 @@ from torchrl_recon.experiments import control, explore
 from torchrl_recon.experiments.config import ControlConfig, ExploreConfig
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.stages import StopRequested
-from torchrl_recon.files import with_hash
 from torchrl_recon.planners.beta import cost_to_u_ratio
+from torchrl_recon.runs.files import with_hash
 
 
 def run_explore(cfg, run_dir, logger):

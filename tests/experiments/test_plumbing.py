@@ -28,9 +28,9 @@ from torchrl_recon.experiments.run_dir import (
     write_results,
 )
 from torchrl_recon.experiments.stages import StopRequested
-from torchrl_recon.provenance import git_info
 from torchrl_recon.reports import format_table, save_figures, summarize
 from torchrl_recon.reports.plots import plot_control_errors, plot_table1, plot_trajectory
+from torchrl_recon.runs.provenance import git_info
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 ENVS = ("industrial_benchmark", "drone", "minitaur")

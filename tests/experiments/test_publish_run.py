@@ -8,8 +8,8 @@ import json
 import pytest
 
 from tests.experiments.results_fixtures import known_explore
-from torchrl_recon.archive import ARCHIVE, MANIFEST, read_members
 from torchrl_recon.reports import summarize
+from torchrl_recon.runs.archive import ARCHIVE, MANIFEST, read_members
 
 FILES = [
     "config.yaml",

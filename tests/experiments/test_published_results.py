@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from torchrl_recon.archive import MANIFEST, read_manifest, read_members, verify_results
 from torchrl_recon.reports import summarize
+from torchrl_recon.runs.archive import MANIFEST, read_manifest, read_members, verify_results
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 RESULTS = DOCS / "results"

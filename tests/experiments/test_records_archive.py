@@ -11,7 +11,10 @@ import tarfile
 import pytest
 
 from tests.experiments.results_fixtures import known_explore, write_runs
-from torchrl_recon.archive import (
+from torchrl_recon.cli import main
+from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.reports import summarize
+from torchrl_recon.runs.archive import (
     ARCHIVE,
     MANIFEST,
     pack,
@@ -20,9 +23,6 @@ from torchrl_recon.archive import (
     sha256_bytes,
     verify_results,
 )
-from torchrl_recon.cli import main
-from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.reports import summarize
 
 RECORDS = {
     "drone/seed0/stages/models.json": b'{"wall_time_s": 1.0}',

@@ -17,8 +17,8 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler, TensorDi
 
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS, StepUniformSliceSampler
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import read_json
 from torchrl_recon.modules.checks import check_int, check_type
+from torchrl_recon.runs.files import read_json
 
 TRAJ_KEY: tuple[str, str] = ("collector", "traj_ids")
 """Where TorchRL's collectors write each step's trajectory id; windows never cross a change of it."""

@@ -38,7 +38,7 @@ from torchrl_recon.experiments.recipe_checks import (
 )
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-from torchrl_recon.timing import interleaved_median_ms
+from torchrl_recon.runs.timing import interleaved_median_ms
 
 STAGES = ("random_data", "world_model", "fit_{estimator}", "evaluation", "timing")
 STAGES += ("outcome_{estimator}_{kind}",)

@@ -17,8 +17,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.experiments.compose import RECIPES_DIR
-from torchrl_recon.files import read_json, write_atomically
-from torchrl_recon.provenance import git_info, package_versions
+from torchrl_recon.runs.files import read_json, write_atomically
+from torchrl_recon.runs.provenance import git_info, package_versions
 
 RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""

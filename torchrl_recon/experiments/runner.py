@@ -13,7 +13,6 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_recon.allocator import keep_freed_memory
 from torchrl_recon.devices import check_compile_support, describe_device, resolve_device
 from torchrl_recon.errors import CompilerNotFoundError, RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
@@ -23,6 +22,7 @@ from torchrl_recon.experiments.registry import get_type
 from torchrl_recon.experiments.run_dir import prepare_run_dir, release_run_dir, write_results
 from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.reports import format_table, get_report, save_figures
+from torchrl_recon.runs.allocator import keep_freed_memory
 
 FITS = ("world_model", "uncertainty")
 """A recipe's fit blocks, ``training.<fit>``."""

@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from torchrl_recon.data import load_buffer_data, make_sequence_buffer, save_buffer
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import (
+from torchrl_recon.runs.files import (
     HASH_KEY,
     file_entry,
     read_record,

@@ -1,7 +1,7 @@
 """Aggregate ``results.json`` files across seeds, print them as plain-text tables and save their
 figures, each kind's part (``summarize_env``, tables, figures) from its :class:`~.report.Report`. Each
 file is checked first (:func:`~.results_check.check_results`), a
-published one also against its folder's SHA-256 manifest (:mod:`~torchrl_recon.archive`).
+published one also against its folder's SHA-256 manifest (:mod:`~torchrl_recon.runs.archive`).
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from torchrl_recon.archive import verify_results
 from torchrl_recon.devices import processor
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import read_json
 from torchrl_recon.reports.registry import get_report
 from torchrl_recon.reports.report import Figures
 from torchrl_recon.reports.results_check import check_results
+from torchrl_recon.runs.archive import verify_results
+from torchrl_recon.runs.files import read_json
 
 
 def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -43,9 +43,9 @@ from torchrl.checkpoint import (
 )
 from torchrl.trainers import Trainer
 
-from torchrl_recon.archive import sha256_bytes
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import (
+from torchrl_recon.runs.archive import sha256_bytes
+from torchrl_recon.runs.files import (
     HASH_KEY,
     file_entry,
     json_sha256,
@@ -62,6 +62,8 @@ own beside it, ``x.pt.files.json``."""
 FORMAT = "torchrl_recon.verified_checkpoint"
 """The ``format`` field of a manifest."""
 
+# A fixed key, not the module's path (the module is torchrl_recon.runs.files now): checkpoints
+# already written carry it.
 _MARKER = "torchrl_recon.files"  # key of TorchRL's manifest metadata: "this one has a FILES"
 
 _REMEDY = "resume from an intact checkpoint, or start again"

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import write_atomically
+from torchrl_recon.runs.files import write_atomically
 
 FORMAT_VERSION = 1
 MapLocation = str | torch.device

@@ -26,7 +26,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.files import read_json, sha256_file, write_atomically
+from torchrl_recon.runs.files import read_json, sha256_file, write_atomically
 
 ARCHIVE = "records.tar.xz"
 """The archive's file name inside an experiment folder."""

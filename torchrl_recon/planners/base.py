@@ -267,7 +267,7 @@ class PlannerBase(nn.Module):
         overwrites them)."""
         args = (context_obs, context_action, observation, init, generator, carry)
         mode = self.model.compile_mode
-        whole = self.compiles_whole_call and not self.model.blocks_in_threads
+        whole = self.compiles_whole_call and self.model.plans_in_one_graph
         if mode is None or not whole or generator is not None:
             return self.plan_graph(*args)
         batch_dims = observation.ndim - 1

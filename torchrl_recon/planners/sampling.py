@@ -13,7 +13,6 @@ import torch
 
 from torchrl_recon.modules.checks import check_int
 from torchrl_recon.planners.base import OnInfeasible, PlannerBase
-from torchrl_recon.planners.cpu_threads import run_aside
 from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
@@ -349,15 +348,13 @@ class SamplingPlanner(PlannerBase):
         """The next iteration's ``noise(batch, k, generator)``, as a call that returns it.
 
         Call it right after an iteration's pass. When the planning model runs its row blocks on
-        threads (``threads`` > 1 on the CPU), the draw starts now on a block thread while the
-        caller ranks and refits: both are serial work between passes (a draw of K = 1000, H = 30,
+        threads (``threads`` > 1 on the CPU), :meth:`PlanningModel.later` starts the draw now on a
+        block thread while the caller ranks and refits: both are serial work between passes (a draw of K = 1000, H = 30,
         M = 3 normals takes ~0.3 ms), and what stays serial bounds the gain from more cores.
         Otherwise it is drawn when called. Nothing else draws in between, so the draws come in
         the same order either way: the same plans.
         """
-        if not self.model.blocks_in_threads or torch.compiler.is_compiling():
-            return lambda: noise(batch, k, generator)
-        return run_aside(lambda: noise(batch, k, generator), self.model.threads).result
+        return self.model.later(lambda: noise(batch, k, generator))
 
     def _evaluate(
         self,

@@ -9,7 +9,6 @@ import math
 import types
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
 
 import torch
 from torch import nn
@@ -24,8 +23,6 @@ from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scor
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.cpu_threads import check_threads, run_aside, run_blocks
-
-T = TypeVar("T")
 
 __all__ = [
     "COMPILE_MODES",
@@ -611,19 +608,20 @@ class PlanningModel(nn.Module):
 
     @property
     def plans_in_one_graph(self) -> bool:
-        """Whether a planner may compile its whole call as one graph: not while the pass runs
-        its row blocks on threads (then only the pass is compiled, block by block)."""
+        """Whether a planner may compile its whole call as one graph, which it may not while
+        the pass runs its row blocks on threads (then only the pass is compiled, block by
+        block)."""
         return not self.blocks_in_threads
 
-    def later(self, fn: Callable[[], T]) -> Callable[[], T]:
+    def later(self, fn: Callable[[], torch.Tensor]) -> Callable[[], torch.Tensor]:
         """``fn``'s result as a call that returns it: started now on a block thread when the pass
         runs its row blocks on threads (the serial work before the call overlaps it), else run
         when called. Either way the same value, drawn in the same order.
 
         Examples:
             >>> model = PlanningModel(LSTMWorldModel(3, 1, window=2), lambda o, a, n: n.sum(-1))
-            >>> model.later(lambda: 3)()
-            3
+            >>> model.later(lambda: torch.ones(2))()
+            tensor([1., 1.])
         """
         if not self.blocks_in_threads or torch.compiler.is_compiling():
             return fn

@@ -159,58 +159,20 @@ class MPCPolicy(TensorDictModuleBase):
         action_key: str = "action",
     ) -> None:
         super().__init__()
-        check_type("planner", planner, PlannerBase, "a planner (a PlannerBase, e.g. CEMPlanner)")
-        check_flag("warm_start", warm_start)
-        for name, key in (("obs_key", obs_key), ("action_key", action_key)):
-            if not is_key(key):
-                raise TypeError(
-                    f"{name} must be a TensorDict key (a str or tuple of str), got {key!r}."
-                )
-        if replan not in ("every_step", "every_n", "uncertainty"):
-            raise ValueError(
-                f"replan must be 'every_step', 'every_n' or 'uncertainty', got {replan!r}."
-            )
-        if replan == "every_n":
-            check_int("replan_every", replan_every)
-        if replan == "uncertainty":
-            if threshold is None:
-                raise ValueError("replan='uncertainty' needs a threshold.")
-            check_real("threshold", threshold)
-            if planner.model.uncertainty is None:
-                raise ValueError(
-                    "replan='uncertainty' needs a planning model with an uncertainty estimator."
-                )
-        if threshold_on not in ("step", "cumulative"):
-            raise ValueError(f"threshold_on must be 'step' or 'cumulative', got {threshold_on!r}.")
-        if error_threshold is not None and not (0 < error_threshold < float("inf")):
-            raise ValueError(
-                f"error_threshold must be a positive finite number or None, got {error_threshold!r}."
-            )
+        _check_wiring(planner, warm_start, obs_key, action_key)
+        _check_replan(planner, replan, replan_every, threshold, threshold_on, error_threshold)
+        # replan settings
         self.error_threshold = error_threshold
         self.planner, self.replan, self.replan_every = planner, replan, replan_every
         self.threshold, self.threshold_on, self.warm_start = threshold, threshold_on, warm_start
+        # the planner's shapes
         model = planner.model
-        self.obs_dim, self.action_dim, self.horizon = (
-            model.obs_dim,
-            model.action_dim,
-            planner.horizon,
-        )
-        self.context = model.context_length
-        if warmup not in WARMUP_MODES:
-            raise ValueError(f"warmup must be one of {list(WARMUP_MODES)}, got {warmup!r}.")
+        self.obs_dim, self.action_dim = model.obs_dim, model.action_dim
+        self.horizon, self.context = planner.horizon, model.context_length
+        # warm-up
+        self.warmup_steps = _warmup_steps(warmup, warmup_steps, self.context)
         self.warmup = warmup
-        if warmup == "plan":
-            if warmup_steps not in (None, 0):
-                raise ValueError(
-                    f"warmup='plan' plans from the first step: warmup_steps must be 0 or None, "
-                    f"got {warmup_steps}."
-                )
-            warmup_steps = 0
-        elif warmup_steps is not None and warmup_steps < self.context:
-            raise ValueError(
-                f"warmup_steps={warmup_steps} is shorter than the context the planner needs ({self.context})."
-            )
-        self.warmup_steps = self.context if warmup_steps is None else warmup_steps
+        # TensorDict wiring
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys = [obs_key, IS_INIT, *STATE_KEYS]
         self.out_keys = [
@@ -388,15 +350,36 @@ class MPCPolicy(TensorDictModuleBase):
         return on_plan & (rms > self.error_threshold)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One step of every row: read the observation and the carried state, re-plan the rows
+        whose trigger fired, take each row's next action from its kept plan (or the warm-up's),
+        and write the action, the predictions and the next state into ``tensordict``."""
+        flat, given = self._read_observation(tensordict)
+        obs = given.to(self.device)
+        state, step, seen = self._read_state(flat, obs.device)
+        ready = seen >= self.warmup_steps
+        replanned = self._rows_to_replan(flat, obs, state, step, ready)
+        feasible = self._replan(state, obs, step, seen, replanned)
+        action, predicted = self._next_action(state, step, ready)
+        outputs = {
+            self.action_key: action,
+            REPLANNED: replanned[:, None],
+            FEASIBLE: feasible[:, None],
+            **predicted,
+        }
+        self._advance(state, obs, action, step, seen, ready)
+        self._write(tensordict, outputs, state, given.device)
+        return tensordict
+
+    def _read_observation(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
+        """The tensordict flattened to ``[R]`` rows and its observation ``[R, N]`` (checked, on
+        the device it was given on); refuses a tensordict without the policy's state."""
         check_type("tensordict", tensordict, TensorDictBase, "a TensorDict (an env's step)")
         if PLAN not in tensordict.keys():
             raise KeyError(
                 f"MPCPolicy state {PLAN!r} is missing from the tensordict; append "
                 "policy.make_tensordict_primer() to the env (and an InitTracker)."
             )
-        batch = tensordict.batch_size
         flat = tensordict.reshape(-1)
-        rows = flat.shape[0]
         given = flat.get(self.obs_key, None)
         if given is None:
             raise KeyError(
@@ -405,78 +388,135 @@ class MPCPolicy(TensorDictModuleBase):
             )
         check_features(f"{self.obs_key!r} given to MPCPolicy", given, self.obs_dim)
         check_finite(f"{self.obs_key!r} given to MPCPolicy", given)
-        device, out_device = self.device, given.device
-        obs = given.to(device)
+        return flat, given
+
+    def _read_state(
+        self, flat: TensorDictBase, device: torch.device
+    ) -> tuple[TensorDictBase, torch.Tensor, torch.Tensor]:
+        """A copy of the carried state on ``device``, cleared where ``is_init`` is set, with
+        views of its plan step and steps seen, ``[R]`` each (updating them updates the state)."""
         state = flat.select(*STATE_KEYS).to(device).clone()
-        plan, plan_u = state[PLAN], state[PLAN_U]
         step, seen = state[PLAN_STEP].squeeze(-1), state[SEEN].squeeze(-1)
         is_init = flat.get(IS_INIT, None)
         if is_init is None:
             raise KeyError(MISSING_INIT_TRACKER)
-        is_init = is_init.to(device).reshape(rows)
-        step.masked_fill_(is_init, self.horizon)
+        is_init = is_init.to(device).reshape(flat.shape[0])
+        step.masked_fill_(is_init, self.horizon)  # a plan that ran out: re-plan when ready
         seen.masked_fill_(is_init, 0)
-        feasible = torch.ones(rows, dtype=torch.bool, device=device)
+        return state, step, seen
 
-        ready = seen >= self.warmup_steps
+    def _rows_to_replan(
+        self,
+        flat: TensorDictBase,
+        obs: torch.Tensor,
+        state: TensorDictBase,
+        step: torch.Tensor,
+        ready: torch.Tensor,
+    ) -> torch.Tensor:
+        """Rows past their warm-up whose trigger fired (the re-plan rule or the drift from the
+        plan), except those the partial-step mask leaves out, ``[R]`` bool."""
         drifted = self._drifted(obs, state[PLAN_STATES], step)
-        replanned = ready & (self._needs_plan(step, plan_u) | drifted)
+        replanned = ready & (self._needs_plan(step, state[PLAN_U]) | drifted)
         stepped = flat.get(PARTIAL_STEP, None)  # rows an env batch will not step: never planned
         if stepped is not None:
-            replanned &= stepped.to(device).reshape(rows)
-        if replanned.any():
-            if self.warmup == "plan":
-                self._check_fitted_before_data()
-            idx = replanned.nonzero().squeeze(-1)
-            with warnings.catch_warnings():  # recorded per step in mpc_feasible instead
-                warnings.simplefilter("ignore", InfeasiblePlanWarning)
-                context_obs, context_action = self._context(state, obs, seen)
-                result = self.planner.plan(
-                    context_obs[idx],
-                    context_action[idx],
-                    obs[idx],
-                    init=self._warm_start(plan[idx], step[idx]),
-                )
-            self._check_plan(result.actions, len(idx))
-            state[PLAN][idx], state[PLAN_STATES][idx], state[PLAN_COST][idx] = (
-                result.actions,
-                result.states,
-                result.cost,
-            )
-            if result.uncertainty is not None:
-                state[PLAN_U][idx] = result.uncertainty
-            step[idx] = 0
-            feasible[idx] = result.feasible
+            replanned &= stepped.to(obs.device).reshape(flat.shape[0])
+        return replanned
 
-        low, high = self.planner.model.action_low, self.planner.model.action_high
-        if self.warmup == "random":
-            random_action = low + (high - low) * torch.rand(
-                rows, self.action_dim, dtype=low.dtype, device=device
+    def _replan(
+        self,
+        state: TensorDictBase,
+        obs: torch.Tensor,
+        step: torch.Tensor,
+        seen: torch.Tensor,
+        replanned: torch.Tensor,
+    ) -> torch.Tensor:
+        """Plan the ``replanned`` rows in one planner call and keep their plans in ``state``
+        (their plan step back to 0); returns which rows' plans are feasible, ``[R]`` bool."""
+        feasible = torch.ones(len(replanned), dtype=torch.bool, device=obs.device)
+        if not replanned.any():
+            return feasible
+        if self.warmup == "plan":
+            self._check_fitted_before_data()
+        idx = replanned.nonzero().squeeze(-1)
+        with warnings.catch_warnings():  # recorded per step in mpc_feasible instead
+            warnings.simplefilter("ignore", InfeasiblePlanWarning)
+            context_obs, context_action = self._context(state, obs, seen)
+            result = self.planner.plan(
+                context_obs[idx],
+                context_action[idx],
+                obs[idx],
+                init=self._warm_start(state[PLAN][idx], step[idx]),
             )
-        else:
-            random_action = self._rest_action().expand(rows, -1)
+        self._check_plan(result.actions, len(idx))
+        state[PLAN][idx], state[PLAN_STATES][idx], state[PLAN_COST][idx] = (
+            result.actions,
+            result.states,
+            result.cost,
+        )
+        if result.uncertainty is not None:
+            state[PLAN_U][idx] = result.uncertainty
+        step[idx] = 0
+        feasible[idx] = result.feasible
+        return feasible
+
+    def _next_action(
+        self, state: TensorDictBase, step: torch.Tensor, ready: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The action of each row, ``[R, M]``: its kept plan's current step once past the
+        warm-up, the warm-up action before; with the plan's predictions for it (NaN in the
+        warm-up)."""
+        warmup_action = self._warmup_action(len(step))
         at = step.clamp(max=self.horizon - 1)
         planned = ready[:, None]
-        action = torch.where(planned, _at_step(state[PLAN], at), random_action)
-        outputs = {
-            self.action_key: action,
-            REPLANNED: replanned[:, None],
-            FEASIBLE: feasible[:, None],
+        action = torch.where(planned, _at_step(state[PLAN], at), warmup_action)
+        predicted = {
             PRED_NEXT: torch.where(planned, _at_step(state[PLAN_STATES], at), float("nan")),
             PRED_U: torch.where(planned, _at_step(state[PLAN_U], at)[:, None], float("nan")),
             PRED_COST: torch.where(planned, _at_step(state[PLAN_COST], at)[:, None], float("nan")),
         }
+        return action, predicted
+
+    def _warmup_action(self, rows: int) -> torch.Tensor:
+        """The warm-up's action for ``rows`` rows, ``[R, M]``: uniform random in the bounds with
+        ``warmup="random"``, the rest action otherwise."""
+        low, high = self.planner.model.action_low, self.planner.model.action_high
+        if self.warmup == "random":
+            return low + (high - low) * torch.rand(
+                rows, self.action_dim, dtype=low.dtype, device=low.device
+            )
+        return self._rest_action().expand(rows, -1)
+
+    def _advance(
+        self,
+        state: TensorDictBase,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        step: torch.Tensor,
+        seen: torch.Tensor,
+        ready: torch.Tensor,
+    ) -> None:
+        """The state after this step: one more step of the plan (past the warm-up), one more
+        step seen, and the context with its oldest pair dropped and (s_t, a_t) appended."""
         step += ready.long()
         seen += 1
-        # The context after this step: drop the oldest pair, append (s_t, a_t).
         state[OBS_HISTORY] = torch.cat([state[OBS_HISTORY][:, 1:], obs[:, None]], 1)
         state[ACTION_HISTORY] = torch.cat([state[ACTION_HISTORY][:, 1:], action[:, None]], 1)
+
+    def _write(
+        self,
+        tensordict: TensorDictBase,
+        outputs: dict[str, torch.Tensor],
+        state: TensorDictBase,
+        device: torch.device,
+    ) -> None:
+        """Write the step's outputs and the next state (under ``"next"``) into ``tensordict``,
+        reshaped from ``[R]`` rows to its batch shape, on ``device``."""
+        batch = tensordict.batch_size
         for key, value in outputs.items():
-            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(out_device))
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(device))
         for key in STATE_KEYS:
             value = state[key].reshape(*batch, *state[key].shape[1:])
-            tensordict.set(("next", key), value.to(out_device))
-        return tensordict
+            tensordict.set(("next", key), value.to(device))
 
     def _check_plan(self, actions: torch.Tensor, rows: int) -> None:
         """Refuse a plan the env must not be given (a plug-in planner's bug): not ``[rows, H,
@@ -535,3 +575,67 @@ def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
     """``x[i, step[i]]`` for ``x`` ``[R, H, ...]``."""
     index = step.view(-1, 1, *([1] * (x.ndim - 2))).expand(-1, 1, *x.shape[2:])
     return x.gather(1, index).squeeze(1)
+
+
+def _check_wiring(
+    planner: PlannerBase, warm_start: bool, obs_key: object, action_key: object
+) -> None:
+    """Refuse a planner that is not a ``PlannerBase``, a non-bool ``warm_start`` or a key that
+    is not a TensorDict key."""
+    check_type("planner", planner, PlannerBase, "a planner (a PlannerBase, e.g. CEMPlanner)")
+    check_flag("warm_start", warm_start)
+    for name, key in (("obs_key", obs_key), ("action_key", action_key)):
+        if not is_key(key):
+            raise TypeError(
+                f"{name} must be a TensorDict key (a str or tuple of str), got {key!r}."
+            )
+
+
+def _check_replan(
+    planner: PlannerBase,
+    replan: str,
+    replan_every: int,
+    threshold: float | None,
+    threshold_on: str,
+    error_threshold: float | None,
+) -> None:
+    """Refuse a re-plan setting that is unknown, incomplete or out of range for ``replan``."""
+    if replan not in ("every_step", "every_n", "uncertainty"):
+        raise ValueError(
+            f"replan must be 'every_step', 'every_n' or 'uncertainty', got {replan!r}."
+        )
+    if replan == "every_n":
+        check_int("replan_every", replan_every)
+    if replan == "uncertainty":
+        if threshold is None:
+            raise ValueError("replan='uncertainty' needs a threshold.")
+        check_real("threshold", threshold)
+        if planner.model.uncertainty is None:
+            raise ValueError(
+                "replan='uncertainty' needs a planning model with an uncertainty estimator."
+            )
+    if threshold_on not in ("step", "cumulative"):
+        raise ValueError(f"threshold_on must be 'step' or 'cumulative', got {threshold_on!r}.")
+    if error_threshold is not None and not (0 < error_threshold < float("inf")):
+        raise ValueError(
+            f"error_threshold must be a positive finite number or None, got {error_threshold!r}."
+        )
+
+
+def _warmup_steps(warmup: str, warmup_steps: int | None, context: int) -> int:
+    """The number of warm-up steps after each reset: 0 for ``warmup="plan"``, else
+    ``warmup_steps`` (at least the context length ``context``, which is the default)."""
+    if warmup not in WARMUP_MODES:
+        raise ValueError(f"warmup must be one of {list(WARMUP_MODES)}, got {warmup!r}.")
+    if warmup == "plan":
+        if warmup_steps not in (None, 0):
+            raise ValueError(
+                f"warmup='plan' plans from the first step: warmup_steps must be 0 or None, "
+                f"got {warmup_steps}."
+            )
+        return 0
+    if warmup_steps is not None and warmup_steps < context:
+        raise ValueError(
+            f"warmup_steps={warmup_steps} is shorter than the context the planner needs ({context})."
+        )
+    return context if warmup_steps is None else warmup_steps

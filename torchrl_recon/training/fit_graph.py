@@ -7,7 +7,7 @@ backward, per-member clip, ``capturable`` Adam, the stopped members' restore) is
 with no host synchronisation, run eagerly for its first :data:`WARMUP_STEPS` steps (on a side
 stream, as CUDA graph capture requires), captured once with ``torch.cuda.graph`` and replayed
 for every later step on static copies of the batches. The value checks that read a tensor on
-the host are left out while capturing (:func:`~torchrl_recon.modules.checks.capturing_cuda_graph`);
+the host are left out while capturing (:func:`~torchrl_recon.modules.checks.in_graph`);
 the fit checks each step's losses after the replay and, on a non-finite one, runs the eager
 loss on that batch to name a bad input, as a ``compile=True`` fit does.
 

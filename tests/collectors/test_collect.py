@@ -22,7 +22,8 @@ def test_default_batches_divide_the_frames_when_they_can():
     assert default_frames_per_batch(2003) == 668  # 3 batches of 668: 2004, 1 dropped
 
 
-@pytest.mark.parametrize("frames", [pytest.param(1500, marks=pytest.mark.slow), 1019])  # 6 s each
+@pytest.mark.slow  # 6-9 s each; the other collect tests run in make test
+@pytest.mark.parametrize("frames", [1500, 1019])
 def test_odd_frame_counts_collect_few_extra_steps_and_the_same_data(frames):
     """1500 in batches of 750, 1019 in two of 510 (one step dropped): no TorchRL warning, and
     the data of batches of 1000 (981 steps collected and dropped for 1019), bit for bit."""

@@ -40,6 +40,7 @@ def _inputs() -> tuple[torch.Tensor, ...]:
     )
 
 
+@pytest.mark.slow  # 15 s of Inductor; test_plan_graph holds the compiled whole plan to eager
 @needs_cpp_compiler
 def test_a_compiled_pass_predicts_what_the_eager_one_does_and_copies_keep_their_weights():
     world, est = _networks()

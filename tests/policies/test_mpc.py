@@ -390,6 +390,7 @@ def test_uncertainty_triggered_replanning_on_a_trained_model(ib_policy_factory, 
     assert counts[0.5] > counts[4.0]
 
 
+@pytest.mark.slow  # 10 s; test_collector_start runs the policy in TorchRL's Collector
 def test_policy_in_a_collector_with_two_parallel_envs():
     policy = _small_drone_policy(replan="every_n", replan_every=3)
     primer = policy.make_tensordict_primer()

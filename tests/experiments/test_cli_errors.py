@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
+import json
+import math
 import os
 import signal
 import subprocess
@@ -86,8 +88,15 @@ def test_sigint_mid_run_exits_130_and_the_same_command_resumes(tmp_path):
     again = _cli(*args)
     _, err = again.communicate(timeout=600)
     assert again.returncode == 0, err
-    assert (out / "results.json").is_file()
     assert first.stat().st_mtime_ns == done_at  # read back, not recomputed
+    # the finished run is the explore smoke recipe's whole output (test_recipes' explore smoke
+    # on the IB runs in make test-all): results, config, a plot, provenance
+    results = json.loads((out / "results.json").read_text())
+    assert results["experiment"] == "explore" and results["env"] == "industrial_benchmark"
+    assert math.isfinite(results["ratio"]) and set(results["arms"]) == {"random", "active"}
+    assert (out / "config.yaml").is_file() and list(out.glob("*.png")), "no plot written"
+    meta = results["meta"]
+    assert meta["seed"] == 0 and meta["git"]["commit"] and "torchrl" in meta["versions"]
 
 
 # ------------------------------------------------------------------------------------------

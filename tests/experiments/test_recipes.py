@@ -14,12 +14,14 @@ import torch
 import yaml
 
 from torchrl_recon.cli import main
+from torchrl_recon.reports.control import result_table
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
-# make test runs each kind on the IB; the Drone's and the Minitaur's (44 s) in make test-all
+# make test runs control on the IB (test_cli_errors' SIGINT test checks the IB explore smoke's
+# output); the rest (50 s) in make test-all
 SMOKE = [
     (kind, env)
-    if env == "industrial_benchmark"
+    if (kind, env) == ("control", "industrial_benchmark")
     else pytest.param(kind, env, marks=pytest.mark.slow)
     for env in ("industrial_benchmark", "drone", "minitaur")
     for kind in ("explore", "control")
@@ -51,6 +53,17 @@ def _finite_numbers(obj) -> bool:
     return True
 
 
+def _check_env_returns(results: dict) -> None:
+    """The control table's env return and its random policy (one run serves both tests)."""
+    random = results["random_policy"]
+    assert len(random["env_returns"]) == 2 and all(math.isfinite(x) for x in random["env_returns"])
+    for setting in results["settings"].values():
+        assert setting["ended_in_warmup"] == 0
+        assert all(math.isfinite(e["env_return"]) for e in setting["episodes"])
+    table = result_table(results)
+    assert "env_return" in table and "random policy" in table
+
+
 @pytest.mark.parametrize("kind, env", SMOKE)
 def test_smoke_recipe_runs_end_to_end(kind, env, tmp_path):
     out = tmp_path / "run"
@@ -64,6 +77,7 @@ def test_smoke_recipe_runs_end_to_end(kind, env, tmp_path):
         assert _finite_numbers(results["arms"]) and math.isfinite(results["ratio"])
     else:
         assert _finite_numbers({k: v["mean"] for k, v in results["settings"].items()})
+        _check_env_returns(results)
     meta = results["meta"]
     assert (
         meta["seed"] == 0

@@ -118,6 +118,7 @@ class _AroundBest(SamplingPlanner):
         return gather_candidates(candidates, index), index
 
 
+@pytest.mark.slow  # 7 s of tracing; CEM's and iCEM's whole-plan graphs run the same loop
 def test_a_sampling_planner_of_two_methods_is_one_graph_too():
     band = Objective(beta=0.1, band=UncertaintyBand(low=0.25, high=0.75, kind="quantile"))
     planner = _AroundBest(

@@ -91,6 +91,7 @@ def _control_cfg(**extra):
     )
 
 
+@pytest.mark.slow  # 10 s; test_cli_errors' SIGINT test resumes the explore smoke and checks its output
 def test_explore_outputs_and_resume(tmp_path):
     full = run_explore(_explore_cfg(), tmp_path / "full", None)
     assert set(full["arms"]) == {"random", "active"}

@@ -44,6 +44,7 @@ def _results(out: Path) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
+@pytest.mark.slow  # 5 s; the Pendulum online smoke (termination, resume) stays
 def test_industrial_benchmark_online_smoke(tmp_path, capsys):
     out = tmp_path / "ib"
     code = main(["online", "industrial_benchmark/online_smoke", f"output_dir={out}"])

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -58,6 +59,7 @@ def test_explore_on_episodes_of_3_steps_is_one_clear_error_before_any_fit(
     assert not (out / "stages" / "initial_random.json").exists()
 
 
+@pytest.mark.slow  # 5 s; explore's 3-step error stays
 def test_calibrate_on_episodes_of_3_steps_is_one_clear_error_before_any_fit(
     tmp_path, monkeypatch, capsys
 ):

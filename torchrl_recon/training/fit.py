@@ -269,7 +269,6 @@ def train_loss_module(
         20
     """
     check_type("loss_module", loss_module, nn.Module, "a torchrl LossModule")
-    check_type("loss_module", loss_module, nn.Module, "a torchrl LossModule")
     _check_buffer("buffer", buffer)
     settings = FitSettings.of(locals())
     _check_seed(seed)

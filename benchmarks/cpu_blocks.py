@@ -44,7 +44,7 @@ from _common import COST, context, paper_models, parse_args, setup_done
 
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.planners.cpu_threads import run_blocks
-from torchrl_recon.planners.planning_model import threaded_pass
+from torchrl_recon.planners.executors import threaded_pass
 from torchrl_recon.runs.allocator import keep_freed_memory
 from torchrl_recon.runs.timing import interleaved_median_ms
 

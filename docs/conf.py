@@ -134,7 +134,7 @@ API_MODULES = {
     "torchrl_recon.planners": tuple(
         f"torchrl_recon.planners.{module}"
         for module in ("base", "sampling", "cem", "elite_memory", "noise", "registry", "bounds")
-        + ("beta", "planning_model", "cpu_threads", "torchrl_models", "model_env")
+        + ("beta", "planning_model", "executors", "cpu_threads", "torchrl_models", "model_env")
     ),
 }
 

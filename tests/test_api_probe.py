@@ -41,9 +41,10 @@ from torchrl_recon.envs import make_env
 from torchrl_recon.planners.beta import cost_to_u_ratio, window_uncertainty
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec, check_bounds_match
 from torchrl_recon.planners.cpu_threads import run_aside, run_blocks
+from torchrl_recon.planners.executors import compile_mode, threaded_pass
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.planners.noise import colored_noise
-from torchrl_recon.planners.planning_model import check_step_fn, compile_mode, threaded_pass
+from torchrl_recon.planners.planning_model import check_step_fn
 from torchrl_recon.planners.registry import check_planner_kwargs, get_planner_class
 from torchrl_recon.planners.torchrl_models import (
     LSTMWorldModelModule,

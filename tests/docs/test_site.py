@@ -52,7 +52,7 @@ PACKAGES = (
 MODULES = tuple(
     f"planners.{module}"
     for module in ("base", "sampling", "cem", "elite_memory", "noise", "registry", "bounds")
-    + ("beta", "planning_model", "cpu_threads", "torchrl_models", "model_env")
+    + ("beta", "planning_model", "executors", "cpu_threads", "torchrl_models", "model_env")
 )
 
 

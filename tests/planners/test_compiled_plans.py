@@ -16,8 +16,7 @@ import pytest
 import torch
 from torch._dynamo.backends.common import aot_autograd
 
-import torchrl_recon.planners.base as planner_base
-import torchrl_recon.planners.planning_model as planning_model
+import torchrl_recon.planners.executors as executors
 from tests.compilers import needs_cpp_compiler
 from tests.fitting import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
@@ -31,7 +30,7 @@ from torchrl_recon.planners import (
     PlanningModel,
     UncertaintyBand,
 )
-from torchrl_recon.planners.planning_model import compiled_plan
+from torchrl_recon.planners.executors import compiled_plan, plan_graphs
 from torchrl_recon.policies.exploration import exploration_objective
 
 H = 4
@@ -100,7 +99,7 @@ def traced(monkeypatch):
         return gm.forward
 
     monkeypatch.setattr(
-        planner_base, "compiled_plan", functools.partial(compiled_plan, backend=counting)
+        executors, "compiled_plan", functools.partial(compiled_plan, backend=counting)
     )
     counting.graphs = graphs
     return counting
@@ -181,8 +180,8 @@ def test_every_batch_size_plans_with_two_graphs_of_the_planners_own(traced):
             _same(ours.plan(*_context(batch)), expected)
     assert len(traced.graphs) == 2
     other = PLANNERS["cem"](compiled, Objective(beta=0.1))
-    codes = [p._graph(m).compiled.__code__ for p, m in ((ours, "default"), (other, "default"))]
-    codes.append(ours._graph("reduce-overhead").compiled.__code__)
+    pairs = ((ours, "default"), (other, "default"), (ours, "reduce-overhead"))
+    codes = [plan_graphs(p).graph(p, m).compiled.__code__ for p, m in pairs]
     entries = [len(torch._C._dynamo.eval_frame._debug_get_cache_entry_list(c)) for c in codes]
     assert len(set(map(id, codes))) == 3 and entries == [2, 0, 0]
 
@@ -260,8 +259,8 @@ def test_plans_in_a_row_keep_nothing_a_replay_overwrites(kind, monkeypatch):
     planning model's pass, emulated without compiling): every plan is eager's, so nothing a
     planner keeps between calls (iCEM's elites) or reads after a later pass (the gradient
     planner's samples of every step) is left in a graph's memory."""
-    monkeypatch.setattr(planner_base, "compiled_plan", _replaying)
-    monkeypatch.setattr(planning_model, "compiled_pass", functools.cache(_replaying))
+    monkeypatch.setattr(executors, "compiled_plan", _replaying)
+    monkeypatch.setattr(executors, "compiled_pass", functools.cache(_replaying))
     eager, compiled = _twins()
     if kind == "gradient":
         make = lambda m: GradientPlanner(m, Objective(beta=0.1), horizon=H, restarts=3, steps=3)  # noqa: E731

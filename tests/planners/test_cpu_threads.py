@@ -20,7 +20,7 @@ from torchrl_recon.planners import (
     Objective,
     PlanningModel,
     base,
-    planning_model,
+    executors,
 )
 from torchrl_recon.planners.cpu_threads import check_threads, run_aside, run_blocks
 
@@ -132,7 +132,8 @@ def test_threads_without_compile_is_refused_in_one_line_that_says_why():
 @needs_cpp_compiler
 def test_threads_predict_what_one_eager_thread_does():
     eager, threaded = _model(), _model(compile=True, threads=2)
-    assert threaded.blocks_in_threads and not eager.blocks_in_threads
+    assert threaded.executor.blocks_in_threads(threaded)
+    assert not eager.executor.blocks_in_threads(eager)
     ctx = _context((2,))  # a batch of 2 contexts (one compiled shape: the plans' below)
     g = torch.Generator().manual_seed(2)
     actions = torch.rand(2, 15, 2, 2, generator=g) * 2 - 1  # 15 candidates: a padded block
@@ -181,7 +182,7 @@ def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_t
         raise AssertionError("with threads the planner compiles its pass, not its whole call")
 
     monkeypatch.setattr(base.PlannerBase, "_draw_shape", recording)
-    monkeypatch.setattr(base, "compiled_plan", whole_call)
+    monkeypatch.setattr(executors, "compiled_plan", whole_call)
     ctx = _context((2,))  # the compiled shapes of the prediction test above (15: a padded block)
     plans, after, aside = [], [], []
     for model in (_model(), _model(compile=True, threads=2)):
@@ -209,9 +210,9 @@ def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_t
 def test_the_threaded_pass_is_compiled_with_the_cpp_wrapper_that_releases_the_gil(monkeypatch):
     calls = []
     monkeypatch.setattr(
-        planning_model.torch, "compile", lambda fn, **kw: calls.append(kw) or fn, raising=True
+        executors.torch, "compile", lambda fn, **kw: calls.append(kw) or fn, raising=True
     )
-    planning_model.threaded_pass.__wrapped__(lambda: None, "max-autotune")  # past its cache
+    executors.threaded_pass.__wrapped__(lambda: None, "max-autotune")  # past its cache
     (kwargs,) = calls
     assert kwargs["fullgraph"] is True and kwargs["options"]["cpp_wrapper"] is True
     assert kwargs["options"]["max_autotune"] is True

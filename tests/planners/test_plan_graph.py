@@ -24,7 +24,8 @@ from torchrl_recon.planners import (
     UncertaintyBand,
 )
 from torchrl_recon.planners.base import PlanOutput
-from torchrl_recon.planners.planning_model import compiled_plan, gather_candidates
+from torchrl_recon.planners.executors import compiled_plan
+from torchrl_recon.planners.planning_model import gather_candidates
 from torchrl_recon.planners.sampling import SamplingPlanner
 
 H = 4

@@ -4,9 +4,10 @@ The package exports what a user calls: the planners, the engine they run on, the
 its band, the plan's result and errors, the relative β, and ``make_planner``. The rest is
 public in its own module: the search state of the sampling loop (``planners.sampling``,
 ``planners.cem``, ``planners.base``), the registry (``planners.registry``), the bounds, β and
-noise helpers (``planners.bounds``, ``planners.beta``, ``planners.noise``), the speed paths
-(``planners.planning_model``, ``planners.cpu_threads``, ``planners.elite_memory``) and the
-TorchRL adapters (``planners.torchrl_models``, ``planners.model_env``).
+noise helpers (``planners.bounds``, ``planners.beta``, ``planners.noise``), the engine's
+helpers (``planners.planning_model``), the speed paths (``planners.executors`` and the row-block
+thread pool it uses, ``planners.elite_memory``) and the TorchRL adapters
+(``planners.torchrl_models``, ``planners.model_env``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from torchrl_recon.planners.base import (
 )
 from torchrl_recon.planners.beta import relative_beta
 from torchrl_recon.planners.cem import CEMPlanner
+from torchrl_recon.planners.executors import MOVED_FROM_PLANNERS
 from torchrl_recon.planners.gradient import GradientPlanner
 from torchrl_recon.planners.icem import ICEMPlanner
 from torchrl_recon.planners.mppi import MPPIPlanner
@@ -51,24 +53,18 @@ __all__ = [
     "relative_beta",
 ]
 
-# Names this package exported before, and the module each is public in now. Importing one from
-# here still works for one release, with a DeprecationWarning naming that module.
+# Names this package exported before, and the module each is public in now (the speed paths'
+# names: MOVED_FROM_PLANNERS). Importing one from here still works for one release, with a
+# DeprecationWarning naming that module.
 _MOVED = {
     "base": ("PlanFlags", "PlanOutput"),
     "beta": ("cost_to_u_ratio", "window_uncertainty"),
     "bounds": ("bounds_from_spec", "check_bounds_match"),
     "cem": ("Gaussian",),
-    "cpu_threads": ("run_aside", "run_blocks"),
     "elite_memory": ("EliteMemory",),
     "model_env": ("WorldModelPlanningEnv",),
     "noise": ("colored_noise",),
-    "planning_model": (
-        "COMPILE_MODES",
-        "TerminationFn",
-        "check_step_fn",
-        "compile_mode",
-        "threaded_pass",
-    ),
+    "planning_model": ("TerminationFn", "check_step_fn"),
     "registry": ("PLANNERS", "check_planner_kwargs", "get_planner_class"),
     "sampling": ("Iteration",),
     "torchrl_models": (
@@ -79,7 +75,12 @@ _MOVED = {
         "TorchRLWorldModelAdapter",
     ),
 }
-_HOMES = {name: module for module, names in _MOVED.items() for name in names}
+_HOMES = {
+    name: module
+    for moved in (_MOVED, MOVED_FROM_PLANNERS)
+    for module, names in moved.items()
+    for name in names
+}
 
 
 def __getattr__(name: str):

@@ -15,10 +15,8 @@ from torchrl_recon.planners.objective import Objective, rank_key
 from torchrl_recon.planners.planning_model import (
     PlanningModel,
     Prediction,
-    compiled_plan,
     gather_candidates,
     inputs_checked,
-    mark_batch_dynamic,
 )
 
 __all__ = [
@@ -223,8 +221,9 @@ class PlannerBase(nn.Module):
                 moved to the model's), e.g. a CPU ``torch.Generator`` for the same candidates
                 on every device. Default: the global RNG of the model's device.
 
-        With the planning model's ``compile`` (a recipe's ``planning_compile``) the whole call,
-        :meth:`plan_graph`, runs as one compiled graph (``fullgraph=True``; with
+        The planning model's executor runs the whole call, :meth:`plan_graph`
+        (:mod:`~torchrl_recon.planners.executors`). With its ``compile`` (a recipe's
+        ``planning_compile``) the call runs as one compiled graph (``fullgraph=True``; with
         ``"reduce-overhead"`` on a GPU, a CUDA graph) and its flags are read after it; a call
         with a ``generator`` runs uncompiled (the graph draws from the global RNG). Inductor
         draws its own random numbers unless ``torch._inductor.config.fallback_random`` is set,
@@ -236,7 +235,7 @@ class PlannerBase(nn.Module):
         input checks, the fitted-normalisation check and ``_recall`` (what the planner
         remembers of its earlier plans, e.g. iCEM's elites) before it, the flags' checks and
         ``_remember`` after it. Each planner compiles its own graphs, one cache per planner and
-        mode (``planning_model.compiled_plan``), with the batch dims ``*B`` dynamic: a batch
+        mode (``executors.compiled_plan``), with the batch dims ``*B`` dynamic: a batch
         of one and a batch of several are two graphs, every other batch size reuses the
         latter (``docs/planning.md`` lists what recompiles).
         """
@@ -248,7 +247,9 @@ class PlannerBase(nn.Module):
         self.model.check_fitted()  # here, not in the graph: a compiled graph skips it
         carry = self._recall(init)
         with inputs_checked():  # checked above: the passes read no input values on the host
-            out = self._run(context_obs, context_action, observation, init, generator, carry)
+            out = self.model.executor.plan(
+                self, context_obs, context_action, observation, init, generator, carry
+            )
         result = self._checked(out)
         self._remember(result, out.kept)
         return result
@@ -261,54 +262,11 @@ class PlannerBase(nn.Module):
             raise ValueError(f"init has shape {tuple(init.shape)}; expected {expected}.")
         self.model.check_placed("init", init)
 
-    def _run(self, context_obs, context_action, observation, init, generator, carry) -> PlanOutput:
-        """:meth:`plan_graph`, compiled where the planning model's ``compile`` asks for it; a
-        compiled graph's outputs copied out of its memory (a CUDA graph's next replay
-        overwrites them)."""
-        args = (context_obs, context_action, observation, init, generator, carry)
-        mode = self.model.compile_mode
-        whole = self.compiles_whole_call and self.model.plans_in_one_graph
-        if mode is None or not whole or generator is not None:
-            return self.plan_graph(*args)
-        batch_dims = observation.ndim - 1
-        carried = () if carry is None else carry
-        mark_batch_dynamic(batch_dims, context_obs, context_action, observation, init, *carried)
-        try:
-            out = self._graph(mode)(self, *args)
-        except torch._dynamo.exc.FailOnRecompileLimitHit:
-            if not getattr(self, "_warned_recompiles", False):
-                self._warned_recompiles = True
-                warnings.warn(
-                    f"planning_compile: this {type(self).__name__} has compiled as many graphs "
-                    f"as torch._dynamo's recompile_limit ({torch._dynamo.config.recompile_limit}) "
-                    f"allows; a call of another shape (here observation "
-                    f"{tuple(observation.shape)}) runs uncompiled but for the planning model's "
-                    "pass.",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
-            return self.plan_graph(*args)
-        except torch._dynamo.exc.TorchDynamoException as error:  # its message: a whole trace
-            raise RuntimeError(
-                f"planning_compile: {type(self).__name__}'s plan could not be compiled as one "
-                f"graph ({type(error).__name__}: {str(error).strip().splitlines()[0]}); plan "
-                "without it (planning_compile=false, PlanningModel(compile=False)) and report "
-                "it; the CLI's --debug prints torch.compile's trace."
-            ) from error
-        return out.copied()
-
-    def _graph(self, mode: str):
-        """This planner's compiled :meth:`plan_graph` for ``mode``, made at its first call."""
-        graphs = self.__dict__.setdefault("_plan_graphs", {})
-        if mode not in graphs:
-            graphs[mode] = compiled_plan(type(self).plan_graph, mode)
-        return graphs[mode]
-
     def __getstate__(self) -> dict:
-        """A copy or a pickle leaves the compiled graphs behind (the copy compiles its own)."""
+        """A copy or a pickle leaves the executor's compiled graphs behind (the copy compiles
+        its own)."""
         state = super().__getstate__()
         state.pop("_plan_graphs", None)
-        state.pop("_warned_recompiles", None)
         return state
 
     def _recall(self, init: torch.Tensor | None):
@@ -337,7 +295,7 @@ class PlannerBase(nn.Module):
         carry: tuple[torch.Tensor, ...] | None = None,
     ) -> PlanOutput:
         """The whole planning call as tensor operations with no host synchronisation, so that
-        it is one graph (``torch.compile(..., fullgraph=True)``; with ``mode="reduce-overhead"``
+        it is one graph (compiled with ``fullgraph=True``; with ``mode="reduce-overhead"``
         on a GPU, one CUDA graph replayed per call): the warm-up on the context, every
         iteration's sampling, rollout, cost, u, ranking and refit, and the final choice.
         Returns a :class:`PlanOutput`: the chosen plan (:class:`PlanResult`), the

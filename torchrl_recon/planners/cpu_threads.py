@@ -3,10 +3,10 @@
 The candidates' rows are independent, so a planning pass splits into blocks that could run on
 every core. Eager PyTorch holds Python's GIL between its small kernels, so blocks in Python
 threads ran slower than one thread (0.65–0.79×, ``benchmarks/cpu_blocks.py``), and intra-op
-threads do not pay at these sizes. Inductor's C++ wrapper (``torch.compile`` option
-``cpp_wrapper``) runs a whole compiled graph in C++ with the GIL released, so the blocks of such
-a graph, called from several threads, run in parallel. ``planning_model.threaded_pass``
-compiles a pass that way and :func:`run_blocks` runs its blocks on a shared thread pool, one
+threads do not pay at these sizes. Inductor's C++ wrapper (its ``cpp_wrapper`` option) runs a
+whole compiled graph in C++ with the GIL released, so the blocks of such a graph, called from
+several threads, run in parallel. ``executors.threaded_pass`` compiles a pass that way, and
+:func:`run_blocks` runs its blocks (for ``executors.Threaded``) on a shared thread pool, one
 intra-op thread each; :func:`run_aside` starts serial work between two passes (a sampling
 planner's next noise draw) on the same pool while the caller goes on.
 """

@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from torchrl_recon.modules.checks import in_graph
 from torchrl_recon.planners.base import OnInfeasible, PlanResult
 from torchrl_recon.planners.cem import CEMPlanner, Gaussian
 from torchrl_recon.planners.elite_memory import EliteMemory
@@ -150,7 +151,7 @@ class ICEMPlanner(CEMPlanner):
         around ``init``."""
         spread = WARM_START_STD * self._span * self.noise(batch, self.num_kept, generator)
         drawn = self._clamp(init.unsqueeze(-3) + spread)
-        if carry is None and not torch.compiler.is_compiling():
+        if carry is None and not in_graph():
             carry = self._recall(init)
         if carry is None:
             return drawn

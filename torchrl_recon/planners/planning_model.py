@@ -6,36 +6,37 @@ import contextlib
 import contextvars
 import functools
 import math
-import types
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_recon.devices import check_compile_support
-from torchrl_recon.modules.checks import check_features, check_finite, check_int, check_window
+from torchrl_recon.modules.checks import (
+    check_features,
+    check_finite,
+    check_int,
+    check_window,
+    in_graph,
+)
 from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.reward_model import LEARNED_REWARD, RewardModel
 from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
-from torchrl_recon.planners.cpu_threads import check_threads, run_aside, run_blocks
+from torchrl_recon.planners.executors import (
+    COMPILE_MODES,  # noqa: F401  (public in executors; experiments.config imports it from here)
+    compile_mode,  # noqa: F401  (the same)
+    executor_for,
+)
 
-__all__ = [
-    "COMPILE_MODES",
-    "PlanningModel",
-    "Prediction",
-    "TerminationFn",
-    "check_step_fn",
-    "compile_mode",
-    "threaded_pass",
-]
+if TYPE_CHECKING:
+    from torchrl_recon.planners.executors import Eager
 
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-"""``torch.compile``'s modes, for ``PlanningModel(compile=...)``."""
+__all__ = ["PlanningModel", "Prediction", "TerminationFn", "check_step_fn"]
 
 CostFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 TerminationFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
@@ -170,129 +171,15 @@ def gather_candidates(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.gather(dim, expanded)
 
 
-def compile_mode(compile: object) -> str | None:
-    """The ``torch.compile`` mode that a ``compile`` switch asks for: None for False, ``"default"``
-    for True, else one of :data:`COMPILE_MODES`.
-
-    Examples:
-        >>> compile_mode(False), compile_mode(True), compile_mode("reduce-overhead")
-        (None, 'default', 'reduce-overhead')
-        >>> compile_mode("fast")
-        Traceback (most recent call last):
-        ...
-        ValueError: compile must be True, False or one of ['default', 'reduce-overhead', 'max-autotune', 'max-autotune-no-cudagraphs'], got 'fast'.
-    """
-    if compile is True or compile is False:
-        return "default" if compile else None
-    if isinstance(compile, str) and compile in COMPILE_MODES:
-        return compile
-    raise ValueError(
-        f"compile must be True, False or one of {list(COMPILE_MODES)}, got {compile!r}."
-    )
-
-
-@functools.cache
-def compiled_pass(fn: Callable, mode: str) -> Callable:
-    """``torch.compile(fn, mode=mode)``, made once per function and mode: every planning model
-    (and every copy of one) shares the compiled code, which takes the model as an argument."""
-    return torch.compile(fn, mode=mode)
-
-
 def without_grad(fn: Callable) -> Callable:
-    """Run ``fn`` under ``torch.inference_mode()``, or ``torch.no_grad()`` while Dynamo traces it
-    into a graph (Inductor cannot compile views of parameters made in inference mode)."""
+    """Run ``fn`` under ``torch.inference_mode()``, or ``torch.no_grad()`` inside a graph
+    (Inductor cannot compile views of parameters made in inference mode)."""
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        mode = torch.no_grad() if torch.compiler.is_compiling() else torch.inference_mode()
+        mode = torch.no_grad() if in_graph() else torch.inference_mode()
         with mode:
             return fn(*args, **kwargs)
-
-    return call
-
-
-def compiled_plan(fn: Callable, mode: str, backend: str = "inductor") -> Callable:
-    """``torch.compile(fn, mode=mode, fullgraph=True)``: a planner's whole call as one graph
-    (a graph break is an error, not a slow path); it takes the planner as an argument.
-
-    Each call makes a new compiled function with a Dynamo cache of its own: Dynamo keeps the
-    graphs it compiled, and counts them against ``torch._dynamo.config.recompile_limit`` (8),
-    per code object, so the function is compiled from a copy of ``fn``'s code
-    (:func:`own_code`). A planner calls this once per mode (``PlannerBase._graph``): every
-    planner instance and mode has its own graphs, and one planner's shapes never use up
-    another's recompiles. Called with Dynamo's ``allow_rnn`` on: the world model's context
-    warm-up is an ``nn.LSTM``, which Dynamo otherwise refuses to trace (its own error names the
-    switch ``torch._dynamo.config.allow_rnn``; there is no public one)."""
-    own = own_code(fn)
-    compiled = torch.compile(
-        own, mode=None if backend != "inductor" else mode, fullgraph=True, backend=backend
-    )
-    call = _allowing_rnn(fn, compiled)
-    call.compiled = own  # what Dynamo compiles: its code object holds the graphs
-    return call
-
-
-def own_code(fn: Callable) -> Callable:
-    """A copy of function ``fn`` with a code object of its own (the same bytecode), so that
-    ``torch.compile`` keeps a separate cache of graphs for it.
-
-    Examples:
-        >>> def double(x):
-        ...     return 2 * x
-        >>> twin = own_code(double)
-        >>> twin(3), twin.__code__ is double.__code__, twin.__name__
-        (6, False, 'double')
-    """
-    code = fn.__code__.replace()  # a new code object
-    twin = types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
-    twin.__kwdefaults__ = fn.__kwdefaults__
-    twin.__qualname__, twin.__doc__, twin.__module__ = fn.__qualname__, fn.__doc__, fn.__module__
-    return twin
-
-
-def mark_batch_dynamic(batch_dims: int, *tensors: torch.Tensor | None) -> None:
-    """Mark the leading ``batch_dims`` dims of each tensor (None skipped) dynamic for
-    ``torch.compile`` (``torch._dynamo.maybe_mark_dynamic``): a compiled plan's graph then
-    serves every batch size of 2 or more (a dim of size 1 stays static: Dynamo specialises
-    sizes 0 and 1, so a batch of one has a graph of its own)."""
-    for x in tensors:
-        if x is None:
-            continue
-        for dim in range(batch_dims):
-            torch._dynamo.maybe_mark_dynamic(x, dim)
-
-
-@functools.cache
-def threaded_pass(fn: Callable, mode: str) -> Callable:
-    """``torch.compile(fn)`` with Inductor's C++ wrapper and ``mode``'s options (one of
-    :data:`COMPILE_MODES`), one graph (``fullgraph=True``), made once per function and mode.
-
-    The C++ wrapper releases the GIL for the whole compiled call (Inductor's
-    ``cpp_wrapper_cpu``), which is what lets
-    :func:`~torchrl_recon.planners.cpu_threads.run_blocks` run a pass's blocks in parallel
-    (``PlanningModel(threads=...)``). Called with Dynamo's ``allow_rnn`` on, as
-    ``compiled_plan``.
-
-    Examples:
-        >>> threaded_pass(abs, "fast")
-        Traceback (most recent call last):
-        ...
-        ValueError: mode must be one of ['default', 'reduce-overhead', 'max-autotune', 'max-autotune-no-cudagraphs'], got 'fast'.
-    """
-    if not isinstance(mode, str) or mode not in COMPILE_MODES:
-        raise ValueError(f"mode must be one of {list(COMPILE_MODES)}, got {mode!r}.")
-    options = {**torch._inductor.list_mode_options(mode), "cpp_wrapper": True}
-    options.pop("triton.cudagraphs", None)  # a CPU pass: no CUDA graphs
-    return _allowing_rnn(fn, torch.compile(fn, fullgraph=True, options=options))
-
-
-def _allowing_rnn(fn: Callable, compiled: Callable) -> Callable:
-    """``compiled`` (``fn`` under ``torch.compile``) called with Dynamo's ``allow_rnn`` on."""
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        with torch._dynamo.config.patch(allow_rnn=True):
-            return compiled(*args, **kwargs)
 
     return call
 
@@ -413,21 +300,24 @@ class PlanningModel(nn.Module):
             with the rest); planners draw their candidates there. The defaults (−1, 1) fit
             the shipped envs only: for any other env use :meth:`from_env`, which reads them
             from the env's action spec.
-        compile: run the one-block pass (rollout, cost, u) under ``torch.compile``: True for
-            its default mode, or a mode name of :data:`COMPILE_MODES` (``"reduce-overhead"``:
-            CUDA graphs). The same predictions up to float rounding; the first call of each
-            new shape compiles (seconds). Off by default: on a 2-core CPU it was slower than
-            eager, on an H200 1.1–1.3× faster a CEM call (``docs/benchmarks.md``). On the
-            CPU it needs a C++ compiler (refused here without one).
+        compile: compile the one-block pass (rollout, cost, u), and a sampling planner's
+            whole call: True for the default mode, or a mode name of :data:`COMPILE_MODES`
+            (``"reduce-overhead"``: CUDA graphs). The same predictions up to float rounding;
+            the first call of each new shape compiles (seconds). Off by default: on a 2-core
+            CPU it was slower than eager, on an H200 1.1–1.3× faster a CEM call
+            (``docs/benchmarks.md``). On the CPU it needs a C++ compiler (refused here
+            without one).
         threads: on the CPU, evaluate the candidates in ``threads`` row blocks (or a
-            multiple) on as many threads at once, one core each
-            (:func:`~torchrl_recon.planners.cpu_threads.run_blocks`): each block is one call
-            compiled with Inductor's C++ wrapper, which runs without the GIL
-            (:func:`~torchrl_recon.planners.planning_model.threaded_pass`), so this needs
+            multiple) on as many threads at once, one core each: each block is one call
+            compiled with Inductor's C++ wrapper, which runs without the GIL, so this needs
             ``compile``. The same predictions up to float rounding. The planners then compile
             only this pass, not their whole call. A pass with autograd (the gradient planner)
             and a pass on another device run in one thread. Default 1: one thread. On the
             2-core development machine a CEM call ran 1.52–1.70× faster at 2 (``docs/benchmarks.md``).
+
+    ``compile`` and ``threads`` choose the model's ``executor``
+    (:mod:`~torchrl_recon.planners.executors`), which runs its pass and its planners' calls;
+    the model itself is the eager algorithm.
 
     Examples:
         >>> from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
@@ -481,17 +371,8 @@ class PlanningModel(nn.Module):
         low, high = action_bounds(action_low, action_high, self.action_dim, dtype=dtype)
         self.register_buffer("action_low", low.to(device))
         self.register_buffer("action_high", high.to(device))
-        self.compile_mode = compile_mode(compile)
-        if self.compile_mode is not None:
-            check_compile_support(device)
-        self.threads = check_threads(threads)
-        self._threaded_shapes: set[tuple] = set()  # the block shapes run in threads so far
-        if self.threads > 1 and self.compile_mode is None:
-            raise ValueError(
-                f"threads={threads} runs the row blocks in parallel only as compiled calls "
-                "(eager ops hold Python's GIL between kernels: slower than one thread); pass "
-                "compile=True too, or threads=1."
-            )
+        self.executor: Eager = executor_for(compile, threads, device)
+        """Runs the pass and the planners' calls: eagerly, compiled, or in row-block threads."""
         check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)
         if termination_fn is not None:
             check_step_fn(
@@ -601,17 +482,14 @@ class PlanningModel(nn.Module):
         )
 
     @property
-    def blocks_in_threads(self) -> bool:
-        """Whether a pass without autograd runs its row blocks on ``threads`` threads
-        (``threads > 1`` and the model on the CPU)."""
-        return self.threads > 1 and self.action_low.device.type == "cpu"
+    def compile_mode(self) -> str | None:
+        """The ``compile`` mode of the pass, or None (eager)."""
+        return self.executor.compile_mode
 
     @property
-    def plans_in_one_graph(self) -> bool:
-        """Whether a planner may compile its whole call as one graph, which it may not while
-        the pass runs its row blocks on threads (then only the pass is compiled, block by
-        block)."""
-        return not self.blocks_in_threads
+    def threads(self) -> int:
+        """The threads the pass's row blocks run on (on the CPU, without autograd)."""
+        return self.executor.threads
 
     def later(self, fn: Callable[[], torch.Tensor]) -> Callable[[], torch.Tensor]:
         """``fn``'s result as a call that returns it: started now on a block thread when the pass
@@ -623,9 +501,7 @@ class PlanningModel(nn.Module):
             >>> model.later(lambda: torch.ones(2))()
             tensor([1., 1.])
         """
-        if not self.blocks_in_threads or torch.compiler.is_compiling():
-            return fn
-        return run_aside(fn, self.threads).result
+        return self.executor.later(self, fn)
 
     @property
     def context_length(self) -> int:
@@ -776,88 +652,57 @@ class PlanningModel(nn.Module):
                 while compiling and within a planner's ``plan``, which checked them).
         """
         self.check_fitted()
-        compiling = torch.compiler.is_compiling()
-        if not compiling and not _INPUTS_CHECKED.get():
+        traced = in_graph()
+        if not traced and not _INPUTS_CHECKED.get():
             self.check_context(context_obs, context_action, observation)
             self.check_actions(actions, observation)
         # Traced into a plan's graph, "auto" is one pass: blocks would be unrolled into the
         # graph (its compile time grows with their number) and pin the batch size.
-        auto_one_pass = compiling and block_rows == "auto"
+        auto_one_pass = traced and block_rows == "auto"
         block_rows = None if auto_one_pass else resolve_block_rows(block_rows, actions.device)
-        batch_rows = math.prod(observation.shape[:-1])  # symbolic in a graph of dynamic batch
-        k = actions.shape[-3]
         context = (context_obs, context_action, observation)
-        blocks_u = self._row_independent_u
-        if self.blocks_in_threads and not (torch.is_grad_enabled() or compiling):
-            prediction = self._threaded(context, actions, state, block_rows, blocks_u)
-        else:
-            predict = type(self)._predict
-            if self.compile_mode is not None and not compiling:
-                predict = compiled_pass(predict, self.compile_mode)  # (a plan's graph inlines it)
-            if block_rows is None or batch_rows * k <= block_rows:
-                return predict(self, *context, actions, state)
-            chunk = max(1, block_rows // batch_rows)
-            prediction = Prediction.concat(
-                [
-                    predict(self, *context, block, state, with_u=blocks_u)
-                    for block in actions.split(chunk, dim=-3)
-                ]
-            )
-        if self.uncertainty is not None and not blocks_u:
-            entering = _entering(observation, prediction.states)
-            u = self._score_uncertainty(context_obs, context_action, entering, actions)
-            prediction.uncertainty = self._until_end(u, entering, actions, prediction.states)
-        return prediction
+        return self.executor.predict(self, context, actions, state, block_rows)
 
-    def _threaded(
+    def _in_blocks(
         self,
+        predict: Callable[..., Prediction],
         context: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         actions: torch.Tensor,
         state: tuple[torch.Tensor, torch.Tensor] | None,
         block_rows: int | None,
+    ) -> Prediction:
+        """:meth:`forward`'s candidates ``actions`` in blocks of about ``block_rows`` rows, one
+        after another, each one call of ``predict`` (:meth:`_predict`, or the executor's
+        compiled copy of it); all in one call when they fit (or ``block_rows`` is None).
+        ``context``: the context observations and actions and the current observation."""
+        batch_rows = math.prod(context[2].shape[:-1])  # symbolic in a graph of dynamic batch
+        k = actions.shape[-3]
+        if block_rows is None or batch_rows * k <= block_rows:
+            return predict(self, *context, actions, state)
+        chunk = max(1, block_rows // batch_rows)
+        with_u = self._row_independent_u
+        blocks = [
+            predict(self, *context, block, state, with_u=with_u)
+            for block in actions.split(chunk, dim=-3)
+        ]
+        return self._scored(Prediction.concat(blocks), context, actions, with_u)
+
+    def _scored(
+        self,
+        prediction: Prediction,
+        context: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        actions: torch.Tensor,
         with_u: bool,
     ) -> Prediction:
-        """:meth:`forward`'s blocks on ``threads`` threads: a multiple of ``threads`` blocks
-        of equal size (each at most ``block_rows`` rows where it can be), the last padded with
-        copies of its last candidate so every block has the compiled shape. ``context``: the
-        context observations and actions and the current observation.
-
-        Each block thread also copies its block's prediction into its rows of one prediction
-        made beforehand (``copy_`` releases the GIL), so joining the blocks is no serial
-        ``torch.cat`` on the calling thread: what stays serial between passes bounds the gain
-        from more cores.
-        """
-        batch_rows, k = int(context[2].shape[:-1].numel()), actions.shape[-3]
-        rows_per_block = block_rows or batch_rows * k
-        blocks = -(-batch_rows * k // rows_per_block)  # blocks the rows need, at least
-        blocks = min(k, -(-blocks // self.threads) * self.threads)
-        chunk = -(-k // blocks)
-        blocks = -(-k // chunk)
-        if chunk * blocks > k:
-            last = actions[..., -1:, :, :]
-            pad = last.expand(*last.shape[:-3], chunk * blocks - k, *last.shape[-2:])
-            actions = torch.cat([actions, pad], -3)
-        parts = actions.split(chunk, dim=-3)
-        joined = self._empty_prediction(actions, with_u)
-        predict = threaded_pass(type(self)._predict, self.compile_mode)
-
-        def block(i: int) -> None:
-            part = predict(self, *context, parts[i].contiguous(), state, with_u=with_u)
-            rows = slice(i * chunk, (i + 1) * chunk)
-            joined.states[..., rows, :, :].copy_(part.states)
-            joined.cost[..., rows, :].copy_(part.cost)
-            if joined.uncertainty is not None:
-                joined.uncertainty[..., rows, :].copy_(part.uncertainty)
-
-        shapes = (*(tuple(x.shape) for x in (*context, parts[0])), with_u)
-        run_blocks(
-            block,
-            len(parts),
-            self.threads,
-            first_alone=shapes not in self._threaded_shapes,  # it compiles, once
-        )
-        self._threaded_shapes.add(shapes)
-        return joined.first(k)
+        """``prediction`` of blocks, with u: the blocks' own (``with_u``), else every row's
+        scored here in one call (an estimator that draws per call scores all rows with the
+        same draws)."""
+        if self.uncertainty is not None and not with_u:
+            context_obs, context_action, observation = context
+            entering = _entering(observation, prediction.states)
+            u = self._score_uncertainty(context_obs, context_action, entering, actions)
+            prediction.uncertainty = self._until_end(u, entering, actions, prediction.states)
+        return prediction
 
     def _empty_prediction(self, actions: torch.Tensor, with_u: bool) -> Prediction:
         """An uninitialised prediction for ``actions`` ``[*B, K, H, M]`` (u only if scored)."""

@@ -99,7 +99,7 @@ def test_planning_compile_reaches_the_planning_model(kind, tmp_path):
         assert planning_model(cfg, world, estimator).compile_mode == mode
     cfg = _ctx(tmp_path, kind, "planning_compile=true", "planning_threads=2").cfg
     model = planning_model(cfg, *build_models(cfg, 6, 3))
-    assert model.threads == 2 and model.blocks_in_threads
+    assert model.threads == 2 and model.executor.blocks_in_threads(model)
 
 
 def test_fit_cuda_graph_reaches_the_retrainings(tmp_path, monkeypatch):

@@ -72,3 +72,33 @@ def test_an_online_summary_of_seeds_with_different_lengths_says_where_its_rows_s
         "(iterations per seed [3, 2]: the rows stop at 2; each seed's last half is its own)"
         in table
     )
+
+
+def test_an_online_summary_draws_each_seeds_curve_and_their_mean(tmp_path):
+    """``summarize --out`` of online seeds writes ``learning_curves_<env>.png``: one thin line
+    per seed, their mean, the random policy; the mean stops where the shortest seed does."""
+    from torchrl_recon.reports.online import summary_figures
+    from torchrl_recon.reports.plots import plot_seed_curves
+
+    def run(seed: int, returns: list[float]) -> dict:
+        iterations = [{"returns": [r], "env_steps": 10 * (i + 1)} for i, r in enumerate(returns)]
+        return {
+            "env": "Reacher-v5",
+            "seed": seed,
+            "iterations": iterations,
+            "random": {"mean_return": -40.0},
+            "mean_return_last_half": returns[-1],
+        }
+
+    runs = [run(0, [-9.0, -6.0, -5.0]), run(1, [-7.0, -4.0])]
+    [(name, figure)] = summary_figures({"envs": {"Reacher-v5": online_summary(runs)}}, runs)
+    assert name == "learning_curves_Reacher-v5.png"
+    lines = figure.axes[0].lines
+    assert len(lines) == 4  # two seeds, their mean, the random policy
+    mean = lines[2]
+    assert list(mean.get_xdata()) == [10, 20] and list(mean.get_ydata()) == [-8.0, -5.0]
+    assert list(lines[3].get_ydata()) == [-40.0, -40.0]
+    figure.savefig(tmp_path / name)
+    assert (tmp_path / name).stat().st_size > 0
+    with pytest.raises(ValueError, match="at least one online results"):
+        plot_seed_curves({"MPC": []})

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from torchrl_recon.reports.plots import plot_learning_curve
+from torchrl_recon.reports.plots import plot_learning_curve, plot_seed_curves
 from torchrl_recon.reports.report import Figures, Report
 from torchrl_recon.reports.stats import mean_std
 from torchrl_recon.reports.tables import fmt, pm, render
@@ -86,6 +86,17 @@ def headline(results: Mapping[str, Any]) -> dict[str, float]:
 def figures(results: Mapping[str, Any]) -> Figures:
     """``learning_curve.png``."""
     return [("learning_curve.png", plot_learning_curve(results))]
+
+
+def summary_figures(summary: Mapping[str, Any], results: list[Mapping[str, Any]]) -> Figures:
+    """``learning_curves_<env>.png`` for each env of the summary: each seed's curve and their mean."""
+    return [
+        (
+            f"learning_curves_{env}.png",
+            plot_seed_curves({"MPC": [r for r in results if r["env"] == env]}),
+        )
+        for env in summary["envs"]
+    ]
 
 
 def _mean(values: list[float]) -> float:

@@ -202,3 +202,52 @@ def plot_learning_curve(results: Mapping[str, Any]) -> Figure:
     ax.set(xlabel="env steps", ylabel="episode return", title=f"online {results['env']}")
     ax.legend(loc="lower right")
     return figure
+
+
+def plot_seed_curves(
+    variants: Mapping[str, Sequence[Mapping[str, Any]]],
+    *,
+    references: Mapping[str, float] | None = None,
+    title: str = "",
+) -> Figure:
+    """Online learning curves over seeds: for each variant (a name -> its seeds' online results),
+    each seed's mean return per iteration (thin) and their mean over seeds (thick), against the
+    env steps; the random policy's mean over every run (dashed) and any ``references`` (a label ->
+    a return, e.g. a published anchor; dotted).
+
+    Examples:
+        >>> run = {"env": "Pendulum-v1", "random": {"mean_return": -1200.0},
+        ...        "iterations": [{"env_steps": 400, "returns": [-900.0]},
+        ...                       {"env_steps": 600, "returns": [-300.0, -200.0]}]}
+        >>> fig = plot_seed_curves({"beta=0": [run, run]}, references={"anchor": -150.0})
+        >>> len(fig.axes[0].lines)  # 2 seeds, their mean, random, the anchor
+        5
+    """
+    if not any(variants.values()):
+        raise ValueError("plot_seed_curves needs at least one online results dict.")
+    figure = _figure(6, 3.5)
+    ax = figure.add_subplot()
+    for color, (name, runs) in enumerate(variants.items()):
+        curves = [_iteration_means(run) for run in runs]
+        for steps, means in curves:
+            ax.plot(steps, means, "-", color=f"C{color}", lw=0.7, alpha=0.5)
+        count = min((len(steps) for steps, _ in curves), default=0)
+        if count:  # the mean over seeds, up to the iterations every seed has
+            mean = np.nanmean([means[:count] for _, means in curves], axis=0)
+            label = f"{name} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+            ax.plot(curves[0][0][:count], mean, "-", color=f"C{color}", lw=2, label=label)
+    random = [run["random"]["mean_return"] for runs in variants.values() for run in runs]
+    ax.axhline(float(np.mean(random)), color="tab:gray", ls="--", label="random policy")
+    for index, (label, value) in enumerate((references or {}).items()):
+        ax.axhline(value, color=f"C{len(variants) + index}", ls=":", label=label)
+    env = next(run["env"] for runs in variants.values() for run in runs)
+    ax.set(xlabel="env steps", ylabel="mean episode return", title=title or f"online {env}")
+    ax.legend(loc="best", fontsize=7)
+    return figure
+
+
+def _iteration_means(results: Mapping[str, Any]) -> tuple[list[int], list[float]]:
+    """``(env steps, mean return)`` of each iteration of one online run (NaN where none ended)."""
+    its = results["iterations"]
+    means = [float(np.mean(it["returns"])) if it["returns"] else math.nan for it in its]
+    return [it["env_steps"] for it in its], means

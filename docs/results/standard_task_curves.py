@@ -1,0 +1,50 @@
+"""The learning curves of docs/standard_tasks.md: one figure per task, each published seed's
+mean return per iteration and the mean over seeds for each variant, the random policy, and the
+task's target and anchor.
+
+Run: python docs/results/standard_task_curves.py   (writes docs/results/standard_tasks/<task>.png)
+
+The runs are read from ``docs/results/standard_tasks/<variant>/seed*/results.json``; a variant
+with no published seed yet is left out of its figure.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from torchrl_recon.reports.plots import plot_seed_curves
+
+HERE = Path(__file__).resolve().parent / "standard_tasks"
+TASKS = {  # task -> (variant label -> folder, reference label -> return)
+    "InvertedPendulum-v5": (
+        {"β = 0": "InvertedPendulum-v5_one_step", "β = 2": "InvertedPendulum-v5_one_step_beta2"},
+        {"target: 1,000 steps up": 1000.0},
+    ),
+    "Reacher-v5": (
+        {"β = 0": "Reacher-v5", "β = 2": "Reacher-v5_beta2"},
+        {"target: −5": -5.0, "SAC after 1M steps: about −4": -4.0},
+    ),
+}
+
+
+def seeds_of(folder: str) -> list[dict]:
+    """The results of every published seed of one variant, in seed order."""
+    paths = sorted((HERE / folder).glob("seed*/results.json"), key=lambda p: int(p.parent.name[4:]))
+    return [json.loads(p.read_text()) for p in paths]
+
+
+def main() -> None:
+    for task, (folders, references) in TASKS.items():
+        variants = {label: seeds_of(folder) for label, folder in folders.items()}
+        variants = {label: runs for label, runs in variants.items() if runs}
+        if not variants:
+            continue
+        figure = plot_seed_curves(variants, references=references, title=task)
+        path = HERE / f"{task}.png"
+        figure.savefig(path, dpi=110)
+        print(f"{path.relative_to(HERE.parents[1])}: {', '.join(variants)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -21,9 +21,10 @@ from pathlib import Path
 from _common import parse_args, setup_done
 
 from torchrl_recon.experiments import control, explore
-from torchrl_recon.experiments.common import batches, build_planner, planning_model
+from torchrl_recon.experiments.batching import batches
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.recipe_planning import build_planner, planning_model
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

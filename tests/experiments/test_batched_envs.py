@@ -12,10 +12,11 @@ import torch
 import torchrl_recon
 from tests.experiments.tiny import TINY
 from torchrl_recon.data import TRAJ_KEY, make_sequence_buffer, split_by_trajectory
-from torchrl_recon.experiments import common, control, explore
-from torchrl_recon.experiments.common import build_env, planning_model
+from torchrl_recon.experiments import control, explore
 from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.recipe_env import build_env
+from torchrl_recon.experiments.recipe_planning import planning_model, setting_objective
 from torchrl_recon.planners.beta import window_uncertainty
 
 RECIPES = Path(torchrl_recon.__file__).parents[1] / "recipes" / "drone"
@@ -87,7 +88,7 @@ def test_each_env_of_a_batch_plays_the_episode_of_its_own_seed(tmp_path):
     same observations, rewards and end: the cut trajectory is that env's episode."""
     ctx, controller = _control(tmp_path)
     setting = ctx.cfg.settings[0]
-    objective, _ = common.setting_objective(setting, 1.0)
+    objective, _ = setting_objective(setting, 1.0)
     planner = control.build_planner(setting.planner, controller.model, objective)
     tds = control.episode_batch(ctx, setting, planner, controller, range(0, 2))
     steps = ctx.cfg.env.episode_steps

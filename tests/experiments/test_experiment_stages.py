@@ -14,9 +14,11 @@ import torchrl_recon
 from tests.compilers import needs_cpp_compiler
 from tests.experiments.tiny import TINY as TINY_OVERRIDES
 from torchrl_recon.experiments import calibrate, control, explore
-from torchrl_recon.experiments.common import build_models, fit_stage, planning_model
 from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.fit_stages import fit_stage
 from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.recipe_models import build_models
+from torchrl_recon.experiments.recipe_planning import planning_model
 from torchrl_recon.experiments.registry import EXPERIMENT_TYPES, get_type
 from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.reports.stats import mean_std

@@ -47,7 +47,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torchrl_recon.experiments.common import batches
+from torchrl_recon.experiments.batching import batches
 from torchrl_recon.experiments.compose import compose_recipe
 from torchrl_recon.experiments.registry import get_type
 

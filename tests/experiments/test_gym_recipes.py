@@ -18,8 +18,9 @@ from omegaconf import OmegaConf
 
 from torchrl_recon.cli import main
 from torchrl_recon.envs import registry
-from torchrl_recon.experiments.common import cost_fn, env_entry, planning_model
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe
+from torchrl_recon.experiments.recipe_env import cost_fn, env_entry
+from torchrl_recon.experiments.recipe_planning import planning_model
 from torchrl_recon.modules import LSTMWorldModel
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_recon.data import TRAJ_KEY, StepUniformSliceSampler
-from torchrl_recon.experiments import common
+from torchrl_recon.experiments import fit_stages
 from torchrl_recon.experiments.online import recipe_schedule
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe
 from torchrl_recon.modules import LSTMWorldModel
@@ -86,7 +86,7 @@ def test_fit_cuda_graph_reaches_the_first_fit_of_members(monkeypatch):
 
         return fit
 
-    monkeypatch.setattr(common, "world_model_fit", fake_fit)
+    monkeypatch.setattr(fit_stages, "world_model_fit", fake_fit)
     cfg = load_recipe(SMOKE, BASE)
     n = 120
     data = TensorDict(
@@ -102,9 +102,10 @@ def test_fit_cuda_graph_reaches_the_first_fit_of_members(monkeypatch):
     class Ctx:
         logger = None
 
-    for graph, members, expected in ((True, 2, True), (True, None, None), (False, 2, None)):
+    # a fit of members always takes the key (off unless set); one world model never does
+    for graph, members, expected in ((True, 2, True), (True, None, None), (False, 2, False)):
         Ctx.cfg = cfg.copy()
         Ctx.cfg.fit_cuda_graph = graph  # set past the recipe check, which needs CUDA for it
         world = LSTMWorldModel(3, 1, window=4, num_members=members)
-        common.fit_module(Ctx, world, data, seed=0, prefix="models/")
+        fit_stages.fit_module(Ctx, world, data, seed=0, prefix="models/")
         assert calls[-1] is expected

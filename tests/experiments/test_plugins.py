@@ -17,9 +17,9 @@ import torchrl_recon
 from tests.experiments.tiny import TINY
 from tests.fitting import fitted
 from torchrl_recon.cli import main, run_recipe
-from torchrl_recon.experiments.common import build_planner
 from torchrl_recon.experiments.config import upgrade_legacy_config
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe
+from torchrl_recon.experiments.recipe_planning import build_planner
 from torchrl_recon.experiments.run_dir import check_run_dir, read_config
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import Objective, PlanningModel

@@ -31,8 +31,8 @@ from tensordict import NonTensorData, TensorDict
 from torchrl_recon.cli import main
 from torchrl_recon.data import load_buffer, load_buffer_data, make_sequence_buffer
 from torchrl_recon.errors import DamagedFileError
-from torchrl_recon.experiments.common import build_models
 from torchrl_recon.experiments.recipe import load_recipe
+from torchrl_recon.experiments.recipe_models import build_models
 from torchrl_recon.experiments.run_dir import (
     check_run_dir,
     prepare_run_dir,

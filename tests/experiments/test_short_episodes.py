@@ -147,7 +147,7 @@ def test_auto_warmup_plans_where_most_random_episodes_are_short():
     and then) does not make the warm-up random; most episodes that long do."""
     from omegaconf import OmegaConf
 
-    from torchrl_recon.experiments.common import warmup_mode
+    from torchrl_recon.experiments.random_data import warmup_mode
 
     cfg = OmegaConf.create({"warmup": "auto", "training": {"slice_len": 5}})
 

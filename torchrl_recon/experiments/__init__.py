@@ -1,7 +1,8 @@
 """The paper's experiments (and the calibrate and online ones), resumable, run from YAML recipes.
 
 Reads top down: the CLI → ``registry`` (every kind) → a kind (``explore``, ...) → its
-stages (``*_stages``, each taking the run's :class:`RunContext`) → ``common``.
+stages (each taking the run's :class:`RunContext`) → the builders they share (``recipe_env``,
+``recipe_models``, ``recipe_planning``, ``random_data``, ``fit_stages``, ...).
 Importing this package imports nothing heavy: the names below load on first use.
 """
 

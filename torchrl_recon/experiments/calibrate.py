@@ -17,25 +17,20 @@ from torchrl_recon.data import cut_sequences, long_trajectories
 from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import calibration_metrics
-from torchrl_recon.experiments.common import (
-    build_env,
-    build_estimator,
-    build_world_model,
-    cost_fn,
-    dims,
-    fit_stage,
-    random_data_stage,
-    state_scale,
-)
 from torchrl_recon.experiments.config import CalibrateConfig, EstimatorSpec
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
+from torchrl_recon.experiments.fit_stages import fit_stage
+from torchrl_recon.experiments.random_data import random_data_stage
 from torchrl_recon.experiments.recipe_checks import (
     RecipeErrors,
     data_errors,
     duplicate_errors,
     estimator_errors,
 )
+from torchrl_recon.experiments.recipe_env import build_env, cost_fn
+from torchrl_recon.experiments.recipe_models import build_estimator, build_world_model, dims
+from torchrl_recon.experiments.report_units import state_scale
 from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, module_device
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.runs.timing import interleaved_median_ms

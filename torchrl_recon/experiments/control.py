@@ -15,29 +15,27 @@ from torchrl_recon.collectors import first_episodes
 from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import DamagedFileError
 from torchrl_recon.evaluation import episode_metrics, planned_trajectory
-from torchrl_recon.experiments.common import (
-    batches,
-    build_env,
-    build_planner,
-    env_entry,
-    models_stage,
-    mpc_policy,
-    planning_model,
-    random_data_stage,
-    replan_threshold,
-    setting_objective,
-    state_scale,
-    warmup_mode,
-)
+from torchrl_recon.experiments.batching import batches
 from torchrl_recon.experiments.config import ControlConfig, ControlSetting
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
+from torchrl_recon.experiments.fit_stages import models_stage
+from torchrl_recon.experiments.random_data import random_data_stage, warmup_mode
 from torchrl_recon.experiments.recipe_checks import (
     RecipeErrors,
     data_errors,
     duplicate_errors,
     planner_errors,
 )
+from torchrl_recon.experiments.recipe_env import build_env, env_entry
+from torchrl_recon.experiments.recipe_planning import (
+    build_planner,
+    mpc_policy,
+    planning_model,
+    replan_threshold,
+    setting_objective,
+)
+from torchrl_recon.experiments.report_units import state_scale
 from torchrl_recon.planners import PlanningModel
 from torchrl_recon.planners.beta import cost_to_u_ratio, window_uncertainty
 from torchrl_recon.policies import MPCPolicy

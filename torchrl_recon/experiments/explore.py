@@ -19,29 +19,19 @@ from torchrl_recon.collectors import (
 from torchrl_recon.envs import closing_env
 from torchrl_recon.errors import RecipeError
 from torchrl_recon.evaluation import population_multi_step_errors
-from torchrl_recon.experiments.common import (
-    batches,
-    build_env,
-    build_planner,
-    build_world_model,
-    dims,
-    fit_kwargs,
-    fit_stage,
-    models_stage,
-    planning_model,
-    random_data_stage,
-    split_buffers,
-    state_scale,
-)
+from torchrl_recon.experiments.batching import batches
 from torchrl_recon.experiments.config import ExploreConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    cuda_graph_errors,
-    data_errors,
-    planner_errors,
-)
+from torchrl_recon.experiments.fit_buffers import split_buffers
+from torchrl_recon.experiments.fit_speed import fit_speed_errors
+from torchrl_recon.experiments.fit_stages import fit_kwargs, fit_stage, models_stage
+from torchrl_recon.experiments.random_data import random_data_stage
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
+from torchrl_recon.experiments.recipe_env import build_env
+from torchrl_recon.experiments.recipe_models import build_world_model, dims
+from torchrl_recon.experiments.recipe_planning import build_planner, planning_model
+from torchrl_recon.experiments.report_units import state_scale
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
@@ -172,8 +162,7 @@ def retrain_stage(
             val_buffers=[val_rb for _, val_rb in splits for _ in retrainings],
             mode=cfg.training.world_model_mode,
             shared_sampling=True,
-            cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
-            **fit_kwargs(ctx, cfg.training.world_model, f"{name}/"),
+            **fit_kwargs(ctx, "world_model", f"{name}/", population=True),
         )
         population = WorldModelPopulation.from_members(members)
         window = cfg.models.window
@@ -249,10 +238,10 @@ def run(ctx: RunContext) -> dict:
 
 
 def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
-    """The explore recipe's own checks (``fit_cuda_graph``: :func:`cuda_graph_errors`)."""
+    """The explore recipe's own checks (the fits' speed: :func:`~.fit_speed.fit_speed_errors`)."""
     g = cfg.guided
     data_errors(errors, "env.episode_steps", "initial_random_steps")
-    cuda_graph_errors(errors)
+    fit_speed_errors(errors)
     planner_errors(
         errors,
         "guided.planner",

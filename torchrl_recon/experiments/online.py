@@ -15,29 +15,24 @@ from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from torchrl_recon.envs import closing_env
-from torchrl_recon.experiments.common import (
-    build_env,
-    build_models,
-    build_planner,
-    build_reward_model,
-    check_random_data,
-    checkpoint_stage,
-    dims,
-    fit_stage,
-    mpc_policy,
-    planning_model,
-    random_data_stage,
-    replan_threshold,
-    warmup_mode,
-)
 from torchrl_recon.experiments.config import OnlineConfig
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
 from torchrl_recon.experiments.experiment_type import ExperimentType
-from torchrl_recon.experiments.recipe_checks import (
-    RecipeErrors,
-    cuda_graph_errors,
-    data_errors,
-    planner_errors,
+from torchrl_recon.experiments.fit_speed import fit_speed, fit_speed_errors
+from torchrl_recon.experiments.fit_stages import checkpoint_stage, fit_stage
+from torchrl_recon.experiments.random_data import (
+    check_random_data,
+    random_data_stage,
+    warmup_mode,
+)
+from torchrl_recon.experiments.recipe_checks import RecipeErrors, data_errors, planner_errors
+from torchrl_recon.experiments.recipe_env import build_env
+from torchrl_recon.experiments.recipe_models import build_models, build_reward_model, dims
+from torchrl_recon.experiments.recipe_planning import (
+    build_planner,
+    mpc_policy,
+    planning_model,
+    replan_threshold,
 )
 from torchrl_recon.planners import Objective, PlanningModel
 from torchrl_recon.planners.beta import window_uncertainty
@@ -106,17 +101,17 @@ def reads_uncertainty(cfg: DictConfig, n: int) -> bool:
 
 def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSchedule:
     """The online recipe's fits as a :class:`~torchrl_recon.training.online.FitSchedule`: its
-    ``training`` block with ``refit_steps`` and ``refit_old_steps``."""
+    ``training`` block with ``refit_steps`` and ``refit_old_steps``, their speed as
+    :func:`~.fit_speed.fit_speed` reads it."""
     t = cfg.training
     sizes = {k: t[k] for k in ("slice_len", "num_slices", "val_fraction")}
     sizes |= {k: cfg[k] for k in ("refit_steps", "refit_old_steps")}
     return FitSchedule(
-        **t.world_model,
+        **{**t.world_model, **fit_speed(cfg, "world_model", population=True)},
         mode=str(t.world_model_mode),
         sampling=str(t.window_sampling),
         refit_uncertainty=refit_uncertainty,
-        uncertainty=dict(t.uncertainty),
-        cuda_graph=bool(cfg.get("fit_cuda_graph", False)),  # a run made before the key: off
+        uncertainty={**t.uncertainty, **fit_speed(cfg, "uncertainty")},
         renormalize=bool(cfg.get("renormalize", False)),
         **sizes,
     )
@@ -125,7 +120,7 @@ def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSc
 def refit_stage(
     ctx: RunContext, n: int, model: PlanningModel, data: TensorDictBase, new_steps: int
 ) -> dict:
-    """Stage ``refit_<n>``: a :func:`~.common.checkpoint_stage` refitting the networks warm on
+    """Stage ``refit_<n>``: a :func:`~.fit_stages.checkpoint_stage` refitting the networks warm on
     ``data`` (the ``new_steps`` last are this round's) as :class:`OnlineConfig` says; the
     estimator too when a later plan reads it (:func:`reads_uncertainty`) or always."""
     cfg, name = ctx.cfg, f"refit_{n}"
@@ -197,7 +192,7 @@ class StagedCollector(IterationCollector):
 
 class StagedFit(ModelFitStepper):
     """The online experiment's fits as run-directory stages: the first is stage ``models``
-    (:func:`~.common.fit_stage`), the ``n``-th refit stage ``refit_<n>`` (:func:`refit_stage`);
+    (:func:`~.fit_stages.fit_stage`), the ``n``-th refit stage ``refit_<n>`` (:func:`refit_stage`);
     a done stage's checkpoint is loaded back. :attr:`stage_records` keeps each stage's record."""
 
     def __init__(self, ctx: RunContext, model: PlanningModel, replay_buffer: ReplayBuffer) -> None:
@@ -275,8 +270,8 @@ def run(ctx: RunContext) -> dict:
 def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -> None:
     """The online recipe's own checks: episodes long enough for a training slice and, where
     they never end early (no ``env.termination``), random data that holds two of them (else the
-    data are checked once collected, :func:`~.common.check_random_data`), ``fit_cuda_graph``
-    only with members off the CPU and without ``compile``, the planner built with the recipe's
+    data are checked once collected, :func:`~.random_data.check_random_data`), the fits' speed
+    (:func:`~.fit_speed.fit_speed_errors`, with members), the planner built with the recipe's
     objective (and the exploration objective when the first rounds explore)."""
     ends_early = cfg.env.termination is not None
     data_errors(errors, "env.episode_steps", None if ends_early else "random_steps")
@@ -305,13 +300,7 @@ def check(cfg: DictConfig, errors: RecipeErrors, recipes: RecipeLoader | None) -
         lambda: Objective(alpha=cfg.alpha, beta=cfg.beta),
         f"with alpha = {cfg.alpha}, beta = {cfg.beta}",
     )
-    cuda_graph_errors(errors)
-    if cfg.get("fit_cuda_graph", False):
-        errors.need(
-            "world_model_members",
-            cfg.world_model_members >= 2,
-            "at least 2 with fit_cuda_graph (it captures a population fit's step)",
-        )
+    fit_speed_errors(errors, members=True)
     e = cfg.exploration
     errors.need(
         "exploration.iterations",

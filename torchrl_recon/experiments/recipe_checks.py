@@ -79,7 +79,7 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: RecipeErrors) -
     """``env.id`` / ``env.name`` known and agreeing, then the entry's own checks. Returns the
     env's keyword defaults ({} when the env or a keyword is unknown)."""
     from torchrl_recon.envs import ENVS, LEARNED, entry_errors
-    from torchrl_recon.experiments.common import env_entry
+    from torchrl_recon.experiments.recipe_env import env_entry
 
     env = cfg.env
     if env.id is None and env.name is None:
@@ -118,7 +118,7 @@ def _env_errors(cfg: DictConfig, kwargs: dict[str, Any], errors: RecipeErrors) -
 def _run_errors(errors: RecipeErrors) -> None:
     """Keys every experiment has: a training slice holds a window; the world model and the
     estimator build with tiny dims, so that a bad value fails before any work."""
-    from torchrl_recon.experiments.common import build_world_model
+    from torchrl_recon.experiments.recipe_models import build_world_model
 
     cfg = errors.cfg
     t, m = cfg.training, cfg.models
@@ -143,20 +143,6 @@ def _run_errors(errors: RecipeErrors) -> None:
             "true or a torch.compile mode with planning_threads above 1 (the blocks run in "
             "parallel only as compiled calls)",
         )
-
-
-def cuda_graph_errors(errors: RecipeErrors) -> None:
-    """``fit_cuda_graph: true`` (explore, online): a device other than the CPU (the machine's
-    is checked at the start, ``run_device``) and no ``training.world_model.compile``."""
-    cfg = errors.cfg
-    if not cfg.get("fit_cuda_graph", False):
-        return
-    errors.need("device", str(cfg.device) != "cpu", "a CUDA device with fit_cuda_graph")
-    errors.need(
-        "training.world_model.compile",
-        not cfg.training.world_model.compile,
-        "false with fit_cuda_graph (one graph or the other)",
-    )
 
 
 def _part_errors(
@@ -192,7 +178,7 @@ def _part_errors(
 
 def estimator_errors(errors: RecipeErrors, key: str, spec: DictConfig) -> None:
     """The estimator block ``key``, built with tiny dims."""
-    from torchrl_recon.experiments.common import build_estimator
+    from torchrl_recon.experiments.recipe_models import build_estimator
     from torchrl_recon.modules import get_estimator_class
     from torchrl_recon.plugins import check_keywords
 

@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from torchrl_recon.devices import check_compile_support, describe_device, resolve_device
 from torchrl_recon.errors import CompilerNotFoundError, RecipeError
 from torchrl_recon.experiments.context import RecipeLoader, RunContext
+from torchrl_recon.experiments.fit_speed import check_fit_device, compiles_fits
 from torchrl_recon.experiments.loggers import make_logger
 from torchrl_recon.experiments.recipe import load_recipe, resolve_recipe_path, validate
 from torchrl_recon.experiments.registry import get_type
@@ -24,23 +25,16 @@ from torchrl_recon.experiments.stages import StopRequested, verify_run_dir
 from torchrl_recon.reports import format_table, get_report, save_figures
 from torchrl_recon.runs.allocator import keep_freed_memory
 
-FITS = ("world_model", "uncertainty")
-"""A recipe's fit blocks, ``training.<fit>``."""
-
 
 def run_device(cfg: DictConfig) -> torch.device:
     """The device ``cfg`` runs on, checked on this machine: it exists (``ValueError``), and where
     a fit asks for ``compile`` or the planning model for ``planning_compile``, torch.compile can
-    build kernels there (:class:`~torchrl_recon.errors.CompilerNotFoundError`), and where a recipe
-    asks for ``fit_cuda_graph`` it is a CUDA device (``ValueError``)."""
+    build kernels there (:class:`~torchrl_recon.errors.CompilerNotFoundError`), and the fits'
+    speed can run there (:func:`~.fit_speed.check_fit_device`, ``ValueError``)."""
     device = resolve_device(cfg.device)
-    fits = [OmegaConf.select(cfg, f"training.{fit}.compile", default=False) for fit in FITS]
-    if any(fits) or cfg.get("planning_compile", False):
+    if compiles_fits(cfg) or cfg.get("planning_compile", False):
         check_compile_support(device)
-    if cfg.get("fit_cuda_graph", False) and device.type != "cuda":
-        raise ValueError(
-            f"'fit_cuda_graph' needs a CUDA device; device={cfg.device} is {device} here."
-        )
+    check_fit_device(cfg, device)
     return device
 
 

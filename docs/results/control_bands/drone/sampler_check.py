@@ -22,8 +22,9 @@ import torch
 from omegaconf import OmegaConf
 
 from torchrl_recon.experiments import control
-from torchrl_recon.experiments.common import build_models, fit_module
 from torchrl_recon.experiments.context import RunContext
+from torchrl_recon.experiments.fit_stages import fit_module
+from torchrl_recon.experiments.recipe_models import build_models
 from torchrl_recon.experiments.runner import validate
 from torchrl_recon.planners.beta import window_uncertainty
 

@@ -372,7 +372,8 @@ class PlanningModel(nn.Module):
         self.register_buffer("action_low", low.to(device))
         self.register_buffer("action_high", high.to(device))
         self.executor: Eager = executor_for(compile, threads, device)
-        """Runs the pass and the planners' calls: eagerly, compiled, or in row-block threads."""
+        """What runs the pass and the planners' calls (eagerly, compiled, or in row-block
+        threads), chosen here from ``compile`` and ``threads``."""
         check_step_fn("cost_fn", cost_fn, self.obs_dim, self.action_dim, dtype=dtype, device=device)
         if termination_fn is not None:
             check_step_fn(

@@ -11,7 +11,8 @@ from torch import nn
 
 from torchrl_recon.devices import check_device, describe_device, resolve_device
 from torchrl_recon.envs.industrial_benchmark import industrial_benchmark_cost
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.estimators import ReconstructionUncertainty
+from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import (
     CEMPlanner,
     GradientPlanner,

@@ -26,7 +26,8 @@ from torchrl.modules import MLP, WorldModel
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 
 from torchrl_recon.envs.gym_costs import pendulum
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.estimators import ReconstructionUncertainty
+from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv, LSTMWorldModelModule
 from torchrl_recon.runs.timing import interleaved_median_ms

@@ -29,8 +29,8 @@ from _common import (
     setup_done,
 )
 
-from torchrl_recon.modules import ReconstructionUncertainty, WorldModelEnsembleUncertainty
-from torchrl_recon.modules.uncertainty import window_view
+from torchrl_recon.estimators import ReconstructionUncertainty, WorldModelEnsembleUncertainty
+from torchrl_recon.estimators.uncertainty import window_view
 from torchrl_recon.runs.timing import interleaved_median_ms
 
 

@@ -8,7 +8,8 @@ The API reference is written when a build starts into ``docs/api/`` (ignored by 
 package listing the names of its ``__all__`` (``API_PACKAGES``), then, one section each, the
 names its modules make public (their ``__all__``) that the package does not export itself
 (``API_MODULES``), and one page per name made by autosummary from its docstring. Each object is
-documented once, under the package that exports it (or else its module); a reference to it by
+documented once, under the package that exports it (or else its module; a name that two
+packages export, under its home package: ``API_REEXPORTS``); a reference to it by
 its defining module (``:class:`~torchrl_recon.planners.cem.CEMPlanner```) is resolved to that
 page.
 """
@@ -115,6 +116,7 @@ API_PACKAGES = (
     "torchrl_recon.data",
     "torchrl_recon.collectors",
     "torchrl_recon.modules",
+    "torchrl_recon.estimators",
     "torchrl_recon.objectives",
     "torchrl_recon.training",
     "torchrl_recon.trainers",
@@ -124,13 +126,17 @@ API_PACKAGES = (
     "torchrl_recon.evaluation",
     "torchrl_recon.experiments",
     "torchrl_recon.reports",
-    "torchrl_recon.configs",
     "torchrl_recon.errors",
 )
+
+# Names a package exports for existing imports that another package of the reference exports
+# too (their home): documented once, under the home package.
+API_REEXPORTS = {"torchrl_recon.modules": "torchrl_recon.estimators"}
 
 # Modules whose public names (their ``__all__``) their package does not export: each has a
 # section on its package's page, in this order.
 API_MODULES = {
+    "torchrl_recon.trainers": ("torchrl_recon.trainers.configs",),
     "torchrl_recon.planners": tuple(
         f"torchrl_recon.planners.{module}"
         for module in ("base", "sampling", "cem", "elite_memory", "noise", "registry", "bounds")
@@ -169,8 +175,15 @@ SITE_TOCTREES = "".join(
 
 
 def public_names(package: str) -> list[str]:
-    """The names ``package`` exports (its ``__all__``)."""
-    return list(importlib.import_module(package).__all__)
+    """The names ``package`` exports (its ``__all__``), less those documented under their home
+    package (``API_REEXPORTS``)."""
+    own = importlib.import_module(package)
+    home = API_REEXPORTS.get(package)
+    if home is None:
+        return list(own.__all__)
+    home = importlib.import_module(home)
+    at_home = {id(getattr(home, name)) for name in home.__all__}
+    return [name for name in own.__all__ if id(getattr(own, name)) not in at_home]
 
 
 def module_names(module: str) -> list[str]:

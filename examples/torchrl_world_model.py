@@ -37,7 +37,7 @@ from torchrl.objectives.value import TDLambdaEstimator  # noqa: E402
 from torchrl_recon.collectors import collect_random  # noqa: E402
 from torchrl_recon.data import make_sequence_buffer  # noqa: E402
 from torchrl_recon.envs import make_env  # noqa: E402
-from torchrl_recon.modules import ReconstructionUncertainty  # noqa: E402
+from torchrl_recon.estimators import ReconstructionUncertainty  # noqa: E402
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, relative_beta  # noqa: E402
 from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv  # noqa: E402
 from torchrl_recon.policies import MPCPolicy  # noqa: E402

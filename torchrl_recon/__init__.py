@@ -2,9 +2,10 @@
 
 Importing the package registers the gymnasium environments
 ``torchrl_recon/IndustrialBenchmark-v0``, ``torchrl_recon/Drone-v0`` and
-``torchrl_recon/Minitaur-v0``. The old paths of the modules that moved to
-``torchrl_recon.runs`` (``torchrl_recon.timing``, ...) still import, with a
-``DeprecationWarning``, for one release (``torchrl_recon.runs._moved``).
+``torchrl_recon/Minitaur-v0``. The old paths of the modules that moved
+(``torchrl_recon.timing`` to ``torchrl_recon.runs``, ``torchrl_recon.modules.reconstruction``
+to ``torchrl_recon.estimators``, ``torchrl_recon.configs`` to ``torchrl_recon.trainers``, ...)
+still import, with a ``DeprecationWarning``, for one release (``torchrl_recon.runs._moved``).
 """
 
 from __future__ import annotations

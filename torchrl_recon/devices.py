@@ -1,5 +1,6 @@
 """Choosing the torch device of a run (``device: auto``), describing it for ``meta.json`` and
-naming it back from there."""
+naming it back from there; and where a module lives (:func:`module_device`, :func:`module_dtype`),
+the device and dtype that tensors made for it should have."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from torchrl_recon.errors import CompilerNotFoundError
 
@@ -137,3 +139,38 @@ def processor(info: Mapping[str, Any] | None) -> str:
     if str(info.get("device", "")).startswith("cuda"):
         return f"{info['device']}: {info.get('name')} (CPU {info.get('cpu_model')})"
     return f"{info.get('device')}: {info.get('cpu_model')} ({info.get('cpu_capability')})"
+
+
+def _check_module(module: object) -> None:
+    if not isinstance(module, nn.Module):
+        raise TypeError(f"module must be a torch.nn.Module, got {type(module).__name__}.")
+
+
+def module_device(module: nn.Module) -> torch.device:
+    """The device of ``module``'s first parameter (else buffer); the CPU when it has neither.
+
+    Examples:
+        >>> module_device(nn.Linear(2, 2))
+        device(type='cpu')
+        >>> module_device(nn.Linear(2, 2, device="meta"))
+        device(type='meta')
+    """
+    _check_module(module)
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")
+
+
+def module_dtype(module: nn.Module) -> torch.dtype:
+    """The dtype of ``module``'s first floating-point parameter (else buffer); the default dtype
+    when it has neither.
+
+    Examples:
+        >>> module_dtype(nn.Linear(2, 2).double())
+        torch.float64
+    """
+    _check_module(module)
+    for tensor in (*module.parameters(), *module.buffers()):
+        if tensor.is_floating_point():
+            return tensor.dtype
+    return torch.get_default_dtype()

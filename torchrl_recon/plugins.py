@@ -2,7 +2,7 @@
 (``my_planners:MyPlanner``), with the keywords of that class.
 
 A registry is a plain ``{name: class}`` dict (:data:`torchrl_recon.planners.registry.PLANNERS`,
-:data:`torchrl_recon.modules.ESTIMATORS`); :func:`resolve_class` looks a name up there or
+:data:`torchrl_recon.estimators.ESTIMATORS`); :func:`resolve_class` looks a name up there or
 imports ``module:Class`` and checks it subclasses the part's base class;
 :func:`check_keywords` checks a recipe's ``kwargs`` against the class's signature before
 anything is built. Both raise one line naming what is wrong and what was expected.

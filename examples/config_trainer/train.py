@@ -15,7 +15,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-import torchrl_recon.configs  # noqa: F401  (stores the library's parts beside TorchRL's)
+import torchrl_recon.trainers.configs  # noqa: F401  (stores the library's parts beside TorchRL's)
 
 
 @hydra.main(config_path=".", config_name="config", version_base="1.3")

@@ -243,7 +243,7 @@ def test_the_adapters_in_torchrls_config_store():
     from hydra.core.config_store import ConfigStore
     from hydra.utils import instantiate
 
-    from torchrl_recon import configs
+    from torchrl_recon.trainers import configs
 
     repo = ConfigStore.instance().repo["model"]
     assert {"torchrl_world_model_adapter.yaml", "lstm_world_model_module.yaml"} <= set(repo)

@@ -12,12 +12,11 @@ from hydra.core.config_store import ConfigStore
 from hydra.utils import instantiate
 
 from tests.scripts import load_script
-from torchrl_recon import configs
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel
 from torchrl_recon.planners import Objective
 from torchrl_recon.planners.registry import PLANNERS
-from torchrl_recon.trainers import OnlineTrainer
+from torchrl_recon.trainers import OnlineTrainer, configs
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SMOKE = [

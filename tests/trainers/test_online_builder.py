@@ -8,7 +8,6 @@ import functools
 import pytest
 from torchrl.trainers import TrainerHookBase
 
-from torchrl_recon.configs import make_online_trainer
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
 from torchrl_recon.modules import (
@@ -20,6 +19,7 @@ from torchrl_recon.modules import (
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.trainers import OnlineTrainer, learn_online
+from torchrl_recon.trainers.configs import make_online_trainer
 from torchrl_recon.training.online import FitSchedule
 
 SCHEDULE = FitSchedule(

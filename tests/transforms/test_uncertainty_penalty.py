@@ -289,7 +289,7 @@ def test_in_torchrls_config_store_beside_its_transforms():
     from hydra.core.config_store import ConfigStore
     from hydra.utils import instantiate
 
-    from torchrl_recon import configs
+    from torchrl_recon.trainers import configs
 
     repo = ConfigStore.instance().repo["transform"]
     assert "uncertainty_penalty.yaml" in repo and "cat_frames.yaml" in repo

@@ -6,8 +6,8 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from torchrl_recon.modules.device import module_device
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
+from torchrl_recon.devices import module_device
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 
 
 def _ranks(x: torch.Tensor) -> torch.Tensor:

@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from torchrl_recon.modules.device import module_device
+from torchrl_recon.devices import module_device
 
 
 def multi_step_errors(

@@ -17,7 +17,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
-from torchrl_recon.modules.device import module_device
+from torchrl_recon.devices import module_device
 
 
 def _holder(params: TensorDictBase) -> nn.Module:

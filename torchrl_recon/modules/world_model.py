@@ -626,6 +626,10 @@ class LSTMWorldModel(StackedMembers, TensorDictModuleBase):
         return masked_mean(err.pow(2), mask[..., None], err.dim() - len(members))
 
 
+WorldModelPopulation = LSTMWorldModel
+"""The former population class: ``LSTMWorldModel`` with ``num_members`` (same arguments)."""
+
+
 def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """``nn.Linear`` for 2-D weights; per member for ``[P, out, in]`` ones and ``x`` ``[P, *B, in]``."""
     if weight.dim() == 2:

@@ -6,20 +6,21 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.objectives import LossModule
 
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.checks import check_int, check_type, in_graph
 from torchrl_recon.modules.fitted import ESTIMATOR, warn_unfitted
 from torchrl_recon.modules.padding import loss_takes_mask
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.objectives.sequences import as_sequences, sequence_mask
 
 
 class UncertaintyLoss(LossModule):
-    """Fit an :class:`~torchrl_recon.modules.UncertaintyEstimator` on real (s, a) sequences.
+    """Fit an :class:`~torchrl_recon.estimators.UncertaintyEstimator` on real (s, a) sequences.
 
-    Delegates to ``estimator.loss``; for :class:`~torchrl_recon.modules.ReconstructionUncertainty`
-    that is the mean reconstruction error u over all windows (paper eq. 1). A padded batch (its
-    ``("collector", "mask")`` marks real steps, see ``make_sequence_buffer(pad_short=True)``)
-    passes the mask on: only windows of real steps count.
+    Delegates to ``estimator.loss``; for
+    :class:`~torchrl_recon.estimators.ReconstructionUncertainty` that is the mean reconstruction
+    error u over all windows (paper eq. 1). A padded batch (its ``("collector", "mask")`` marks
+    real steps, see ``make_sequence_buffer(pad_short=True)``) passes the mask on: only windows of
+    real steps count.
 
     The estimator's normalisation should be fitted first (``fit_normalization``, as
     :func:`~torchrl_recon.training.fit_uncertainty` does): the first call on an estimator that

@@ -1,7 +1,11 @@
-"""The old paths of the modules that moved here, kept importable for one release.
+"""The old paths of the modules that moved, kept importable for one release.
 
 ``torchrl_recon.timing`` (and ``allocator``, ``archive``, ``files``, ``interrupts``,
-``provenance``) moved to ``torchrl_recon.runs.<name>``. :func:`install` (called when
+``provenance``) moved to ``torchrl_recon.runs.<name>``; the uncertainty estimators from
+``torchrl_recon.modules.<name>`` to ``torchrl_recon.estimators.<name>`` (the registry,
+``modules.estimators``, to ``estimators.registry``); ``torchrl_recon.modules.device`` into
+``torchrl_recon.devices``; the config store ``torchrl_recon.configs`` to
+``torchrl_recon.trainers.configs`` (:data:`MOVED` lists them all). :func:`install` (called when
 ``torchrl_recon`` is imported) adds a finder to :data:`sys.meta_path` that answers an import of
 an old path with the module at its new one, the same object, and one ``DeprecationWarning``
 naming the new path. No file is left at the old path.
@@ -30,8 +34,18 @@ import warnings
 from types import ModuleType
 
 MOVED = {
-    f"torchrl_recon.{name}": f"torchrl_recon.runs.{name}"
-    for name in ("allocator", "archive", "files", "interrupts", "provenance", "timing")
+    **{
+        f"torchrl_recon.{name}": f"torchrl_recon.runs.{name}"
+        for name in ("allocator", "archive", "files", "interrupts", "provenance", "timing")
+    },
+    **{
+        f"torchrl_recon.modules.{name}": f"torchrl_recon.estimators.{name}"
+        for name in ("uncertainty", "reconstruction", "population", "ensemble", "mc_dropout")
+        + ("rnd", "world_model_ensemble", "_one_step")
+    },
+    "torchrl_recon.modules.estimators": "torchrl_recon.estimators.registry",
+    "torchrl_recon.modules.device": "torchrl_recon.devices",
+    "torchrl_recon.configs": "torchrl_recon.trainers.configs",
 }
 """Each old dotted path and the module now at its place."""
 

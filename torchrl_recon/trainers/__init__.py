@@ -1,6 +1,7 @@
 """The library's parts in TorchRL's ``Trainer``: hooks that turn a ``torchrl.trainers.Trainer``
 into the online model-based agent, each usable alone in a Trainer of one's own, and the
-agent's own Trainer and loop built from them (docs/torchrl_trainer.md)."""
+agent's own Trainer and loop built from them (docs/torchrl_trainer.md). The parts in TorchRL's
+config store are in ``torchrl_recon.trainers.configs`` (importing it stores them)."""
 
 from __future__ import annotations
 

@@ -184,8 +184,8 @@ class OnlineTrainer(VerifiedTrainer):
     ) -> OnlineTrainer:
         """The online agent's Trainer from its planners: the one builder, which
         :func:`learn_online` and the config store's ``trainer: online``
-        (:func:`~torchrl_recon.configs.make_online_trainer`) call. An :class:`OnlineCollector`
-        plays ``make_policy(make_planner())`` on ``env`` (an
+        (:func:`~torchrl_recon.trainers.configs.make_online_trainer`) call. An
+        :class:`OnlineCollector` plays ``make_policy(make_planner())`` on ``env`` (an
         :class:`~torchrl_recon.policies.ExplorationPolicy` of ``make_explorer()`` in the first
         ``explore_iterations``); the learned reward model the planners read, if any, is fitted
         with the networks (``learned_reward``). Every argument is checked before the env

@@ -8,7 +8,7 @@ import math
 import torch
 from torch import nn
 
-from torchrl_recon.modules.device import module_device
+from torchrl_recon.devices import module_device
 from torchrl_recon.training.fit_graph import restore_frozen
 
 

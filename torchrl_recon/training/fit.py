@@ -26,12 +26,11 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from torchrl_recon.data.buffers import buffer_contents
-from torchrl_recon.devices import check_compile_support
+from torchrl_recon.devices import check_compile_support, module_device
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real, check_type
-from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.members import StackedMembers
 from torchrl_recon.modules.reward_model import RewardModel
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import RewardLoss, UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.training.checkpoint import save_checkpoint
@@ -751,7 +750,7 @@ def fit_population(
     """Train R models of one kind at once, as R independent fits run as one batch.
 
     ``models`` are R :class:`~torchrl_recon.modules.LSTMWorldModel` (trained as
-    :func:`fit_world_model` does) or R :class:`~torchrl_recon.modules.ReconstructionUncertainty`
+    :func:`fit_world_model` does) or R :class:`~torchrl_recon.estimators.ReconstructionUncertainty`
     (as :func:`fit_uncertainty`), each with its own initialisation. Member r fits on
     ``buffers[r]`` (one buffer for all, or one each, so several arms' data go into one fit),
     validates on ``val_buffers[r]`` and draws its batches as ``seed=seeds[r]`` would (default

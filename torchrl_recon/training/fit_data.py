@@ -14,8 +14,8 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import LossModule
 
 from torchrl_recon.data.buffers import MASK_KEY
-from torchrl_recon.modules.population import ReconstructionPopulation
-from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
+from torchrl_recon.estimators.population import ReconstructionPopulation
+from torchrl_recon.estimators.reconstruction import ReconstructionUncertainty
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss, as_sequences
 

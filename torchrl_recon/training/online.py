@@ -27,9 +27,9 @@ from torchrl_recon.data import (
     split_by_trajectory,
 )
 from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
+from torchrl_recon.devices import module_device
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_finite, check_flag, check_int
-from torchrl_recon.modules.device import module_device
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.training.fit import (

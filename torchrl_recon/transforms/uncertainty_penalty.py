@@ -9,10 +9,10 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.transforms import Transform
 
 from torchrl_recon.data.buffers import TRAJ_KEY
+from torchrl_recon.devices import module_dtype
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.checks import check_real
-from torchrl_recon.modules.device import module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, FittedCheck
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.planners.beta import relative_beta
 from torchrl_recon.planners.objective import UncertaintyBand
 
@@ -32,7 +32,7 @@ class UncertaintyPenalty(Transform):
     ``("next", uncertainty_key)`` (a reward-spec entry, as TorchRL's ``RNDTransform`` writes its
     bonus) and rolls the history on. Every env dim is one batch dim of a single
     ``score_windows`` call, on the env's device; any
-    :class:`~torchrl_recon.modules.UncertaintyEstimator` works (the library's five, or yours).
+    :class:`~torchrl_recon.estimators.UncertaintyEstimator` works (the library's five, or yours).
 
     Where the reward is asked for (``alpha != 1``, ``beta != 0`` or a ``band``), the step's
     reward becomes ``α·r − β·u`` (paper eq. 3; eq. 4 is ``alpha=0, beta<0``), so TorchRL's

@@ -6,8 +6,8 @@ from collections.abc import Callable
 
 import torch
 
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.checks import check_features, check_finite
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 _BLOCK = 2048  # steps per block in the no-grad path
 

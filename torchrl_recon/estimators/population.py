@@ -1,9 +1,10 @@
 """Populations of autoencoders: R :class:`ReconstructionUncertainty` with weights ``[R, ...]``.
 
 World models carry their member dim themselves (``LSTMWorldModel(..., num_members=R)``);
-``WorldModelPopulation`` is that class's former name, kept for existing imports. An
+``WorldModelPopulation``, that class's former name, is in ``torchrl_recon.modules.world_model``
+(and here, for imports from this module's old path ``torchrl_recon.modules.population``). An
 autoencoder population is its own class because the estimator interface
-(:class:`~torchrl_recon.modules.UncertaintyEstimator`: ``score_sequence`` ``[R, L, D]`` →
+(:class:`~torchrl_recon.estimators.UncertaintyEstimator`: ``score_sequence`` ``[R, L, D]`` →
 ``[R, W]``, what planners call) has no member dim; it is used to fit R autoencoders as one
 batch (:func:`~torchrl_recon.training.fit_population`).
 """
@@ -14,22 +15,19 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_recon.modules.checks import check_finite, check_int, check_window_pair
-from torchrl_recon.modules.members import StackedMembers
-from torchrl_recon.modules.padding import masked_mean, windows_at_rest
-from torchrl_recon.modules.reconstruction import (
+from torchrl_recon.estimators.reconstruction import (
     ReconstructionUncertainty,
     window_errors,
     window_errors_blocked,
 )
-from torchrl_recon.modules.world_model import LSTMWorldModel
-
-WorldModelPopulation = LSTMWorldModel
-"""The former population class: ``LSTMWorldModel`` with ``num_members`` (same arguments)."""
+from torchrl_recon.modules.checks import check_finite, check_int, check_window_pair
+from torchrl_recon.modules.members import StackedMembers
+from torchrl_recon.modules.padding import masked_mean, windows_at_rest
+from torchrl_recon.modules.world_model import WorldModelPopulation  # noqa: F401  (old path's name)
 
 
 class ReconstructionPopulation(StackedMembers, TensorDictModuleBase):
-    """R :class:`~torchrl_recon.modules.ReconstructionUncertainty` autoencoders, weights ``[R, ...]``.
+    """R :class:`ReconstructionUncertainty` autoencoders, weights ``[R, ...]``.
 
     Inputs carry the member dim first (``[R, *B, L, N]``); :meth:`score` gives ``[R, *B, W]``
     and :meth:`loss` one mean u per member ``[R]``. The weights keep the autoencoder's names
@@ -38,7 +36,7 @@ class ReconstructionPopulation(StackedMembers, TensorDictModuleBase):
     the single autoencoder's own ops.
 
     Args:
-        obs_dim, action_dim: as :class:`~torchrl_recon.modules.ReconstructionUncertainty`.
+        obs_dim, action_dim: as :class:`~torchrl_recon.estimators.ReconstructionUncertainty`.
 
     Keyword Args:
         num_members: R, the members, initialised one after the other from the global RNG.

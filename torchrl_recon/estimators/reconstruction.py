@@ -6,10 +6,10 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator, window_view
 from torchrl_recon.modules.activations import ACTIVATIONS, INPLACE_ACTIVATIONS
 from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
 _BLOCK = 2048  # windows per block in the no-grad path
 

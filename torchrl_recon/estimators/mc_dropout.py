@@ -7,11 +7,11 @@ from tensordict import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
-from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.estimators._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 
 class MCDropoutUncertainty(UncertaintyEstimator):
@@ -26,7 +26,7 @@ class MCDropoutUncertainty(UncertaintyEstimator):
 
     (population variance over the S passes, mean over the N state features, mean over the
     T steps of the window ending at t). u is in units of squared standardised state change
-    (σ_s²), like :class:`~torchrl_recon.modules.EnsembleUncertainty`.
+    (σ_s²), like :class:`~torchrl_recon.estimators.EnsembleUncertainty`.
 
     The S passes run as one batched pass. Each call draws per-pass masks of shape
     ``[S, 1, hidden]`` (one per hidden layer) from the global RNG of the inputs' device,

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 import torch
 from tensordict import NestedKey
 
-from torchrl_recon.modules._one_step import blocked_scores, population_variance
+from torchrl_recon.estimators._one_step import blocked_scores, population_variance
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator, window_view
 from torchrl_recon.modules.checks import check_finite, check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 from torchrl_recon.modules.world_model import LSTMWorldModel
 
 

@@ -8,11 +8,11 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
-from torchrl_recon.modules._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.estimators._one_step import blocked_scores, one_step_pairs, population_variance
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 
 class EnsembleUncertainty(UncertaintyEstimator):

@@ -8,10 +8,10 @@ import torch
 from tensordict import NestedKey
 from torch import nn
 
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator, window_view
 from torchrl_recon.modules.checks import check_activation, check_int
 from torchrl_recon.modules.normalization import Normalizer
 from torchrl_recon.modules.padding import masked_mean, windows_at_rest
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator, window_view
 
 _ACTIVATION_MODULES = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
 

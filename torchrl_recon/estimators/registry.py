@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from torchrl_recon.modules.ensemble import EnsembleUncertainty
-from torchrl_recon.modules.mc_dropout import MCDropoutUncertainty
-from torchrl_recon.modules.reconstruction import ReconstructionUncertainty
-from torchrl_recon.modules.rnd import RNDUncertainty
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
-from torchrl_recon.modules.world_model_ensemble import WorldModelEnsembleUncertainty
+from torchrl_recon.estimators.ensemble import EnsembleUncertainty
+from torchrl_recon.estimators.mc_dropout import MCDropoutUncertainty
+from torchrl_recon.estimators.reconstruction import ReconstructionUncertainty
+from torchrl_recon.estimators.rnd import RNDUncertainty
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
+from torchrl_recon.estimators.world_model_ensemble import WorldModelEnsembleUncertainty
 from torchrl_recon.plugins import check_keywords, resolve_class
 
 ESTIMATORS: dict[str, type[UncertaintyEstimator]] = {
@@ -31,7 +31,7 @@ def get_estimator_class(kind: str) -> type[UncertaintyEstimator]:
     Examples:
         >>> get_estimator_class("rnd").__name__
         'RNDUncertainty'
-        >>> get_estimator_class("torchrl_recon.modules:EnsembleUncertainty").__name__
+        >>> get_estimator_class("torchrl_recon.estimators:EnsembleUncertainty").__name__
         'EnsembleUncertainty'
     """
     return resolve_class(kind, ESTIMATORS, UncertaintyEstimator, "estimator")

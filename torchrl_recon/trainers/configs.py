@@ -1,10 +1,11 @@
 """The library's parts in TorchRL's config store (``torchrl.trainers.algorithms.configs``).
 
-``import torchrl_recon.configs`` stores, beside TorchRL's own, one ``_target_`` dataclass per
-part in TorchRL's groups: ``env`` (``torchrl_recon``: :func:`~torchrl_recon.envs.make_env`),
-``model`` (the world model, every estimator), ``objective``, ``planner`` (every shipped
-planner), ``policy`` (MPC, exploration), ``loss``, ``fit_schedule``, ``hook`` (the Trainer hooks),
-``collector`` (``online``), ``trainer`` (``online``: :func:`make_online_trainer`) and
+``import torchrl_recon.trainers.configs`` stores, beside TorchRL's own, one ``_target_``
+dataclass per part in TorchRL's groups: ``env`` (``torchrl_recon``:
+:func:`~torchrl_recon.envs.make_env`), ``model`` (the world model, every estimator),
+``objective``, ``planner`` (every shipped planner), ``policy`` (MPC, exploration), ``loss``,
+``fit_schedule``, ``hook`` (the Trainer hooks), ``collector`` (``online``), ``trainer``
+(``online``: :func:`make_online_trainer`) and
 ``transform`` (``uncertainty_penalty``: :class:`~torchrl_recon.transforms.UncertaintyPenalty`);
 ``model`` also holds the adapters to TorchRL's world models
 (``torchrl_world_model_adapter``, ``lstm_world_model_module``). A YAML
@@ -21,7 +22,7 @@ defaults.
 
 Examples:
     >>> from hydra.utils import instantiate
-    >>> from torchrl_recon.configs import CEMPlannerConfig, LSTMWorldModelConfig
+    >>> from torchrl_recon.trainers.configs import CEMPlannerConfig, LSTMWorldModelConfig
     >>> world = instantiate(LSTMWorldModelConfig(window=4))(3, 1)  # partial: sizes from the env
     >>> type(world).__name__, world.window
     ('LSTMWorldModel', 4)
@@ -220,7 +221,7 @@ ESTIMATOR_CONFIGS = {
     kind: target_config(cls, f"{cls.__name__}Config", partial=True, given=("obs_dim", "action_dim"))
     for kind, cls in ESTIMATORS.items()
 }
-"""The config of each estimator of :data:`~torchrl_recon.modules.ESTIMATORS`, by its name."""
+"""The config of each estimator of :data:`~torchrl_recon.estimators.ESTIMATORS`, by its name."""
 ObjectiveConfig = target_config(Objective, "ObjectiveConfig")
 ExplorationObjectiveConfig = target_config(exploration_objective, "ExplorationObjectiveConfig")
 PLANNER_CONFIGS = {

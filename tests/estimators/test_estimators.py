@@ -9,15 +9,15 @@ from torch.nn import functional as F
 
 from tests.fitting import fitted
 from torchrl_recon.data.buffers import make_sequence_buffer
-from torchrl_recon.modules import (
+from torchrl_recon.estimators import (
     ESTIMATORS,
     EnsembleUncertainty,
-    LSTMWorldModel,
     MCDropoutUncertainty,
     ReconstructionUncertainty,
     RNDUncertainty,
     make_estimator,
 )
+from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import PlanningModel
 from torchrl_recon.training.checkpoint import load_modules, save_checkpoint
 from torchrl_recon.training.fit import fit_uncertainty

@@ -4,7 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_recon.modules import ReconstructionUncertainty
+from torchrl_recon.estimators import ReconstructionUncertainty
 
 
 def _ae(window: int = 5) -> ReconstructionUncertainty:

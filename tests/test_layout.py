@@ -19,9 +19,6 @@ from torchrl_recon.runs._moved import MOVED
 
 PACKAGE = Path(torchrl_recon.__file__).parent
 ROOT_MODULES = {"cli", "devices", "errors", "plugins"}
-# Library code that still imports old paths (the folders other work had open when the modules
-# moved); their imports move to the new paths next, and then this exemption goes.
-PENDING = ("planners", "experiments")
 
 
 def test_the_root_holds_at_most_five_modules():
@@ -95,8 +92,6 @@ def test_from_the_package_import_an_old_name():
 def test_the_package_never_imports_an_old_path():
     """The library's own code imports the new paths (the shim is for users' code only)."""
     for path in PACKAGE.rglob("*.py"):
-        if path.relative_to(PACKAGE).parts[0] in PENDING:
-            continue
         text = path.read_text()
         for old in MOVED:
             for spelling in (f"import {old}\n", f"from {old} import", f"import {old} "):

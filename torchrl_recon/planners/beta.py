@@ -15,10 +15,10 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 
 from torchrl_recon.data.buffers import MASK_KEY, TRAJ_KEY, cut_sequences
+from torchrl_recon.devices import module_device
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.checks import check_int, check_keys, check_real, check_type
-from torchrl_recon.modules.device import module_device
 from torchrl_recon.modules.padding import windows_at_rest
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 
 __all__ = ["cost_to_u_ratio", "relative_beta", "window_uncertainty"]
 

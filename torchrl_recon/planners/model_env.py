@@ -9,11 +9,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules import LSTMModule
 
+from torchrl_recon.devices import module_device, module_dtype
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.activations import ACTIVATIONS
 from torchrl_recon.modules.checks import check_real, check_type
-from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds
 from torchrl_recon.planners.planning_model import CostFn, TerminationFn, check_step_fn

@@ -14,6 +14,8 @@ import torch
 from torch import nn
 from torchrl.envs import EnvBase
 
+from torchrl_recon.devices import module_device, module_dtype
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.checks import (
     check_features,
     check_finite,
@@ -21,10 +23,8 @@ from torchrl_recon.modules.checks import (
     check_window,
     in_graph,
 )
-from torchrl_recon.modules.device import module_device, module_dtype
 from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.reward_model import LEARNED_REWARD, RewardModel
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator, checked_scores
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.executors import (

@@ -27,9 +27,9 @@ from torchrl.envs.model_based import ModelBasedEnvBase, WorldModelEnv
 from torchrl.envs.utils import step_mdp
 from torchrl.modules import WorldModel
 
+from torchrl_recon.devices import module_device, module_dtype
+from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.checks import check_features, check_int
-from torchrl_recon.modules.device import module_device, module_dtype
-from torchrl_recon.modules.uncertainty import UncertaintyEstimator
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
 from torchrl_recon.planners.planning_model import CostFn, PlanningModel, TerminationFn

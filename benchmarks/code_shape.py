@@ -1,7 +1,9 @@
 """The shape measures of issue 59 over ``torchrl_recon/``, measured from the source each time.
 
 Prints one line per measure: its value now and its target. Counts a file once however often it
-spells the pattern; reads only ``.py`` files; needs no install beyond the package itself.
+spells the pattern; reads only ``.py`` files; needs no install beyond the package itself. Each
+speed path is counted twice: in code (docstrings, comments and other strings left out: where the
+path is a branch or a call) and in any text (where it is also only named in prose).
 
     python benchmarks/code_shape.py            # the table
     python benchmarks/code_shape.py --longest 5  # and the five longest function bodies
@@ -11,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import ast
+import io
 import re
+import tokenize
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "torchrl_recon"
@@ -22,7 +26,7 @@ SPELLINGS = {  # measure -> (regex, target): files that spell the speed path
         2,
     ),
     "files that spell torch.compile or its helpers": (
-        r"torch\.compile\b|torch\.compiler\.|torch\._dynamo|compile_mode|mark_dynamic",
+        r"torch\.compile\b|torch\.compiler\.|torch\._dynamo|compile_mode|\bmark_dynamic|maybe_mark_dynamic",
         5,
     ),
 }
@@ -36,10 +40,36 @@ def sources() -> list[Path]:
     return sorted(PACKAGE.rglob("*.py"))
 
 
-def files_spelling(pattern: str) -> list[Path]:
-    """The files whose text matches ``pattern``."""
+def code_only(text: str) -> str:
+    """``text`` (Python source) with its comments and string literals, docstrings included,
+    blanked out (f-strings whole): what is left is the code.
+
+    Examples:
+        >>> code_only('x = torch.compile(f)  # torch.compile\ny = "torch.compile"\n')
+        'x = torch.compile(f)                 \ny =                \n'
+    """
+    lines = text.splitlines(keepends=True)
+    dropped = {tokenize.COMMENT, tokenize.STRING, getattr(tokenize, "FSTRING_START", -1)}
+    depth = 0  # inside an f-string (Python >= 3.12 tokenizes its parts)
+    for tok in tokenize.generate_tokens(io.StringIO(text).readline):
+        depth += tok.type == getattr(tokenize, "FSTRING_START", -1)
+        inside = depth > 0
+        depth -= tok.type == getattr(tokenize, "FSTRING_END", -1)
+        if tok.type in dropped or inside:
+            (row, col), (end_row, end_col) = tok.start, tok.end
+            for r in range(row, end_row + 1):
+                line = lines[r - 1]
+                a = col if r == row else 0
+                b = end_col if r == end_row else len(line.rstrip("\n"))
+                lines[r - 1] = line[:a] + " " * (b - a) + line[b:]
+    return "".join(lines)
+
+
+def files_spelling(pattern: str, *, code: bool = False) -> list[Path]:
+    """The files whose text (with ``code``, whose code only) matches ``pattern``."""
     found = re.compile(pattern)
-    return [p for p in sources() if found.search(p.read_text())]
+    read = (lambda p: code_only(p.read_text())) if code else (lambda p: p.read_text())
+    return [p for p in sources() if found.search(read(p))]
 
 
 def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
@@ -83,9 +113,13 @@ def root_modules() -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--longest", type=int, default=0, help="list this many longest bodies")
+    parser.add_argument("--files", action="store_true", help="list the files each path counts")
     args = parser.parse_args(argv)
     bodies = function_bodies()
-    rows = [(name, len(files_spelling(rx)), target) for name, (rx, target) in SPELLINGS.items()]
+    rows = []
+    for name, (rx, target) in SPELLINGS.items():
+        rows.append((f"{name} in code", len(files_spelling(rx, code=True)), target))
+        rows.append((f"{name} in any text", len(files_spelling(rx)), target))
     rows += [
         ("longest function body (lines, docstring excluded)", bodies[0][0], LONGEST_TARGET),
         ("names torchrl_recon.planners exports", planners_exports(), EXPORTS_TARGET),
@@ -93,6 +127,10 @@ def main(argv: list[str] | None = None) -> None:
     ]
     for name, value, target in rows:
         print(f"{name}: {value} (target <= {target})")
+    for name, (rx, _) in SPELLINGS.items() if args.files else ():
+        code = {p.relative_to(PACKAGE.parent) for p in files_spelling(rx, code=True)}
+        for path in sorted(p.relative_to(PACKAGE.parent) for p in files_spelling(rx)):
+            print(f"  {name}: {path}" + ("" if path in code else " (text only)"))
     for lines, where in bodies[: args.longest]:
         print(f"  {lines:4d}  {where}")
 

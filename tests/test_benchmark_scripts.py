@@ -236,7 +236,7 @@ def test_cpu_blocks_accepts_make_cpu_cores_arguments(threads, monkeypatch):
 
 
 def test_code_shape_prints_each_measure_with_its_target_and_measures_a_body():
-    """Issue 59's measures come from the source: six lines ``name: value (target <= n)``, and a
+    """Issue 59's measures come from the source: nine lines ``name: value (target <= n)``, and a
     function body's length leaves its docstring out."""
     import ast
 
@@ -245,6 +245,9 @@ def test_code_shape_prints_each_measure_with_its_target_and_measures_a_body():
         with redirect_stdout(out):
             shape = runpy.run_path(str(BENCHMARKS / "code_shape.py"), run_name="__main__")
     lines = out.getvalue().splitlines()
-    assert len(lines) == 6 and all(re.fullmatch(r".+: \d+ \(target <= \d+\)", s) for s in lines)
+    assert len(lines) == 9 and all(re.fullmatch(r".+: \d+ \(target <= \d+\)", s) for s in lines)
     source = 'def f():\n    """Doc\n    string."""\n    a = 1\n    return a\n'
     assert shape["body_lines"](ast.parse(source).body[0]) == 2
+    # "in code" leaves out docstrings, comments and strings, not the code beside them
+    code = shape["code_only"]('"""torch.compile"""\nx = torch.compile(f)  # torch.compile\n')
+    assert code.count("torch.compile") == 1 and len(code.splitlines()) == 2

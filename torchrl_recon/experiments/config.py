@@ -26,7 +26,7 @@ from torchrl_recon.experiments.field_checks import (
     finite,
     positive,
 )
-from torchrl_recon.planners.planning_model import COMPILE_MODES, compile_mode
+from torchrl_recon.planners.executors import COMPILE_MODES, compile_mode
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 """Setting and estimator names: they name stage records and folders of the run directory."""

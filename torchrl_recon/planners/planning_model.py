@@ -27,11 +27,7 @@ from torchrl_recon.modules.fitted import ESTIMATOR, WORLD_MODEL, FittedCheck
 from torchrl_recon.modules.reward_model import LEARNED_REWARD, RewardModel
 from torchrl_recon.modules.world_model import LSTMWorldModel
 from torchrl_recon.planners.bounds import action_bounds, bounds_from_spec
-from torchrl_recon.planners.executors import (
-    COMPILE_MODES,  # noqa: F401  (public in executors; experiments.config imports it from here)
-    compile_mode,  # noqa: F401  (the same)
-    executor_for,
-)
+from torchrl_recon.planners.executors import executor_for
 
 if TYPE_CHECKING:
     from torchrl_recon.planners.executors import Eager

@@ -52,9 +52,9 @@ from _common import (
 from torch.utils._python_dispatch import TorchDispatchMode
 from training_speed import random_buffer, world_models
 
+from torchrl_recon.fitting import fit_population
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.runs.timing import interleaved_median_ms
-from torchrl_recon.training import fit_population
 
 aten = torch.ops.aten
 MATMULS = {aten.mm, aten.addmm, aten.addmm_, aten.bmm, aten.baddbmm, aten.baddbmm_}

@@ -22,6 +22,7 @@ from _common import parse_device_args, setup_done
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import cut_sequences, make_sequence_buffer, split_by_trajectory
 from torchrl_recon.envs import get_entry, make_env
+from torchrl_recon.fitting import fit_world_model
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import (
     CEMPlanner,
@@ -31,7 +32,6 @@ from torchrl_recon.planners import (
     PlanningModel,
     RandomShootingPlanner,
 )
-from torchrl_recon.training import fit_world_model
 
 
 def fitted_model(name: str, args, device: torch.device) -> tuple[PlanningModel, torch.Tensor]:

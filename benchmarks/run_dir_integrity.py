@@ -26,8 +26,8 @@ from tensordict import TensorDict
 
 from torchrl_recon.estimators import ReconstructionUncertainty
 from torchrl_recon.experiments.stages import Stages
+from torchrl_recon.fitting import save_checkpoint
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.training import save_checkpoint
 
 OBS_DIM, ACTION_DIM, WINDOW, EPISODE = 34, 8, 10, 100  # Minitaur dims, paper's T
 

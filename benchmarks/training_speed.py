@@ -61,9 +61,9 @@ from _common import (
 from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
+from torchrl_recon.fitting import fit_population, fit_world_model
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.runs.timing import interleaved_median_ms
-from torchrl_recon.training import fit_population, fit_world_model
 
 COMPILED_FITS = ("sequential", "shared")  # the fits --compile can time with compile=True
 

@@ -118,7 +118,7 @@ API_PACKAGES = (
     "torchrl_recon.modules",
     "torchrl_recon.estimators",
     "torchrl_recon.objectives",
-    "torchrl_recon.training",
+    "torchrl_recon.fitting",
     "torchrl_recon.trainers",
     "torchrl_recon.planners",
     "torchrl_recon.transforms",

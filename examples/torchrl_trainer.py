@@ -23,12 +23,12 @@ from torchrl.trainers import ReplayBufferTrainer, Trainer
 
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.trainers import LogIteration, ModelFitStepper, TimedPolicy
-from torchrl_recon.training.online import FitSchedule
 
 FULL = dict(episode=200, batch=200, random=400, candidates=350, elites=35, cem_iterations=5)
 FULL |= dict(horizon=15, fit_steps=1000, refit_steps=500, slice_len=20, num_slices=32)

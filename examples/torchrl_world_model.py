@@ -38,10 +38,10 @@ from torchrl_recon.collectors import collect_random  # noqa: E402
 from torchrl_recon.data import make_sequence_buffer  # noqa: E402
 from torchrl_recon.envs import make_env  # noqa: E402
 from torchrl_recon.estimators import ReconstructionUncertainty  # noqa: E402
+from torchrl_recon.fitting import fit_uncertainty  # noqa: E402
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, relative_beta  # noqa: E402
 from torchrl_recon.planners.torchrl_models import BatchedWorldModelEnv  # noqa: E402
 from torchrl_recon.policies import MPCPolicy  # noqa: E402
-from torchrl_recon.training import fit_uncertainty  # noqa: E402
 from torchrl_recon.transforms import UncertaintyPenalty  # noqa: E402
 
 SEED, EPISODE, EPISODES = 0, 200, 2

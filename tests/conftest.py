@@ -19,8 +19,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.envs import make_env
+from torchrl_recon.fitting import fit_uncertainty, fit_world_model
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.training import fit_uncertainty, fit_world_model
 
 torch.set_num_threads(1)
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):

@@ -29,7 +29,7 @@ from tensordict import TensorDict
 from torchrl.data import Bounded, Composite, LazyTensorStorage, ReplayBuffer, Unbounded
 
 import torchrl_recon
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon import data as D
 from torchrl_recon import modules as M
 from torchrl_recon import objectives as O

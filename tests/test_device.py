@@ -37,6 +37,15 @@ from torchrl_recon.evaluation import (
     multi_step_errors,
     spearman,
 )
+from torchrl_recon.fitting import (
+    fit_population,
+    fit_uncertainty,
+    fit_world_model,
+    load_checkpoint,
+    load_modules,
+    save_checkpoint,
+    train_loss_module,
+)
 from torchrl_recon.modules import (
     ESTIMATORS,
     LinearDeltaModel,
@@ -58,15 +67,6 @@ from torchrl_recon.planners import (
 )
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
-from torchrl_recon.training import (
-    fit_population,
-    fit_uncertainty,
-    fit_world_model,
-    load_checkpoint,
-    load_modules,
-    save_checkpoint,
-    train_loss_module,
-)
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 
@@ -648,7 +648,7 @@ def _graph_fits(monkeypatch, poison_after: int | None = None):
     """The shared population fit of three world models on CUDA, eager and with ``cuda_graph``,
     and the graph fit's :class:`CapturedStep`. ``poison_after``: from that sample on, the
     buffer's batches hold NaN observations."""
-    import torchrl_recon.training.fit as fit_module
+    import torchrl_recon.fitting.fit as fit_module
 
     steps: list = []
 

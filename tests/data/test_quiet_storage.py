@@ -9,9 +9,9 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from torchrl_recon.data import make_sequence_buffer, quiet_storage_init
+from torchrl_recon.fitting import FitSchedule
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.trainers import ModelFitStepper
-from torchrl_recon.training import FitSchedule
 
 INIT_LINE = "Initialized LazyTensorStorage"
 

@@ -13,8 +13,8 @@ from torchrl_recon.data import (
     save_buffer,
 )
 from torchrl_recon.experiments.run_dir import config_differences
+from torchrl_recon.fitting import fit_world_model
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.training import fit_world_model
 
 TRAJ = ("collector", "traj_ids")
 

@@ -38,7 +38,7 @@ PACKAGES = (
     "modules",
     "estimators",
     "objectives",
-    "training",
+    "fitting",
     "trainers",
     "planners",
     "transforms",

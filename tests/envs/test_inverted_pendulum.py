@@ -12,8 +12,8 @@ from torchrl_recon.collectors import collect_random  # noqa: E402
 from torchrl_recon.data import TRAJ_KEY, needs_padding  # noqa: E402
 from torchrl_recon.envs import close_env, make_env  # noqa: E402
 from torchrl_recon.envs.gym_costs import inverted_pendulum, inverted_pendulum_fallen  # noqa: E402
+from torchrl_recon.fitting.online import FitSchedule, fit_models  # noqa: E402
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty  # noqa: E402
-from torchrl_recon.training.online import FitSchedule, fit_models  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 from torch.nn import functional as F
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.data.buffers import make_sequence_buffer
 from torchrl_recon.estimators import (
     ESTIMATORS,
@@ -17,10 +17,10 @@ from torchrl_recon.estimators import (
     RNDUncertainty,
     make_estimator,
 )
+from torchrl_recon.fitting.checkpoint import load_modules, save_checkpoint
+from torchrl_recon.fitting.fit import fit_uncertainty
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import PlanningModel
-from torchrl_recon.training.checkpoint import load_modules, save_checkpoint
-from torchrl_recon.training.fit import fit_uncertainty
 
 KINDS = ["reconstruction", "ensemble", "mc_dropout", "rnd", "world_model_ensemble"]
 NEW_KINDS = ["ensemble", "mc_dropout", "rnd", "world_model_ensemble"]

@@ -61,7 +61,7 @@ def test_industrial_benchmark_online_smoke(tmp_path, capsys):
     assert "online industrial_benchmark seed 0" in capsys.readouterr().out
 
 
-@pytest.mark.slow  # 7 s; tests/training/test_online covers the exploration phase
+@pytest.mark.slow  # 7 s; tests/fitting/test_online covers the exploration phase
 def test_an_exploration_round_plays_before_control(tmp_path, capsys):
     out = tmp_path / "ib"
     args = ["online", "industrial_benchmark/online_smoke", f"output_dir={out}"]

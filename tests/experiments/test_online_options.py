@@ -15,9 +15,9 @@ from torchrl_recon.data import TRAJ_KEY, StepUniformSliceSampler
 from torchrl_recon.experiments import fit_stages
 from torchrl_recon.experiments.online import recipe_schedule
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe
+from torchrl_recon.fitting import online
+from torchrl_recon.fitting.online import FitSchedule, fit_models
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.training import online
-from torchrl_recon.training.online import FitSchedule, fit_models
 
 SMOKE = Path(__file__).resolve().parents[2] / "recipes" / "gym" / "online_smoke.yaml"
 BASE = ["env.id=Pendulum-v1", "env.cost=torchrl_recon.envs.gym_costs:pendulum"]

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 import torchrl_recon
 from tests.experiments.tiny import TINY
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.cli import main, run_recipe
 from torchrl_recon.experiments.config import upgrade_legacy_config
 from torchrl_recon.experiments.recipe import RecipeError, load_recipe

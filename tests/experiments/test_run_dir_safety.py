@@ -42,8 +42,8 @@ from torchrl_recon.experiments.run_dir import (
     write_results,
 )
 from torchrl_recon.experiments.stages import Stages
+from torchrl_recon.fitting import load_checkpoint, load_modules
 from torchrl_recon.reports import read_results, summarize
-from torchrl_recon.training import load_checkpoint, load_modules
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "industrial_benchmark" / "explore_smoke.yaml"

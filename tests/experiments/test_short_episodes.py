@@ -15,9 +15,9 @@ from tensordict import TensorDict
 from tests.experiments.tiny import TINY, short_env
 from torchrl_recon.cli import main
 from torchrl_recon.data import TRAJ_KEY
+from torchrl_recon.fitting.online import mean_uncertainty, model_error
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners.beta import window_uncertainty
-from torchrl_recon.training.online import mean_uncertainty, model_error
 
 FAST_CONTROL = [*TINY, "episodes=2", "random_episodes=4", "random_episode_steps=12"]
 

@@ -7,13 +7,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from torchrl_recon.fitting import load_checkpoint, load_modules, save_checkpoint
 from torchrl_recon.modules import (
     LSTMWorldModel,
     ReconstructionPopulation,
     ReconstructionUncertainty,
     WorldModelPopulation,
 )
-from torchrl_recon.training import load_checkpoint, load_modules, save_checkpoint
 
 N, M, T = 6, 3, 4
 SIZES = dict(window=T, hidden_size=8, dense_size=8)

@@ -9,6 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_recon.data import TRAJ_KEY
+from torchrl_recon.fitting import load_checkpoint, save_checkpoint
+from torchrl_recon.fitting.online import FitSchedule, fit_models
 from torchrl_recon.modules import (
     LearnedCost,
     LearnedTermination,
@@ -17,8 +19,6 @@ from torchrl_recon.modules import (
 )
 from torchrl_recon.objectives import RewardLoss
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-from torchrl_recon.training import load_checkpoint, save_checkpoint
-from torchrl_recon.training.online import FitSchedule, fit_models
 
 
 def transitions(n: int, seed: int = 0) -> TensorDict:

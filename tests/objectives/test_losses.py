@@ -4,7 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 

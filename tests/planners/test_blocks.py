@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, MCDropoutUncertainty, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,

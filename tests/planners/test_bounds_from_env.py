@@ -7,7 +7,7 @@ import torch
 from torchrl.data import Bounded, Categorical, OneHot, Unbounded
 from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.envs import make_env
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (

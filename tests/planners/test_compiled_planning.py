@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from tests.compilers import needs_cpp_compiler
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import ICEMPlanner, InfeasiblePlanWarning, PlanningModel
 from torchrl_recon.policies.exploration import exploration_objective

@@ -18,7 +18,7 @@ from torch._dynamo.backends.common import aot_autograd
 
 import torchrl_recon.planners.executors as executors
 from tests.compilers import needs_cpp_compiler
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import (
     CEMPlanner,

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from tests.compilers import needs_cpp_compiler
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, executors
 from torchrl_recon.planners.executors import Compiled, Eager, Threaded

@@ -53,7 +53,7 @@ def _mean_return(policy: MPCPolicy | None) -> float:
 @pytest.fixture(scope="module")
 def pendulum_models():
     """Random data and both fits, once for every planner."""
-    from torchrl_recon.training import fit_uncertainty, fit_world_model
+    from torchrl_recon.fitting import fit_uncertainty, fit_world_model
 
     torch.manual_seed(0)
     env = make_env("Pendulum-v1", seed=0, max_episode_steps=100)

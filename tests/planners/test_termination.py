@@ -12,7 +12,7 @@ import pytest
 import torch
 from torchrl.modules import CEMPlanner as TorchRLCEMPlanner
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel
 from torchrl_recon.planners import (
     CEMPlanner,

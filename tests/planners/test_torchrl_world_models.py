@@ -23,7 +23,7 @@ from torchrl.modules import ValueOperator, WorldModel
 from torchrl.objectives import WorldModelLoss
 from torchrl.objectives.value import TDLambdaEstimator
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from tests.torchrl_world import fitted_pendulum, latent_world_model, mlp_world_model
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.envs import make_env

@@ -11,10 +11,11 @@ import torch
 from tensordict import TensorDict
 
 import torchrl_recon.modules.fitted as fitted_module
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.drone import drone_cost
+from torchrl_recon.fitting import fit_uncertainty, fit_world_model
 from torchrl_recon.modules import (
     LinearDeltaModel,
     LSTMWorldModel,
@@ -28,7 +29,6 @@ from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel, RandomShootingPlanner
 from torchrl_recon.planners.model_env import WorldModelPlanningEnv
 from torchrl_recon.policies import MPCPolicy
-from torchrl_recon.training import fit_uncertainty, fit_world_model
 
 HOW = (
     "or register torchrl_recon.trainers.FitNormalization(world_model, estimator) on your torchrl "
@@ -37,7 +37,7 @@ HOW = (
 WORLD_MESSAGE = (
     "the world model's normalisation (obs_norm, action_norm, delta_norm of LSTMWorldModel) was "
     "never fitted; fit it from data before planning: world_model.fit_normalization(obs, action, "
-    "next_obs), torchrl_recon.training.fit_world_model(world_model, buffer), " + HOW
+    "next_obs), torchrl_recon.fitting.fit_world_model(world_model, buffer), " + HOW
 )
 SMALL = {
     "reconstruction": {"hidden_size": 8},
@@ -94,7 +94,7 @@ def test_an_unfitted_estimator_is_refused_naming_it_and_how_to_fit_it(kind):
     assert f"of {type(est).__name__}) was never fitted" in message
     assert "input_norm" in message
     assert "estimator.fit_normalization(obs, action)" in message
-    assert "torchrl_recon.training.fit_uncertainty(estimator, buffer)" in message
+    assert "torchrl_recon.fitting.fit_uncertainty(estimator, buffer)" in message
     assert message.endswith(HOW)
     fitted(est)
     assert torch.isfinite(planner.plan(*_context()).uncertainty).all()
@@ -113,7 +113,7 @@ def test_members_must_all_be_fitted_and_the_unfitted_ones_are_named():
         "the world model's normalisation (obs_norm, action_norm, delta_norm of LSTMWorldModel "
         "members [1] of 3) was never fitted"
     )
-    assert "torchrl_recon.training.fit_world_members(world_model, buffer)" in message
+    assert "torchrl_recon.fitting.fit_world_members(world_model, buffer)" in message
     assert "before LSTMWorldModel.from_members" in message
     stacked.load_member(1, fitted(members[1]))
     assert unfitted_normalizers(stacked) == []

@@ -9,7 +9,7 @@ import pytest
 from torchrl.collectors import Collector
 from torchrl.envs import TransformedEnv
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty

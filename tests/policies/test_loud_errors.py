@@ -6,7 +6,7 @@ import pytest
 import torch
 from torchrl.envs import DoubleToFloat, GymEnv, InitTracker, TransformedEnv
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import PlanningModel, RandomShootingPlanner
 from torchrl_recon.planners.objective import Objective

@@ -4,7 +4,7 @@ import pytest
 import torch
 from torchrl.collectors import Collector, MultiSyncCollector
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.envs.drone import drone_cost
 from torchrl_recon.modules import LinearDeltaModel, LSTMWorldModel, ReconstructionUncertainty

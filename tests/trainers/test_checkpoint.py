@@ -13,11 +13,11 @@ from torchrl.checkpoint import Checkpoint
 
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.trainers import OnlineCollector, OnlineTrainer, verify_checkpoint
-from torchrl_recon.training.online import FitSchedule
 
 SCHEDULE = FitSchedule(
     steps=4, refit_steps=2, eval_every=2, slice_len=8, num_slices=4, val_fraction=0.34

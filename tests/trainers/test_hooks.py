@@ -17,6 +17,7 @@ from torchrl.trainers import ReplayBufferTrainer, Trainer
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 from torchrl_recon.objectives import WorldModelPredictionLoss
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
@@ -28,7 +29,6 @@ from torchrl_recon.trainers import (
     OnlineCollector,
     TimedPolicy,
 )
-from torchrl_recon.training.online import FitSchedule
 
 SCHEDULE = FitSchedule(
     steps=4, refit_steps=2, eval_every=2, slice_len=8, num_slices=4, val_fraction=0.34

@@ -10,6 +10,7 @@ from torchrl.trainers import TrainerHookBase
 
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import (
     LearnedCost,
     LSTMWorldModel,
@@ -20,7 +21,6 @@ from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import ExplorationPolicy, MPCPolicy, exploration_objective
 from torchrl_recon.trainers import OnlineTrainer, learn_online
 from torchrl_recon.trainers.configs import make_online_trainer
-from torchrl_recon.training.online import FitSchedule
 
 SCHEDULE = FitSchedule(
     steps=4, refit_steps=2, eval_every=2, slice_len=8, num_slices=4, val_fraction=0.34

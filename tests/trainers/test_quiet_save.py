@@ -7,12 +7,12 @@ import warnings
 
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.gym_costs import pendulum
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import LSTMWorldModel
 from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
 from torchrl_recon.policies import MPCPolicy
 from torchrl_recon.trainers import OnlineCollector, OnlineTrainer
 from torchrl_recon.trainers.checkpoint import LEGACY_SAVE_WARNINGS
-from torchrl_recon.training.online import FitSchedule
 
 
 def test_a_legacy_save_gives_none_of_torchrls_format_warnings(tmp_path):

@@ -14,7 +14,7 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.modules import MLP, CEMPlanner, MPPIPlanner, ValueOperator, WorldModelWrapper
 from torchrl.objectives.value import TDLambdaEstimator
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from tests.torchrl_world import fitted_pendulum
 from torchrl_recon.envs.drone import drone_cost
 from torchrl_recon.modules import (

@@ -6,7 +6,7 @@ World models carry their member dim themselves (``LSTMWorldModel(..., num_member
 autoencoder population is its own class because the estimator interface
 (:class:`~torchrl_recon.estimators.UncertaintyEstimator`: ``score_sequence`` ``[R, L, D]`` →
 ``[R, W]``, what planners call) has no member dim; it is used to fit R autoencoders as one
-batch (:func:`~torchrl_recon.training.fit_population`).
+batch (:func:`~torchrl_recon.fitting.fit_population`).
 """
 
 from __future__ import annotations

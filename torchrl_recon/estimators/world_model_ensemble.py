@@ -28,7 +28,7 @@ class WorldModelEnsembleUncertainty(UncertaintyEstimator):
 
     Unlike the other estimators it is not a separate kind of network: its members can be the
     world models fitted for the task (:meth:`from_world_models`, e.g. a population fit's
-    members), or it trains its own with :func:`~torchrl_recon.training.fit_uncertainty`: each
+    members), or it trains its own with :func:`~torchrl_recon.fitting.fit_uncertainty`: each
     member fits the one-step change after every T-window of the batch's sequences, on its own
     bootstrap resample of those windows (as PETS' ensemble does). Scoring costs T LSTM steps per
     window and member (the input projection once per step, the head once per window), several

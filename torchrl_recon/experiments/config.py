@@ -125,7 +125,7 @@ class ModelsConfig:
 
 @dataclass
 class FitConfig:
-    """One fit's keywords (:func:`~torchrl_recon.training.train_loss_module`). ``compile``: its
+    """One fit's keywords (:func:`~torchrl_recon.fitting.train_loss_module`). ``compile``: its
     training steps under ``torch.compile`` (the same fit up to float rounding; pays on long
     fits, see ``docs/benchmarks.md``)."""
 

@@ -32,12 +32,12 @@ from torchrl_recon.experiments.recipe_env import build_env
 from torchrl_recon.experiments.recipe_models import build_world_model, dims
 from torchrl_recon.experiments.recipe_planning import build_planner, planning_model
 from torchrl_recon.experiments.report_units import state_scale
+from torchrl_recon.fitting import fit_population
 from torchrl_recon.modules import WorldModelPopulation
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import FEASIBLE, REPLANNED
 from torchrl_recon.reports.explore import ARMS
 from torchrl_recon.reports.stats import mean_std
-from torchrl_recon.training import fit_population
 
 _NEXT = tuple(("next", k) for k in ("observation", "reward", "done", "terminated", "truncated"))
 DATA_KEYS = ("observation", "action", "is_init", "step_count", *_NEXT, ("collector", "traj_ids"))

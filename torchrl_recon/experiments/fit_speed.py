@@ -1,7 +1,7 @@
 """How fast a recipe's fits run, read from the recipe in one place: each fit's speed keywords
 (``compile``: ``training.<fit>.compile``; ``cuda_graph``: ``fit_cuda_graph``), their recipe
 checks and the check of the machine's device. The fits take plain keywords
-(:func:`~torchrl_recon.training.fit_population`); no other module of the experiments reads these
+(:func:`~torchrl_recon.fitting.fit_population`); no other module of the experiments reads these
 keys from a recipe."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def fit_speed(
     """The speed keywords of the recipe's fit ``fit`` (``world_model``, ``uncertainty``, or
     ``reward``, a learned reward's fit, which takes the world model's block uncompiled):
     ``compile`` from ``training.<fit>.compile`` and, for a ``population`` fit (world-model
-    members, :func:`~torchrl_recon.training.fit_population`), ``cuda_graph`` from
+    members, :func:`~torchrl_recon.fitting.fit_population`), ``cuda_graph`` from
     ``fit_cuda_graph``. A key that a run made before it lacks is off.
 
     Examples:

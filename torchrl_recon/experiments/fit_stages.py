@@ -14,14 +14,14 @@ from torchrl_recon.experiments.context import RunContext
 from torchrl_recon.experiments.fit_buffers import split_buffers
 from torchrl_recon.experiments.fit_speed import fit_speed
 from torchrl_recon.experiments.recipe_models import build_models, dims
-from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
-from torchrl_recon.training import (
+from torchrl_recon.fitting import (
     fit_reward,
     fit_uncertainty,
     load_checkpoint,
     save_checkpoint,
     world_model_fit,
 )
+from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 
 
 def fit_kwargs(ctx: RunContext, fit: str, prefix: str, *, population: bool = False) -> dict:

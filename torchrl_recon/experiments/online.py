@@ -34,13 +34,13 @@ from torchrl_recon.experiments.recipe_planning import (
     planning_model,
     replan_threshold,
 )
+from torchrl_recon.fitting.online import FitSchedule, episode_returns, fit_models, shared_keys
 from torchrl_recon.planners import Objective, PlanningModel
 from torchrl_recon.planners.beta import window_uncertainty
 from torchrl_recon.policies import ExplorationPolicy, exploration_objective
 from torchrl_recon.policies.mpc import REPLANNED
 from torchrl_recon.reports.stats import mean_std
 from torchrl_recon.trainers import IterationCollector, ModelFitStepper, OnlineTrainer, play
-from torchrl_recon.training.online import FitSchedule, episode_returns, fit_models, shared_keys
 
 STAGES = ("random_data", "models", "play_{n}", "refit_{n}")
 """Stage name templates, in run order (``{n}`` the iteration, from 1)."""
@@ -100,7 +100,7 @@ def reads_uncertainty(cfg: DictConfig, n: int) -> bool:
 
 
 def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSchedule:
-    """The online recipe's fits as a :class:`~torchrl_recon.training.online.FitSchedule`: its
+    """The online recipe's fits as a :class:`~torchrl_recon.fitting.online.FitSchedule`: its
     ``training`` block with ``refit_steps`` and ``refit_old_steps``, their speed as
     :func:`~.fit_speed.fit_speed` reads it."""
     t = cfg.training

@@ -102,18 +102,18 @@ def _direct(module: nn.Module, role: str) -> str:
     if role == WORLD_MODEL:
         if getattr(module, "num_members", None) is not None:
             direct = (
-                "torchrl_recon.training.fit_world_members(world_model, buffer), each member's "
+                "torchrl_recon.fitting.fit_world_members(world_model, buffer), each member's "
                 "fit_normalization(obs, action, next_obs) before LSTMWorldModel.from_members"
             )
         else:
             direct = (
                 "world_model.fit_normalization(obs, action, next_obs), "
-                "torchrl_recon.training.fit_world_model(world_model, buffer)"
+                "torchrl_recon.fitting.fit_world_model(world_model, buffer)"
             )
     elif role == ESTIMATOR:
         direct = (
             "estimator.fit_normalization(obs, action), "
-            "torchrl_recon.training.fit_uncertainty(estimator, buffer)"
+            "torchrl_recon.fitting.fit_uncertainty(estimator, buffer)"
         )
     else:
         direct = f"{role}.fit_normalization(...)"

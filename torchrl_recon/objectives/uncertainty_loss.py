@@ -23,7 +23,7 @@ class UncertaintyLoss(LossModule):
     real steps count.
 
     The estimator's normalisation should be fitted first (``fit_normalization``, as
-    :func:`~torchrl_recon.training.fit_uncertainty` does): the first call on an estimator that
+    :func:`~torchrl_recon.fitting.fit_uncertainty` does): the first call on an estimator that
     was never fitted warns once (``UserWarning``) that the loss runs in identity statistics.
 
     Args:

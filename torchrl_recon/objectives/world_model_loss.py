@@ -34,7 +34,7 @@ class WorldModelPredictionLoss(LossModule):
     the warm-up started at rest (:meth:`~torchrl_recon.modules.LSTMWorldModel.prediction_loss`).
 
     The world model's normalisation should be fitted first (``fit_normalization``, as
-    :func:`~torchrl_recon.training.fit_world_model` does): the first call on a model that was
+    :func:`~torchrl_recon.fitting.fit_world_model` does): the first call on a model that was
     never fitted warns once (``UserWarning``) that the loss runs in identity statistics.
 
     Args:

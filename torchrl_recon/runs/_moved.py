@@ -5,7 +5,9 @@
 ``torchrl_recon.modules.<name>`` to ``torchrl_recon.estimators.<name>`` (the registry,
 ``modules.estimators``, to ``estimators.registry``); ``torchrl_recon.modules.device`` into
 ``torchrl_recon.devices``; the config store ``torchrl_recon.configs`` to
-``torchrl_recon.trainers.configs`` (:data:`MOVED` lists them all). :func:`install` (called when
+``torchrl_recon.trainers.configs``; the fit loops, ``torchrl_recon.training`` (a name too close
+to ``torchrl_recon.trainers``, TorchRL's ``Trainer`` and its hooks), to ``torchrl_recon.fitting``
+(:data:`MOVED` lists them all). :func:`install` (called when
 ``torchrl_recon`` is imported) adds a finder to :data:`sys.meta_path` that answers an import of
 an old path with the module at its new one, the same object, and one ``DeprecationWarning``
 naming the new path. No file is left at the old path.
@@ -46,6 +48,11 @@ MOVED = {
     "torchrl_recon.modules.estimators": "torchrl_recon.estimators.registry",
     "torchrl_recon.modules.device": "torchrl_recon.devices",
     "torchrl_recon.configs": "torchrl_recon.trainers.configs",
+    **{
+        f"torchrl_recon.training{name}": f"torchrl_recon.fitting{name}"
+        for name in ("", ".checkpoint", ".early_stopping", ".fit", ".fit_data", ".fit_graph")
+        + (".fit_step", ".online")
+    },
 }
 """Each old dotted path and the module now at its place."""
 
@@ -78,6 +85,8 @@ class _MovedFinder(importlib.abc.MetaPathFinder):
 
 
 def install() -> None:
-    """Add the finder to :data:`sys.meta_path` (once)."""
+    """Put the finder first on :data:`sys.meta_path` (once): a module of a moved package
+    (``torchrl_recon.training.fit``) would otherwise be found by the path finder in the new
+    package's folder and run a second time under its old name."""
     if not any(isinstance(f, _MovedFinder) for f in sys.meta_path):
-        sys.meta_path.append(_MovedFinder())
+        sys.meta_path.insert(0, _MovedFinder())

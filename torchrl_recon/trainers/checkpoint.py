@@ -430,7 +430,7 @@ class VerifiedTrainer(Trainer):
         >>> from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
         >>> from torchrl_recon.policies import MPCPolicy
         >>> from torchrl_recon.trainers import OnlineCollector, OnlineTrainer
-        >>> from torchrl_recon.training.online import FitSchedule
+        >>> from torchrl_recon.fitting.online import FitSchedule
         >>> from torchrl_recon.envs.gym_costs import pendulum
         >>> def trainer(path):
         ...     env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)

@@ -46,6 +46,7 @@ from torchrl.trainers import TrainerHookBase
 
 from torchrl_recon.envs import make_env
 from torchrl_recon.envs.registry import import_cost
+from torchrl_recon.fitting.online import FitSchedule
 from torchrl_recon.modules import ESTIMATORS, LSTMWorldModel
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 from torchrl_recon.planners import Objective, PlanningModel
@@ -59,7 +60,6 @@ from torchrl_recon.trainers import (
     OnlineCollector,
     OnlineTrainer,
 )
-from torchrl_recon.training.online import FitSchedule
 from torchrl_recon.transforms import UncertaintyPenalty
 
 PLAIN = (bool, int, float, str, type(None))

@@ -12,14 +12,14 @@ from torchrl.data import ReplayBuffer
 from torchrl.record.loggers import Logger
 from torchrl.trainers import OptimizationStepper, Trainer
 
+from torchrl_recon.fitting.online import FitSchedule, fit_models
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_type
-from torchrl_recon.training.online import FitSchedule, fit_models
 
 
 class ModelFitStepper(OptimizationStepper):
     """Fit the world model (and the estimator) on the replay buffer's contents as
-    :class:`~torchrl_recon.training.online.FitSchedule` says: the Trainer's first optimisation
+    :class:`~torchrl_recon.fitting.online.FitSchedule` says: the Trainer's first optimisation
     step fits from scratch (normalisation from the data, then ``schedule.steps``), each later
     one refits warm (``schedule.refit_steps`` from the current weights and normalisation; the
     estimator only with ``schedule.refit_uncertainty``). Each fit splits the data by trajectory

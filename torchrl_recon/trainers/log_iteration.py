@@ -10,21 +10,21 @@ from typing import Any
 from tensordict import TensorDictBase
 from torchrl.trainers import Trainer, TrainerHookBase
 
-from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
-from torchrl_recon.modules.checks import check_int, check_type
-from torchrl_recon.policies.mpc import REPLANNED
-from torchrl_recon.trainers.collector import check_batch
-from torchrl_recon.training.online import (
+from torchrl_recon.fitting.online import (
     IterationRecord,
     episode_returns,
     mean_uncertainty,
     model_error,
 )
+from torchrl_recon.modules import LSTMWorldModel, UncertaintyEstimator, unfitted_normalizers
+from torchrl_recon.modules.checks import check_int, check_type
+from torchrl_recon.policies.mpc import REPLANNED
+from torchrl_recon.trainers.collector import check_batch
 
 
 class LogIteration(TrainerHookBase):
     """Record each batch a ``torchrl.trainers.Trainer`` collects as an
-    :class:`~torchrl_recon.training.online.IterationRecord` and log it through the Trainer's
+    :class:`~torchrl_recon.fitting.online.IterationRecord` and log it through the Trainer's
     logger and progress bar (``online/return``, ``online/model_error``, ``online/mean_u``,
     ``online/replans``, ``online/fit_s``, ``online/plan_s``, ``online/env_s``).
 
@@ -83,7 +83,7 @@ class LogIteration(TrainerHookBase):
         self.world_model, self.estimator, self.slice_len = world_model, estimator, slice_len
         self.on_iteration, self.timed_policy = on_iteration, timed_policy
         self.records: list[IterationRecord] = []
-        """One :class:`~torchrl_recon.training.IterationRecord` per batch, in order."""
+        """One :class:`~torchrl_recon.fitting.IterationRecord` per batch, in order."""
         self._trainer: Trainer | None = None
         self._seen: dict[str, Any] = {}
         self._last_end = time.perf_counter()

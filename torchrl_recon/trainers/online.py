@@ -15,6 +15,7 @@ from torchrl.record.loggers import Logger
 from torchrl.trainers import ReplayBufferTrainer, TrainerHookBase
 
 from torchrl_recon.data import quiet_storage_init
+from torchrl_recon.fitting.online import FitSchedule, IterationRecord
 from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
 from torchrl_recon.modules.checks import check_type
 from torchrl_recon.objectives import WorldModelPredictionLoss
@@ -25,7 +26,6 @@ from torchrl_recon.trainers.checkpoint import VerifiedTrainer
 from torchrl_recon.trainers.collector import OnlineCollector, check_schedule
 from torchrl_recon.trainers.fit import ModelFitStepper
 from torchrl_recon.trainers.log_iteration import LogIteration
-from torchrl_recon.training.online import FitSchedule, IterationRecord
 
 
 def quiet_extend(extender: ReplayBufferTrainer) -> Callable[[TensorDictBase], Any]:
@@ -61,14 +61,14 @@ class OnlineTrainer(VerifiedTrainer):
         collector: the data source; an :class:`OnlineCollector` (random batch, then one batch
             per iteration) or TorchRL's ``Collector`` with ``init_random_frames``.
         world_model, estimator: the networks the collector's planners hold.
-        schedule: the fits' :class:`~torchrl_recon.training.online.FitSchedule`.
+        schedule: the fits' :class:`~torchrl_recon.fitting.online.FitSchedule`.
         replay_buffer: where the batches go (default: a ``LazyTensorStorage`` of the
             collector's ``total_frames``); it must keep every step.
         stepper: the fit step (default: a :class:`ModelFitStepper` of the above).
         seed: the first fit's seed (the collector is seeded by its own argument).
         progress: TorchRL's progress bar with the last return, model error and u.
         logger: a TorchRL logger: the Trainer's metrics and the fits' validation losses.
-        on_iteration: called with each :class:`~torchrl_recon.training.online.IterationRecord`.
+        on_iteration: called with each :class:`~torchrl_recon.fitting.online.IterationRecord`.
         reward_model: a learned reward and termination the planners read
             (:class:`~torchrl_recon.modules.RewardModel`), fitted with the world model and in
             the Trainer's checkpoints; None (default) when the cost is given.
@@ -356,7 +356,7 @@ def check_online(
     schedule: Any,
 ) -> None:
     """Refuse an online schedule out of range (:func:`~.collector.check_schedule`) or a
-    ``schedule`` that is not a :class:`~torchrl_recon.training.online.FitSchedule` (or None).
+    ``schedule`` that is not a :class:`~torchrl_recon.fitting.online.FitSchedule` (or None).
 
     Examples:
         >>> check_online(2, 10, 20, 0, {"steps": 2})

@@ -45,7 +45,7 @@ def one_member(loss_module: LossModule) -> Callable[[Batches], torch.Tensor]:
 
 class ProcessRNG:
     """One model's sampling: ``torch.manual_seed(seed)`` now, then every batch drawn from the
-    process's own RNG (what :func:`~torchrl_recon.training.train_loss_module` has always done:
+    process's own RNG (what :func:`~torchrl_recon.fitting.train_loss_module` has always done:
     the process's RNG after a fit is where its draws left it)."""
 
     def __init__(self, seed: int) -> None:
@@ -75,7 +75,7 @@ class FitData:
     (the members' losses ``[R]``), one training buffer and one validation source per member,
     their sampling (``rng``), and ``data_keys``, the entries the losses read (None: every one),
     checked for NaN when a step fails. ``shared_sampling``: see
-    :func:`~torchrl_recon.training.fit_population`."""
+    :func:`~torchrl_recon.fitting.fit_population`."""
 
     module: nn.Module
     losses_of: Callable[[Batches], torch.Tensor]

@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from tests.fitting import fitted
+from tests.normalized import fitted
 from torchrl_recon.data import (
     MASK_KEY,
     TRAJ_KEY,
@@ -14,6 +14,8 @@ from torchrl_recon.data import (
     make_sequence_buffer,
     needs_padding,
 )
+from torchrl_recon.fitting import fit_population, fit_uncertainty, fit_world_model
+from torchrl_recon.fitting.online import FitSchedule, fit_models
 from torchrl_recon.modules import (
     EnsembleUncertainty,
     LSTMWorldModel,
@@ -22,8 +24,6 @@ from torchrl_recon.modules import (
 )
 from torchrl_recon.modules.padding import check_prefix_mask, start_at_rest
 from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss, as_sequences
-from torchrl_recon.training import fit_population, fit_uncertainty, fit_world_model
-from torchrl_recon.training.online import FitSchedule, fit_models
 
 N, M, WINDOW, SLICE = 3, 1, 4, 8
 

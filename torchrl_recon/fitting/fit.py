@@ -1,9 +1,9 @@
 """Fit the world model and the uncertainty estimators from TorchRL replay buffers.
 
 Every fit runs one loop, :func:`_fit_loop`, over R members (one model: R = 1): what it trains
-is a :class:`~torchrl_recon.training.fit_data.FitData`, its settings one :class:`FitSettings`,
-its step one :class:`~torchrl_recon.training.fit_step.FitStep` (eager, compiled or captured),
-its early stopping and best weights one :class:`~torchrl_recon.training.early_stopping.EarlyStopping`.
+is a :class:`~torchrl_recon.fitting.fit_data.FitData`, its settings one :class:`FitSettings`,
+its step one :class:`~torchrl_recon.fitting.fit_step.FitStep` (eager, compiled or captured),
+its early stopping and best weights one :class:`~torchrl_recon.fitting.early_stopping.EarlyStopping`.
 The entry points check their arguments, fit the normalisation and build those four.
 """
 
@@ -28,14 +28,9 @@ from tqdm.auto import tqdm
 from torchrl_recon.data.buffers import buffer_contents
 from torchrl_recon.devices import check_compile_support, module_device
 from torchrl_recon.estimators.uncertainty import UncertaintyEstimator
-from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real, check_type
-from torchrl_recon.modules.members import StackedMembers
-from torchrl_recon.modules.reward_model import RewardModel
-from torchrl_recon.modules.world_model import LSTMWorldModel
-from torchrl_recon.objectives import RewardLoss, UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.training.checkpoint import save_checkpoint
-from torchrl_recon.training.early_stopping import EarlyStopping
-from torchrl_recon.training.fit_data import (
+from torchrl_recon.fitting.checkpoint import save_checkpoint
+from torchrl_recon.fitting.early_stopping import EarlyStopping
+from torchrl_recon.fitting.fit_data import (
     Batches,
     FitData,
     MemberRNG,
@@ -43,8 +38,13 @@ from torchrl_recon.training.fit_data import (
     one_member,
     population_loss,
 )
-from torchrl_recon.training.fit_graph import CapturedStep, capturable_adam, check_cuda_graph
-from torchrl_recon.training.fit_step import COMPILING, FitStep, GraphStep, Update
+from torchrl_recon.fitting.fit_graph import CapturedStep, capturable_adam, check_cuda_graph
+from torchrl_recon.fitting.fit_step import COMPILING, FitStep, GraphStep, Update
+from torchrl_recon.modules.checks import check_finite_keys, check_int, check_real, check_type
+from torchrl_recon.modules.members import StackedMembers
+from torchrl_recon.modules.reward_model import RewardModel
+from torchrl_recon.modules.world_model import LSTMWorldModel
+from torchrl_recon.objectives import RewardLoss, UncertaintyLoss, WorldModelPredictionLoss
 
 
 @dataclass
@@ -772,7 +772,7 @@ def fit_population(
     ``cuda_graph=True`` (models on a CUDA device) runs each training step, forward, backward,
     clip, Adam (``capturable``, its learning rate a tensor) and the stopped members' restore,
     as one CUDA graph: eager for its first three steps, then captured once and replayed
-    (:class:`~torchrl_recon.training.CapturedStep`), so a step costs one launch
+    (:class:`~torchrl_recon.fitting.CapturedStep`), so a step costs one launch
     instead of hundreds. The same fit up to float rounding; a non-finite loss stops it with
     the same messages (its step is applied, then every member is restored to its best weights,
     as the eager fit ends too).

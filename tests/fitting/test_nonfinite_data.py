@@ -8,10 +8,10 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
+from torchrl_recon.fitting import fit_population, fit_uncertainty, fit_world_model
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty, unfitted_normalizers
 from torchrl_recon.trainers import FitNormalization, IterationCollector, LogIteration
 from torchrl_recon.trainers.collector import check_batch
-from torchrl_recon.training import fit_population, fit_uncertainty, fit_world_model
 
 FIT = dict(steps=4, eval_every=2, progress=False)
 

@@ -1,4 +1,4 @@
-"""The online loop (torchrl_recon.training.online) on a real gymnasium env, at smoke scale."""
+"""The online loop (torchrl_recon.fitting.online) on a real gymnasium env, at smoke scale."""
 
 from __future__ import annotations
 
@@ -10,21 +10,21 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-import torchrl_recon.training.online as online
+import torchrl_recon.fitting.online as online
 from torchrl_recon.collectors import collect_random
 from torchrl_recon.data import make_sequence_buffer, split_by_trajectory
 from torchrl_recon.data.buffers import TRAJ_KEY
 from torchrl_recon.envs import make_env
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
-from torchrl_recon.policies import exploration_objective
-from torchrl_recon.trainers import ModelFitStepper, learn_online
-from torchrl_recon.training.fit import FitResult
-from torchrl_recon.training.online import (
+from torchrl_recon.fitting.fit import FitResult
+from torchrl_recon.fitting.online import (
     FitSchedule,
     fit_models,
     recent_and_sampled,
 )
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.planners import CEMPlanner, Objective, PlanningModel
+from torchrl_recon.policies import exploration_objective
+from torchrl_recon.trainers import ModelFitStepper, learn_online
 
 SCHEDULE = FitSchedule(
     steps=6, refit_steps=3, eval_every=3, slice_len=8, num_slices=4, val_fraction=0.34
@@ -180,7 +180,7 @@ def test_learn_online_refuses_bad_arguments_before_any_env_step(bad, error, mess
 def test_a_world_model_of_members_is_fitted_and_planned_with():
     """learn_online with an ensemble (num_members=3): every member refitted from its own weights
     (they stay distinct), the model error the members' mean."""
-    from torchrl_recon.training.online import model_error
+    from torchrl_recon.fitting.online import model_error
 
     torch.manual_seed(5)
     env = make_env("Pendulum-v1", seed=5, max_episode_steps=15)
@@ -349,7 +349,7 @@ def test_a_schedule_with_cuda_graph_fits_the_world_models_members_with_it(monkey
     ``cuda_graph=True``, the estimator's not; a world model without members or off CUDA is
     refused before any fit (a ``ModelFitStepper``: when it is built), and so is a value that is
     not a bool."""
-    import torchrl_recon.training.fit as fit_module
+    import torchrl_recon.fitting.fit as fit_module
 
     data = _eight_step_episodes(48)
     schedule = replace(TINY_FIT, val_fraction=0.34, cuda_graph=True)

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torchrl_recon.errors import DamagedFileError
+from torchrl_recon.fitting.checkpoint import load_checkpoint, load_modules, save_checkpoint
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.training.checkpoint import load_checkpoint, load_modules, save_checkpoint
 
 
 def _models(seed: int) -> dict[str, torch.nn.Module]:

@@ -28,17 +28,17 @@ from torchrl_recon.data import (
 )
 from torchrl_recon.data.buffers import TRAJ_KEY, check_val_fraction
 from torchrl_recon.devices import module_device
-from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
-from torchrl_recon.modules.checks import check_finite, check_flag, check_int
-from torchrl_recon.objectives import WorldModelPredictionLoss
-from torchrl_recon.planners.beta import window_uncertainty
-from torchrl_recon.training.fit import (
+from torchrl_recon.fitting.fit import (
     check_fit_settings,
     fit_reward,
     fit_uncertainty,
     world_model_fit,
 )
-from torchrl_recon.training.fit_graph import check_cuda_graph
+from torchrl_recon.fitting.fit_graph import check_cuda_graph
+from torchrl_recon.modules import LSTMWorldModel, RewardModel, UncertaintyEstimator
+from torchrl_recon.modules.checks import check_finite, check_flag, check_int
+from torchrl_recon.objectives import WorldModelPredictionLoss
+from torchrl_recon.planners.beta import window_uncertainty
 
 
 @dataclass
@@ -52,7 +52,7 @@ class FitSchedule:
     None: on the whole training split. ``refit_uncertainty``: False leaves the estimator as
     the first fit made it (when the planner does not read u: β = 0, no re-planning on u, no
     exploring rounds). ``compile``: the world model's fits under ``torch.compile``
-    (:func:`~torchrl_recon.training.train_loss_module`; compiled once per process, reused by
+    (:func:`~torchrl_recon.fitting.train_loss_module`; compiled once per process, reused by
     every refit). ``uncertainty``: the estimator's fits' own settings, any of
     ``FIT_SETTINGS``: its first fit's ``steps``, and ``lr``, ``eval_every``, ``patience``
     (the world model's where not given) and ``compile`` (False where not given); its refits take
@@ -211,7 +211,7 @@ def fit_models(
     current weights and normalisation, ``schedule.refit_steps``; the estimator only with
     ``schedule.refit_uncertainty``) both networks, and a learned ``reward_model`` when given,
     on ``data``, split by trajectory with ``seed``; returns their best validation losses (a
-    world model of members: :func:`~torchrl_recon.training.fit_world_members`, their mean).
+    world model of members: :func:`~torchrl_recon.fitting.fit_world_members`, their mean).
     With ``schedule.renormalize`` a refit first refits the world model's and the reward
     model's statistics on all ``data``, keeping their function. When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from torchrl_recon.training.checkpoint import load_checkpoint, load_modules, save_checkpoint
-from torchrl_recon.training.fit import (
+from torchrl_recon.fitting.checkpoint import load_checkpoint, load_modules, save_checkpoint
+from torchrl_recon.fitting.fit import (
     FitResult,
     fit_population,
     fit_reward,
@@ -13,8 +13,8 @@ from torchrl_recon.training.fit import (
     train_loss_module,
     world_model_fit,
 )
-from torchrl_recon.training.fit_graph import CapturedStep
-from torchrl_recon.training.online import FitSchedule, IterationRecord
+from torchrl_recon.fitting.fit_graph import CapturedStep
+from torchrl_recon.fitting.online import FitSchedule, IterationRecord
 
 __all__ = [
     "CapturedStep",

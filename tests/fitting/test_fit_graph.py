@@ -1,7 +1,7 @@
 """``fit_population(cuda_graph=True)`` on the CPU: the captured step's own logic, without a graph.
 
 A CUDA graph needs a GPU (``tests/test_device.py`` captures one there). Off CUDA,
-:class:`~torchrl_recon.training.fit_graph.CapturedStep` runs its step eagerly, so with the
+:class:`~torchrl_recon.fitting.fit_graph.CapturedStep` runs its step eagerly, so with the
 device check lifted the graph-mode loop runs here as it does on a GPU around the capture: the
 whole step in one call (backward and Adam before the loss check), Adam with a tensor learning
 rate, the stopped members restored by a mask inside the step. These tests pin that loop to the
@@ -17,17 +17,17 @@ import torch
 from tensordict import TensorDict
 from torch.utils._python_dispatch import TorchDispatchMode
 
+import torchrl_recon.fitting.fit as fit_module
 import torchrl_recon.modules.checks as checks
-import torchrl_recon.training.fit as fit_module
 from torchrl_recon.data import make_sequence_buffer
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.training import fit_population
-from torchrl_recon.training.fit_graph import (
+from torchrl_recon.fitting import fit_population
+from torchrl_recon.fitting.fit_graph import (
     CapturedStep,
     capturable_adam,
     check_cuda_graph,
     restore_frozen,
 )
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
 
 # ATen ops that read a tensor's value on the host (item, bool(), nonzero's size) or copy a
 # host value into a new tensor (torch.tensor(...): a host-to-device copy on a GPU).

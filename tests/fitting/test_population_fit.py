@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_recon.data import make_sequence_buffer
+from torchrl_recon.fitting import fit_population, fit_uncertainty, fit_world_model
 from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.training import fit_population, fit_uncertainty, fit_world_model
 
 N, M = 3, 2
 FIT = dict(steps=12, eval_every=3, val_batches=2, progress=False)
@@ -203,7 +203,7 @@ def test_population_errors_are_each_members_multi_step_errors():
 def test_fit_world_members_fits_each_member_as_its_own_fit():
     """fit_world_members on a stacked model: member r as fit_world_model(seed=seed + r) on a
     copy of it, up to float rounding; the result's loss is the members' mean."""
-    from torchrl_recon.training import fit_world_members
+    from torchrl_recon.fitting import fit_world_members
 
     rb = _buffer(0)
     torch.manual_seed(0)

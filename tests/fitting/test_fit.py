@@ -17,9 +17,7 @@ from torchrl.trainers import ReplayBufferTrainer, Trainer
 
 from torchrl_recon.data import load_buffer, make_sequence_buffer, save_buffer, split_by_trajectory
 from torchrl_recon.envs import make_env
-from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
-from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
-from torchrl_recon.training import (
+from torchrl_recon.fitting import (
     fit_population,
     fit_uncertainty,
     fit_world_model,
@@ -28,6 +26,8 @@ from torchrl_recon.training import (
     save_checkpoint,
     train_loss_module,
 )
+from torchrl_recon.modules import LSTMWorldModel, ReconstructionUncertainty
+from torchrl_recon.objectives import UncertaintyLoss, WorldModelPredictionLoss
 
 logging.getLogger("torchrl").setLevel(logging.WARNING)
 

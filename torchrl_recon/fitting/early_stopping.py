@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from torchrl_recon.devices import module_device
-from torchrl_recon.training.fit_graph import restore_frozen
+from torchrl_recon.fitting.fit_graph import restore_frozen
 
 
 class EarlyStopping:

@@ -9,9 +9,9 @@ import torch
 from tests.compilers import needs_cpp_compiler
 from torchrl_recon.data import make_sequence_buffer
 from torchrl_recon.devices import check_compile_support
+from torchrl_recon.fitting import fit_population, fit_world_model
+from torchrl_recon.fitting.fit import COMPILING
 from torchrl_recon.modules import LSTMWorldModel
-from torchrl_recon.training import fit_population, fit_world_model
-from torchrl_recon.training.fit import COMPILING
 
 from .test_population_fit import FIT, M, N, _buffer
 

@@ -5,7 +5,7 @@ then ``apply(losses)``: backward, each member's gradient clip, Adam, the stopped
 restore and the learning-rate schedule. :class:`FitStep` runs the losses eagerly or under
 ``torch.compile`` and applies the update after the check; :class:`GraphStep` runs the whole
 update inside its ``losses`` call, as one captured CUDA graph
-(:class:`~torchrl_recon.training.CapturedStep`), so its update is applied before the check
+(:class:`~torchrl_recon.fitting.CapturedStep`), so its update is applied before the check
 (:attr:`~FitStep.applies_early`: a failed check restores the best weights first).
 """
 
@@ -16,8 +16,8 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_recon.training.early_stopping import EarlyStopping
-from torchrl_recon.training.fit_data import Batches, graph_inputs
+from torchrl_recon.fitting.early_stopping import EarlyStopping
+from torchrl_recon.fitting.fit_data import Batches, graph_inputs
 
 COMPILING = "torch.compile: the first step compiles"
 """What a compiled fit's progress bar says until its first step is done (on a CPU a cold
@@ -129,7 +129,7 @@ class FitStep:
 
 class GraphStep(FitStep):
     """The captured step: ``losses(batches)`` runs the losses and the whole update (without a
-    host read) through ``capture(whole_step)``, a :class:`~torchrl_recon.training.CapturedStep`
+    host read) through ``capture(whole_step)``, a :class:`~torchrl_recon.fitting.CapturedStep`
     or a callable alike, on the batches as one tensordict; ``apply`` only steps the schedule.
     """
 

@@ -3,6 +3,7 @@ mean return per iteration and the mean over seeds for each variant, the random p
 task's target and anchor.
 
 Run: python docs/results/standard_task_curves.py   (writes docs/results/standard_tasks/<task>.png)
+     python docs/results/standard_task_curves.py --table   (also prints each seed's table row)
 
 The runs are read from ``docs/results/standard_tasks/<variant>/seed*/results.json``; a variant
 with no published seed yet is left out of its figure.
@@ -10,8 +11,11 @@ with no published seed yet is left out of its figure.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 from torchrl_recon.reports.plots import plot_seed_curves
 
@@ -34,7 +38,25 @@ def seeds_of(folder: str) -> list[dict]:
     return [json.loads(p.read_text()) for p in paths]
 
 
+def table_rows(label: str, runs: list[dict]) -> list[str]:
+    """Markdown rows, one per seed: each iteration's mean return, the last half, the best
+    episode of the last iteration."""
+    rows = []
+    for run in runs:
+        means = ", ".join(
+            f"{np.mean(it['returns']):.1f}".replace("-", "−") for it in run["iterations"]
+        )
+        last, best = run["mean_return_last_half"], max(run["iterations"][-1]["returns"])
+        rows.append(
+            f"| {run['seed']}, {label} | {means} | {last:.2f} | {best:.2f} |".replace("-", "−")
+        )
+    return rows
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--table", action="store_true", help="print each seed's table row")
+    args = parser.parse_args()
     for task, (folders, references) in TASKS.items():
         variants = {label: seeds_of(folder) for label, folder in folders.items()}
         variants = {label: runs for label, runs in variants.items() if runs}
@@ -44,6 +66,8 @@ def main() -> None:
         path = HERE / f"{task}.png"
         figure.savefig(path, dpi=110)
         print(f"{path.relative_to(HERE.parents[1])}: {', '.join(variants)}")
+        for label, runs in variants.items() if args.table else ():
+            print("\n".join(table_rows(label, runs)))
 
 
 if __name__ == "__main__":

@@ -15,8 +15,9 @@ setup: $(VENV)/.installed
 # are handed to it; it writes no bytecode unless asked, and without it (PYTHONDONTWRITEBYTECODE)
 # every test's subprocess would compile torch's sources again (the CLI's start: 7 s -> 17 s), so
 # each install compiles what it installs. INSTALLER='pip' installs with pip as before.
+# PIP_LINKS is expanded only when an install runs (`=`, not `:=`): other targets never ask pip.
 INSTALLER ?= uv
-PIP_LINKS := $(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null)
+PIP_LINKS = $(shell $(PYTHON) -m pip config get global.find-links 2>/dev/null)
 ifeq ($(INSTALLER),uv)
 INSTALL = $(PY) -m uv pip install --quiet --compile-bytecode --python $(PY) $(addprefix --find-links ,$(PIP_LINKS))
 else

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import io
 import re
 import tokenize
@@ -65,11 +66,16 @@ def code_only(text: str) -> str:
     return "".join(lines)
 
 
+@functools.cache
+def texts(code: bool) -> dict[Path, str]:
+    """Every source's text (with ``code``, its code only), read and blanked once per run."""
+    return {p: code_only(p.read_text()) if code else p.read_text() for p in sources()}
+
+
 def files_spelling(pattern: str, *, code: bool = False) -> list[Path]:
     """The files whose text (with ``code``, whose code only) matches ``pattern``."""
     found = re.compile(pattern)
-    read = (lambda p: code_only(p.read_text())) if code else (lambda p: p.read_text())
-    return [p for p in sources() if found.search(read(p))]
+    return [p for p, text in texts(code).items() if found.search(text)]
 
 
 def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:

@@ -194,8 +194,7 @@ def plot_learning_curve(results: Mapping[str, Any]) -> Figure:
     for it in results["iterations"]:
         steps = np.full(len(it["returns"]), it["env_steps"])
         ax.plot(steps, it["returns"], "o", color="C0", alpha=0.6)
-    ended = [it for it in results["iterations"] if it["returns"]]  # np.mean of none warns
-    means = [(it["env_steps"], float(np.mean(it["returns"]))) for it in ended]
+    means = zip(*_iteration_means(results), strict=True)  # NaN where no episode ended
     if means := [(steps, mean) for steps, mean in means if np.isfinite(mean)]:
         ax.plot(*zip(*means, strict=True), "-", color="C0", label="MPC (mean per iteration)")
     ax.axhline(results["random"]["mean_return"], color="C3", ls="--", label="random policy")

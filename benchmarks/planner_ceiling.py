@@ -1,7 +1,7 @@
 """The planner's ceiling on a MuJoCo task: the same planner with the true simulator as its model.
 
 Run: python benchmarks/planner_ceiling.py --task InvertedDoublePendulum-v5 --planner cem
-     [--horizon 30] [--candidates 350] [--iterations 5] [--episodes 3] [--steps 1000]
+     [--horizon 30] [--candidates 350] [--iterations 5] [--episodes 3] [--steps N]
      [--seed 0] [--threads 1] [--kwargs '{"warm_start_uniform": 0}'] [--out ceiling.jsonl]
 
 What it separates: when an agent with a learned model falls short on a task, is it the model or
@@ -141,7 +141,9 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=350)
     parser.add_argument("--iterations", type=int, default=5)
     parser.add_argument("--episodes", type=int, default=3)
-    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument(
+        "--steps", type=int, default=None, help="episode length (default: the env's own limit)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument(
@@ -151,6 +153,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     observe, cost, termination = TASKS[args.task]
+    if args.steps is None:  # the task's own episodes (Reacher-v5: 50 steps; the pendulums: 1,000)
+        args.steps = gym.spec(args.task).max_episode_steps
     env = gym.make(args.task, max_episode_steps=args.steps)
     sim = SimulatorModel(env, observe)
     low, high = (

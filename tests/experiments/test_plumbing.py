@@ -34,9 +34,10 @@ from torchrl_recon.runs.provenance import git_info
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 ENVS = ("industrial_benchmark", "drone", "minitaur")
-# recipes/gym need env.id and env.cost: tests/experiments/test_gym_recipes.py
+# recipes/gym need env.id and env.cost: tests/experiments/test_gym_recipes.py; recipes/dmc need
+# the dmc extra: tests/envs/test_dmc.py
 ALL_RECIPES = sorted(
-    p for p in RECIPES.glob("*/*.yaml") if p.parent.name not in ("all_envs", "gym")
+    p for p in RECIPES.glob("*/*.yaml") if p.parent.name not in ("all_envs", "gym", "dmc")
 )
 SWEEP_RECIPES = sorted(RECIPES.glob("all_envs/*.yaml"))
 

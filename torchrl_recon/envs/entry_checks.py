@@ -10,6 +10,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from torchrl_recon.envs.dmc import DMCEntry, dmc_errors
 from torchrl_recon.envs.registry import ENVS, LEARNED, EnvEntry, import_cost
 
 
@@ -78,6 +79,8 @@ def entry_errors(
                 f"'{key}.state_names' must name the {len(shipped.state_names)} observation dims "
                 f"of {entry.name!r}, got {len(state_names)} names"
             )
+    elif len(errors) == before and isinstance(entry, DMCEntry):
+        errors += dmc_errors(entry, kwargs, cost, term, state_names, key)
     elif len(errors) == before:
         errors += _gym_errors(entry.gym_id, kwargs, cost, term, state_names, key)
     return errors

@@ -18,6 +18,7 @@ from torchrl.envs import (
     TransformedEnv,
 )
 
+from torchrl_recon.envs.dmc import DMCEntry, make_dmc_env
 from torchrl_recon.envs.registry import get_entry, register_envs
 from torchrl_recon.envs.spaces import space_errors
 
@@ -51,6 +52,11 @@ def make_env(
     next ones with seeds derived from it by TorchRL's ``seed_generator`` chain.
     Episode truncation comes from the gymnasium registration (``TimeLimit``).
 
+    A DeepMind Control task is ``"dmc:<domain>/<task>"`` (``pip install "torchrl-recon[dmc]"``):
+    TorchRL's ``DMControlEnv`` with ``frame_skip`` from ``env_kwargs`` and its observation
+    entries concatenated under ``"observation"``; episodes end at the suite's limit (1,000
+    simulator steps) or at ``max_episode_steps`` (``StepCounter``).
+
     Any gymnasium environment works: a gymnasium id (``"Pendulum-v1"``) or
     ``"my_module:MyEnv-v0"``, for which gymnasium imports ``my_module`` (where the env is
     registered with ``gymnasium.register``) first; see
@@ -60,7 +66,8 @@ def make_env(
 
     Args:
         name: short name (``"industrial_benchmark"``, ``"drone"``, ``"minitaur"``, or one given
-            to ``register_env``) or gymnasium id (``"Pendulum-v1"``, ``"my_module:MyEnv-v0"``).
+            to ``register_env``), gymnasium id (``"Pendulum-v1"``, ``"my_module:MyEnv-v0"``) or
+            DeepMind Control task (``"dmc:cartpole/swingup"``).
 
     Keyword Args:
         seed: seed of the (first) environment, or one seed per environment.
@@ -115,9 +122,14 @@ def make_env(
             raise ValueError(
                 f"max_episode_steps must be a positive int, got {max_episode_steps!r}."
             )
-        env_kwargs["max_episode_steps"] = max_episode_steps
-
-    create = partial(_make_gym_env, entry.gym_id, device=device, **env_kwargs)
+    max_steps = None  # a gymnasium env truncates itself (TimeLimit), a DeepMind Control one here
+    if isinstance(entry, DMCEntry):
+        max_steps = max_episode_steps
+        create = partial(make_dmc_env, entry.domain, entry.task, device=device, **env_kwargs)
+    else:
+        if max_episode_steps is not None:
+            env_kwargs["max_episode_steps"] = max_episode_steps
+        create = partial(_make_gym_env, entry.gym_id, device=device, **env_kwargs)
     batched = ParallelEnv if parallel else SerialEnv
     if seeds is not None and num_envs > 1:
         base = batched(num_envs, [partial(create, seed=s) for s in seeds], device=device)
@@ -129,7 +141,8 @@ def make_env(
     if errors:
         base.close()
         raise ValueError("; ".join(errors) + ".")
-    env = TransformedEnv(base, Compose(DoubleToFloat(), StepCounter(), InitTracker()))
+    transforms = Compose(DoubleToFloat(), StepCounter(max_steps), InitTracker())
+    env = TransformedEnv(base, transforms, auto_unwrap=True)  # a dmc env's own joins these
     if seeds is None or num_envs == 1:
         env.set_seed(seed if seeds is None else seeds[0])
     return env

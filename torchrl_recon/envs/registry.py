@@ -191,12 +191,15 @@ ENVS: dict[str, EnvEntry] = {
 def get_entry(name: str) -> EnvEntry:
     """Look an environment up by short name (``"drone"``) or gymnasium id.
 
-    A shipped env or one added with :func:`register_env` comes back as registered; any other
-    gymnasium id (``"Pendulum-v1"``, or ``"my_module:MyEnv-v0"``, which imports ``my_module``
-    first) as a generic :class:`GymEntry` without a torch cost (see :func:`gym_entry`).
+    A shipped env or one added with :func:`register_env` comes back as registered; a DeepMind
+    Control task ``"dmc:<domain>/<task>"`` (the ``dmc`` extra) as a
+    :class:`~torchrl_recon.envs.dmc.DMCEntry`; any other gymnasium id (``"Pendulum-v1"``, or
+    ``"my_module:MyEnv-v0"``, which imports ``my_module`` first) as a generic :class:`GymEntry`
+    without a torch cost (see :func:`gym_entry`).
 
     Raises:
-        ValueError: ``name`` is neither registered here nor a gymnasium id.
+        ValueError: ``name`` is neither registered here nor a gymnasium id nor a DeepMind
+            Control task (or is one and dm_control is not installed).
 
     Examples:
         >>> get_entry("torchrl_recon/Drone-v0").name
@@ -207,6 +210,10 @@ def get_entry(name: str) -> EnvEntry:
     for entry in (*ENVS.values(), *USER_ENVS.values()):
         if name in (entry.name, entry.gym_id):
             return entry
+    from torchrl_recon.envs.dmc import dmc_entry, is_dmc_id  # dm_control only for a dmc: id
+
+    if is_dmc_id(name):
+        return dmc_entry(name)
     return gym_entry(name)
 
 

@@ -278,6 +278,13 @@ PUBLISHED = ROOT / "docs" / "results"
             "InvertedPendulum-v5",
             "online/InvertedPendulum-v5_upright",
         ),
+        ("online_reacher", "Reacher-v5", "standard_tasks/Reacher-v5"),
+        (
+            "online_inverted_double_pendulum",
+            "InvertedDoublePendulum-v5",
+            "standard_tasks/InvertedDoublePendulum-v5",
+        ),
+        ("online_half_cheetah", "HalfCheetah-v5", "standard_tasks/HalfCheetah-v5"),
     ],
 )
 def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(
@@ -285,11 +292,12 @@ def test_each_standard_task_recipe_is_valid_and_matches_its_published_runs(
 ):
     """The task recipes validate (MuJoCo's only where it is installed) and hold exactly the
     config of the runs published from them (keys a resumed run may change aside)."""
-    if env_id.startswith("InvertedPendulum"):
+    if env_id.endswith("-v5"):  # gymnasium's MuJoCo tasks
         pytest.importorskip("mujoco")
     cfg = load_recipe(GYM / f"{recipe}.yaml", ["seed=0"])
     assert cfg.env.id == env_id and cfg.env.cost.startswith("torchrl_recon.envs.gym_costs:")
-    assert cfg.random_steps >= cfg.env.episode_steps == cfg.steps_per_iteration
+    assert cfg.random_steps >= cfg.env.episode_steps
+    assert cfg.steps_per_iteration % cfg.env.episode_steps == 0  # whole episodes an iteration
     published = PUBLISHED / published / "seed0" / "config.yaml"
     if not published.exists():
         pytest.skip(f"no published run of {recipe}")

@@ -125,7 +125,13 @@ def test_every_recipe_loads_and_validates(path):
     assert cfg.experiment in path.stem
     assert cfg.env.name == path.parent.name
     assert f"seed{cfg.seed}" in cfg.output_dir
-    again = validate(cfg)  # idempotent, and usable on an already typed config
+
+
+@pytest.mark.parametrize("stem", ["explore", "control", "calibrate"])
+def test_validate_is_idempotent_on_an_already_typed_config(stem):
+    """One recipe of each kind (validation reads the same schema for every env)."""
+    cfg = load_recipe(RECIPES / "drone" / f"{stem}.yaml")
+    again = validate(cfg)
     assert OmegaConf.to_container(again) == OmegaConf.to_container(cfg)
 
 

@@ -57,13 +57,10 @@ PLANNERS = {
 }
 
 
-@pytest.mark.parametrize(  # MPPI and shooting (11 s) in make test-all; CEM and iCEM here
-    "kind",
-    [
-        k if k in ("cem", "icem") else pytest.param(k, marks=pytest.mark.slow)
-        for k in sorted(PLANNERS)
-    ],
-)
+# All four in make test-all (22 s of tracing); make test traces CEM's and iCEM's whole plans as
+# one graph, bitwise eager, in test_compiled_plans.py (every batch size; MPC steps with a band).
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", sorted(PLANNERS))
 def test_the_whole_plan_is_one_graph_and_plans_what_eager_does(kind):
     planner = PLANNERS[kind](_model(), Objective(beta=0.1))
     ctx = _context()

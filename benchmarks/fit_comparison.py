@@ -27,16 +27,18 @@ What it measures, per seed (training data, split, weights and batches all drawn 
     ``SliceSampler`` (short episodes padded: ``make_sequence_buffer(pad_short=True)``), no
     validation, the last weights.
   - ``library``: ``fit_models``' world-model fit with the recipe's ``FitSchedule`` (split by
-    trajectory, ``val_fraction`` 0.2 held out, slices of 20, padded only when a split holds
-    no trajectory of 20 steps, else shorter trajectories left out; cosine lr to lr/20, gradient
-    norm clipped at 10, validation every 100 steps, patience 10, best weights).
+    trajectory, ``val_fraction`` 0.2 held out, slices of 20, every episode that ended shorter
+    padded (``short_episodes="pad"``); cosine lr to lr/20, gradient norm clipped at 10,
+    validation every 100 steps, patience 10, best weights). ``the rule before 2026-11-29``:
+    ``short_episodes="pad_if_no_window"``, padded only when a split holds no trajectory of 20
+    steps, else the shorter ones left out (what the fits did until then).
   - ablations of ``library``, one factor each: ``patience None`` (no early stopping),
     ``val_fraction 0.05``, ``slice 10`` (as ``fit_models`` pads: not at all on random data,
     which holds episodes of 10 steps), ``slice 10 padded`` and ``slice 20 padded`` (padding
     forced on), and ``FitSchedule()``'s own sizes (slices of 40, ``val_fraction`` 0.1, what a
     ``ModelFitStepper`` given no schedule fits with); and ``plain`` with the library's
     optimiser (its cosine lr, then also its clipping). On ``mixed`` data: ``plain``, the recipe,
-    the recipe padded, ``FitSchedule()``.
+    the rule before, the recipe padded, ``FitSchedule()``.
 
 * Errors on each test set, from every step of every episode, as the planner predicts: a context
   of the 4 steps before (before an episode's start: its first observation and the zero action,
@@ -184,15 +186,16 @@ def library_fit(
     """``fit_models``' first world-model fit with ``schedule`` (its split, its buffers, its
     ``fit_world_model`` call, step for step), returning what ``fit_models`` does not: the steps
     run, the step of the weights kept and the episodes its sampler can draw. ``pad``: None as
-    ``fit_models`` (``sequence_buffers``: padded only where a split lacks a trajectory of
-    ``slice_len`` steps); True or False forces it."""
+    ``fit_models`` (``sequence_buffers`` with ``schedule.short_episodes``: by default padded
+    where an episode ended shorter than ``slice_len`` steps); True or False forces it."""
     parts = split_by_trajectory(data, schedule.val_fraction, seed=seed)
     sizes = dict(
         slice_len=schedule.slice_len, num_slices=schedule.num_slices, sampling=schedule.sampling
     )
     if pad is None:
-        pad = needs_padding(schedule.slice_len, *parts)
-        buffers = sequence_buffers(parts, **sizes, keys=FIT_KEYS)
+        short = schedule.short_episodes
+        pad = needs_padding(schedule.slice_len, *parts, short_episodes=short)
+        buffers = sequence_buffers(parts, **sizes, keys=FIT_KEYS, short_episodes=short)
     else:
         buffers = tuple(make_sequence_buffer(len(p), **sizes, pad_short=pad) for p in parts)
         for buffer, part in zip(buffers, parts, strict=True):
@@ -308,6 +311,7 @@ ARMS: dict[str, Fit] = {
     "plain + cosine lr": plain_arm(lr_decay=True),
     "plain + cosine lr, clip 10": plain_arm(lr_decay=True, clip_norm=10.0),
     "library (recipe)": library_arm(),
+    "library, the rule before 2026-11-29": library_arm(short_episodes="pad_if_no_window"),
     "library, patience None": library_arm(patience=None),
     "library, val_fraction 0.05": library_arm(val_fraction=0.05),
     "library, slice 10": library_arm(slice_len=10),
@@ -318,10 +322,15 @@ ARMS: dict[str, Fit] = {
 """Each arm's fit, from the recipe's schedule (``--steps`` its steps)."""
 
 TRAIN_ARMS = {
-    "random": [a for a in ARMS if a != "library, slice 20 padded"],  # always padded there
+    "random": [  # always padded there
+        a
+        for a in ARMS
+        if a not in ("library, slice 20 padded", "library, the rule before 2026-11-29")
+    ],
     "mixed": [
         "plain (TorchRL step)",
         "library (recipe)",
+        "library, the rule before 2026-11-29",
         "library, slice 20 padded",
         "library, FitSchedule() slice 40, val 0.1",
     ],

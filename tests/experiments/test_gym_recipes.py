@@ -278,7 +278,7 @@ PUBLISHED = ROOT / "docs" / "results"
             "InvertedPendulum-v5",
             "online/InvertedPendulum-v5_upright",
         ),
-        ("online_reacher", "Reacher-v5", "standard_tasks/Reacher-v5"),
+        ("online_reacher", "Reacher-v5", "standard_tasks/Reacher-v5_pets_cem"),
         (
             "online_inverted_double_pendulum",
             "InvertedDoublePendulum-v5",

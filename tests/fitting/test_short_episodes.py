@@ -13,6 +13,7 @@ from torchrl_recon.data import (
     long_trajectories,
     make_sequence_buffer,
     needs_padding,
+    sequence_buffers,
 )
 from torchrl_recon.fitting import fit_population, fit_uncertainty, fit_world_model
 from torchrl_recon.fitting.online import FitSchedule, fit_models
@@ -190,11 +191,45 @@ def test_padding_needs_trajectory_sampling():
         make_sequence_buffer(10, slice_len=4, num_slices=2, sampling="step", pad_short=True)
 
 
+def ended(data: TensorDict, last_ends: bool = True) -> TensorDict:
+    """``data`` with ``("next", "done")`` at each episode's last step (the last episode's
+    only with ``last_ends``: else it is a piece cut short by the end of a collection)."""
+    ids = data[TRAJ_KEY]
+    done = torch.cat([ids[1:] != ids[:-1], torch.tensor([last_ends])])
+    data["next", "done"] = done.unsqueeze(-1)
+    return data
+
+
 def test_needs_padding_only_where_a_strict_sampler_finds_no_slice():
+    """Without ends recorded (or with the rule before 2026-11-29), a part pads only when it
+    holds no full window."""
     short, mixed = episodes([3, 4, 2]), episodes([3, 9, 2])
     assert long_trajectories(mixed, SLICE) == 1
     assert needs_padding(SLICE, short) and not needs_padding(SLICE, mixed)
     assert needs_padding(SLICE, mixed, short)
+    legacy = "pad_if_no_window"
+    assert not needs_padding(SLICE, ended(episodes([3, 9, 2])), short_episodes=legacy)
+
+
+def test_an_episode_that_ended_short_beside_a_long_one_is_padded_and_drawn():
+    """The default keeps an ended short episode (a strict sampler would leave it out: on
+    InvertedDoublePendulum-v5 it drew 55 of 229 episodes); a piece cut short by the end of
+    the collection alone is not padded (data without terminations sample as before)."""
+    mixed = ended(episodes([3, 9, 2]))
+    assert needs_padding(SLICE, mixed)
+    assert not needs_padding(SLICE, ended(episodes([9, 10, 2]), last_ends=False))
+    (rb,) = sequence_buffers((mixed,), slice_len=SLICE, num_slices=32)
+    torch.manual_seed(0)
+    batch = rb.sample()
+    assert set(batch[TRAJ_KEY][batch.get(MASK_KEY)].tolist()) == {0, 1, 2}
+    (strict,) = sequence_buffers(
+        (mixed,), slice_len=SLICE, num_slices=32, short_episodes="pad_if_no_window"
+    )
+    assert set(strict.sample()[TRAJ_KEY].tolist()) == {1}
+    with pytest.raises(ValueError, match="short_episodes must be one of"):
+        needs_padding(SLICE, mixed, short_episodes="drop")
+    with pytest.raises(ValueError, match="short_episodes must be one of"):
+        FitSchedule(short_episodes="drop")
 
 
 @pytest.mark.parametrize("lengths", [[2, 3, 5, 4, 3, 6], [1, 7, 3, 2, 5, 4]])

@@ -15,6 +15,7 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_recon.data import SHORT_EPISODES
 from torchrl_recon.data.step_sampler import WINDOW_SAMPLINGS
 from torchrl_recon.devices import DEVICE_CHOICES, check_device
 from torchrl_recon.experiments.field_checks import (
@@ -53,6 +54,7 @@ def _device(value: str) -> str | None:
 LoggerBackend = choice("LoggerBackend", "wandb csv none", __name__)
 LoggerMode = choice("LoggerMode", "offline online", __name__)
 WindowSampling = choice("WindowSampling", list(WINDOW_SAMPLINGS), __name__)
+ShortEpisodes = choice("ShortEpisodes", list(SHORT_EPISODES), __name__)
 WorldModelMode = choice("WorldModelMode", "multi_step one_step", __name__)
 BandKind = choice("BandKind", "absolute quantile mean_ratio", __name__)
 DataPolicy = choice("DataPolicy", "random offset_noise", __name__)
@@ -139,11 +141,15 @@ class FitConfig:
 @dataclass
 class TrainingConfig:
     """Fitting on windows of ``slice_len`` steps, ``num_slices`` a batch. ``window_sampling``:
-    ``trajectory`` (TorchRL's ``SliceSampler``) or ``step`` (every window start alike)."""
+    ``trajectory`` (TorchRL's ``SliceSampler``) or ``step`` (every window start alike).
+    ``short_episodes``: ``pad`` keeps every episode that ended before ``slice_len`` steps
+    (padded, masked); ``pad_if_no_window`` pads them only where a split holds no full window,
+    else leaves them out (a run directory made before the key resumes with it)."""
 
     slice_len: int = count(40)
     num_slices: int = count(32)
     window_sampling: WindowSampling = WindowSampling.trajectory
+    short_episodes: ShortEpisodes = ShortEpisodes.pad
     val_fraction: float = checked(0.1, lambda v: None if 0 < v < 1 else "in (0, 1)")
     world_model_mode: WorldModelMode = WorldModelMode.multi_step
     world_model: FitConfig = field(default_factory=FitConfig)

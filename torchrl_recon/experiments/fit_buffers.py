@@ -53,11 +53,13 @@ def split_buffers(
     cfg: DictConfig, data: TensorDictBase, seed: int, keys: tuple = FIT_KEYS
 ) -> tuple[TensorDictReplayBuffer, TensorDictReplayBuffer]:
     """Training and validation sequence buffers of ``data`` (its ``keys``), split by trajectory
-    (``seed``); when a split has no trajectory of ``slice_len`` steps, both pad shorter ones
+    (``seed``); when an episode ended shorter than ``slice_len`` steps or a split has no
+    trajectory that long (``training.short_episodes``), both pad shorter ones
     (:func:`~torchrl_recon.data.sequence_buffers`), once :func:`check_padding` passes."""
     t = cfg.training
     parts = split_by_trajectory(data, t.val_fraction, seed=seed)
-    if needs_padding(t.slice_len, *parts):
+    short = str(t.get("short_episodes", "pad"))
+    if needs_padding(t.slice_len, *parts, short_episodes=short):
         check_padding(cfg)
     sizes = dict(slice_len=t.slice_len, num_slices=t.num_slices, sampling=t.window_sampling)
-    return sequence_buffers(parts, **sizes, keys=keys)
+    return sequence_buffers(parts, **sizes, keys=keys, short_episodes=short)

@@ -110,6 +110,7 @@ def recipe_schedule(cfg: DictConfig, *, refit_uncertainty: bool = True) -> FitSc
         **{**t.world_model, **fit_speed(cfg, "world_model", population=True)},
         mode=str(t.world_model_mode),
         sampling=str(t.window_sampling),
+        short_episodes=str(t.get("short_episodes", "pad")),
         refit_uncertainty=refit_uncertainty,
         uncertainty={**t.uncertainty, **fit_speed(cfg, "uncertainty")},
         renormalize=bool(cfg.get("renormalize", False)),

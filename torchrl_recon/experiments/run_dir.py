@@ -24,6 +24,7 @@ RESUME_IGNORED_KEYS = ("progress", "stop_after", "logger", "output_dir")
 """Top-level keys that may change between a run and its resumption (they do not change results)."""
 KEYS_ADDED_SINCE: dict[str, Any] = {
     "training.window_sampling": "trajectory",
+    "training.short_episodes": "pad_if_no_window",  # runs before it left ended short ones out
     "warmup": "auto",
     "refit_uncertainty": "always",  # online runs before it refitted the estimator every time
     "renormalize": False,  # online runs before it kept the first fit's statistics

@@ -21,6 +21,7 @@ from torchrl.record.loggers import Logger
 from torchrl_recon.data import (
     FIT_KEYS,
     REWARD_FIT_KEYS,
+    SHORT_EPISODES,
     WINDOW_SAMPLINGS,
     cut_sequences,
     sequence_buffers,
@@ -64,6 +65,9 @@ class FitSchedule:
     fit's. ``reward``: a learned reward's fit settings (as ``uncertainty``; the world model's
     where not given). ``sampling``: how the fits draw their windows, ``"trajectory"``
     (TorchRL's ``SliceSampler``) or ``"step"`` (every window start alike), every fit and refit.
+    ``short_episodes``: ``"pad"`` (default) pads and keeps every episode that ended before
+    ``slice_len`` steps; ``"pad_if_no_window"`` only where a split holds no episode of
+    ``slice_len`` steps (see :func:`~torchrl_recon.data.needs_padding`).
 
     Examples:
         >>> FitSchedule(lr=3e-3, uncertainty={"lr": 1e-3}).estimator_settings()["lr"]
@@ -91,6 +95,7 @@ class FitSchedule:
     renormalize: bool = False
     reward: dict[str, Any] = field(default_factory=dict)
     sampling: str = "trajectory"
+    short_episodes: str = "pad"
 
     def __post_init__(self) -> None:
         for name in ("uncertainty", "reward"):
@@ -117,6 +122,11 @@ class FitSchedule:
         if self.sampling not in WINDOW_SAMPLINGS:
             raise ValueError(
                 f"sampling must be one of {sorted(WINDOW_SAMPLINGS)}, got {self.sampling!r}."
+            )
+        if self.short_episodes not in SHORT_EPISODES:
+            raise ValueError(
+                f"short_episodes must be one of {list(SHORT_EPISODES)}, got "
+                f"{self.short_episodes!r}."
             )
         if self.mode not in ("multi_step", "one_step"):
             raise ValueError(f"mode must be 'multi_step' or 'one_step', got {self.mode!r}.")
@@ -215,7 +225,8 @@ def fit_models(
     With ``schedule.renormalize`` a refit first refits the world model's and the reward
     model's statistics on all ``data``, keeping their function. When a split has no
     trajectory of ``slice_len`` steps (an env whose episodes end early), both buffers pad the
-    slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``).
+    slices of shorter ones and mask the padding (``make_sequence_buffer(pad_short=True)``), and
+    so do they when an episode ended shorter than that (``schedule.short_episodes``).
     ``new_steps``: how many of ``data``'s last steps are new, for a refit with
     ``schedule.refit_old_steps``; the validation split is drawn from all ``data`` either way."""
     s = schedule
@@ -233,7 +244,7 @@ def fit_models(
         parts = (recent_and_sampled(parts[0], first_new, s.refit_old_steps, seed=seed), parts[1])
     sizes = dict(slice_len=s.slice_len, num_slices=s.num_slices, sampling=s.sampling)
     keys = FIT_KEYS if reward_model is None else REWARD_FIT_KEYS
-    buffers = sequence_buffers(parts, **sizes, keys=keys)
+    buffers = sequence_buffers(parts, **sizes, keys=keys, short_episodes=s.short_episodes)
     common = dict(
         val_buffer=buffers[1],
         seed=seed,

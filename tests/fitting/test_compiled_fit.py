@@ -90,6 +90,9 @@ def test_compile_without_a_cpp_compiler_is_refused_before_any_step(monkeypatch):
     check_compile_support("cuda")  # nothing to check off the CPU
 
 
+# In make test-all: each compiles a fit of its own (tens of seconds with a cold Inductor cache,
+# as on a fresh machine); the compiled fits of make test are the two tests above.
+@pytest.mark.slow
 @needs_cpp_compiler
 @pytest.mark.parametrize("population", [False, True])
 def test_a_compiled_fits_progress_bar_says_the_first_step_compiles(population, capsys):

@@ -1,7 +1,13 @@
 """Fits with ``compile=True``: their training steps under ``torch.compile``, the same fit up to
-float rounding; refused up front where torch.compile cannot build its kernels."""
+float rounding; refused up front where torch.compile cannot build its kernels.
+
+``make test`` traces the steps with the ``aot_eager`` backend (Dynamo and AOTAutograd, forward
+and backward, no C++ build: seconds); Inductor's own build of the same steps (tens of seconds
+with a cold cache, as on a fresh machine) runs in ``make test-all``."""
 
 from __future__ import annotations
+
+import functools
 
 import pytest
 import torch
@@ -14,6 +20,19 @@ from torchrl_recon.fitting.fit import COMPILING
 from torchrl_recon.modules import LSTMWorldModel
 
 from .test_population_fit import FIT, M, N, _buffer
+
+BACKENDS = ["aot_eager", pytest.param("inductor", marks=pytest.mark.slow)]
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request, monkeypatch) -> str:
+    """The backend ``torch.compile`` builds the fit's step with (the library asks for the
+    default, Inductor)."""
+    if request.param != "inductor":
+        monkeypatch.setattr(
+            torch, "compile", functools.partial(torch.compile, backend=request.param)
+        )
+    return request.param
 
 
 def _world(seed: int) -> LSTMWorldModel:
@@ -29,7 +48,7 @@ def _close(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 
 
 @needs_cpp_compiler
-def test_a_compiled_fit_is_the_eager_fit_up_to_rounding():
+def test_a_compiled_fit_is_the_eager_fit_up_to_rounding(backend):
     rb = _buffer(0)
     eager, compiled = _world(0), _world(0)
     a = fit_world_model(eager, rb, seed=1, **FIT)
@@ -53,7 +72,7 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
 
 
 @needs_cpp_compiler
-def test_a_compiled_fit_still_stops_on_non_finite_data():
+def test_a_compiled_fit_still_stops_on_non_finite_data(backend):
     """NaN inputs: the eager fit's ValueError naming the key and its buffer row (the compiled
     step leaves the input checks out; its non-finite loss has the batch checked as eager)."""
     data = _buffer(0)[:]

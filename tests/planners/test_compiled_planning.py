@@ -65,6 +65,10 @@ def _shift(plan: torch.Tensor) -> torch.Tensor:
     return torch.cat([plan[..., 1:, :], plan[..., -1:, :]], -2)
 
 
+# In make test-all: Inductor's build takes ~45 s with a cold cache (a fresh machine); make test
+# traces the same warm-started iCEM plans of an exploration band in one graph each, bitwise
+# eager (test_compiled_plans.py::test_icem_mpc_steps_with_a_relative_band_plan_in_one_graph_each_as_eager).
+@pytest.mark.slow
 @needs_cpp_compiler
 def test_an_inductor_built_plan_is_eagers_with_a_band_and_a_warm_start():
     """The whole call built by Inductor, at tiny sizes (what only Inductor shows: its lowering

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.trained import HORIZON, WINDOW, OffsetNoisePolicy
 from torchrl_recon.data import cut_sequences
 from torchrl_recon.envs import make_env
 from torchrl_recon.evaluation import (
@@ -14,8 +15,6 @@ from torchrl_recon.evaluation import (
     spearman,
 )
 from torchrl_recon.modules import LinearDeltaModel
-
-from ..conftest import HORIZON, WINDOW, OffsetNoisePolicy
 
 # The LSTM must beat the linear model by this factor. Random-action Drone data stays near hover, where
 # the dynamics are nearly linear, so the margin there is small (we measured ~0.82); on IB it is ~0.4.

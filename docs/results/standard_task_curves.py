@@ -26,7 +26,11 @@ TASKS = {  # task -> (variant label -> folder, reference label -> return)
         {"target: 1,000 steps up": 1000.0},
     ),
     "Reacher-v5": (
-        {"β = 0": "Reacher-v5", "β = 2": "Reacher-v5_beta2"},
+        {
+            "β = 0": "Reacher-v5",
+            "β = 2": "Reacher-v5_beta2",
+            "PETS's CEM, β = 0": "Reacher-v5_pets_cem",
+        },
         {"target: −5": -5.0, "SAC after 1M steps: about −4": -4.0},
     ),
 }

@@ -3,8 +3,8 @@
 
 The whole suite runs on one thread (torch here, OpenMP/MKL in any subprocess a test starts):
 timing-sensitive tests slow down 10-60x when torch uses 2 threads on a loaded machine. This file
-imports no torch itself: the pytest-xdist controller loads it and runs no test, and its workers
-start ~5 s sooner when it need not import torch first.
+imports no torch itself: the pytest-xdist controller loads it and runs no test (importing torch
+and the library took it ~5 s before it started its workers).
 """
 
 from __future__ import annotations

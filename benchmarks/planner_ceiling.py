@@ -130,6 +130,8 @@ def run_episode(env: gym.Env, planner, seed: int, steps: int) -> dict:
         total += float(reward)
         if terminated or truncated:
             break
+        if length % 25 == 0:  # a run stopped mid-episode still shows how far it got
+            print(f"    step {length}: return {total:.1f} so far", flush=True)
     return {"return": total, "length": length, "plan_ms": 1000 * plan_s / length}
 
 

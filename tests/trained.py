@@ -56,14 +56,14 @@ def train_once(name: str, folder: Path) -> dict:
     estimator = ReconstructionUncertainty(obs_dim, action_dim, window=WINDOW)
     model.load_state_dict(saved["model"])
     estimator.load_state_dict(saved["estimator"])
-    return {
-        "name": name,
-        "train": train,
-        "held_out": held_out,
-        "model": model,
-        "estimator": estimator,
-        "scale": saved["scale"],
-    }
+    return _trained(name, train, held_out, model, estimator, saved["scale"])
+
+
+def _trained(name, train, held_out, model, estimator, scale) -> dict:
+    """What :func:`train_models` and :func:`train_once` hand a test."""
+    return dict(
+        name=name, train=train, held_out=held_out, model=model, estimator=estimator, scale=scale
+    )
 
 
 # (world model, estimator) fit steps per env. The Industrial Benchmark's (make test's) are
@@ -94,11 +94,4 @@ def train_models(name: str) -> dict:
     fit_uncertainty(estimator, rb, steps=estimator_steps, eval_every=250, **fit)
     std = train["observation"].std(0)
     scale = torch.where(std < 1e-6, torch.ones_like(std), std)
-    return {
-        "name": name,
-        "train": train,
-        "held_out": held_out,
-        "model": model,
-        "estimator": estimator,
-        "scale": scale,
-    }
+    return _trained(name, train, held_out, model, estimator, scale)

@@ -282,16 +282,15 @@ def needs_padding(
             f"short_episodes must be one of {list(SHORT_EPISODES)}, got {short_episodes!r}."
         )
 
-    def short_ended(part: TensorDictBase) -> bool:
+    def pads(part: TensorDictBase) -> bool:
+        long = long_trajectories(part, slice_len, traj_key=traj_key)
+        if long == 0:
+            return True
         if short_episodes != "pad" or ("next", "done") not in part.keys(True):
             return False
-        counted = long_trajectories(part, slice_len, traj_key=traj_key)
-        return long_trajectories(part, slice_len, ended=True, traj_key=traj_key) > counted
+        return long_trajectories(part, slice_len, ended=True, traj_key=traj_key) > long
 
-    return any(
-        long_trajectories(part, slice_len, traj_key=traj_key) == 0 or short_ended(part)
-        for part in parts
-    )
+    return any(pads(part) for part in parts)
 
 
 def sequence_buffers(

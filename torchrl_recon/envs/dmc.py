@@ -171,36 +171,24 @@ def make_dmc_env(
 
 
 def dmc_errors(
-    entry: DMCEntry,
-    kwargs: Mapping[str, Any],
-    cost: Any,
-    termination: Any,
-    state_names: Sequence[str],
-    key: str,
+    entry: DMCEntry, kwargs: Mapping[str, Any], state_names: Sequence[str], key: str
 ) -> list[str]:
     """A recipe's problems with a ``dmc:`` env, one line each: ``frame_skip`` positive,
-    ``state_names`` one per observation dim, cost and termination one value per step.
+    ``state_names`` one per observation dim (its cost and termination are checked as any
+    env's, :func:`~torchrl_recon.envs.entry_checks.entry_errors`).
 
     Examples:
-        >>> dmc_errors(dmc_entry("dmc:pendulum/swingup"), {"frame_skip": 0}, None, None, [], "env")  # doctest: +SKIP
+        >>> dmc_errors(dmc_entry("dmc:pendulum/swingup"), {"frame_skip": 0}, [], "env")  # doctest: +SKIP
         ["'env.kwargs.frame_skip' must be a positive integer, got 0"]
     """
-    from torchrl_recon.planners.planning_model import check_step_fn
-
     errors = []
     skip = kwargs.get("frame_skip", 1)
     if isinstance(skip, int) and skip < 1:
         errors.append(f"'{key}.kwargs.frame_skip' must be a positive integer, got {skip!r}")
-    names, n_act = task_dims(entry.domain, entry.task)
+    names, _ = task_dims(entry.domain, entry.task)
     if state_names and len(state_names) != len(names):
         errors.append(
             f"'{key}.state_names' must name the {len(names)} observation dims of "
             f"{entry.gym_id!r} ({', '.join(names)}), got {len(state_names)} names"
         )
-    for name, fn, boolean in (("cost", cost, False), ("termination", termination, True)):
-        try:
-            if fn is not None:
-                check_step_fn(name, fn, len(names), n_act, boolean=boolean)
-        except ValueError as e:
-            errors.append(f"'{key}.{name}': {e}")
     return errors

@@ -10,7 +10,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from torchrl_recon.envs.dmc import DMCEntry, dmc_errors
+from torchrl_recon.envs.dmc import DMCEntry, dmc_errors, task_dims
 from torchrl_recon.envs.registry import ENVS, LEARNED, EnvEntry, import_cost
 
 
@@ -80,7 +80,9 @@ def entry_errors(
                 f"of {entry.name!r}, got {len(state_names)} names"
             )
     elif len(errors) == before and isinstance(entry, DMCEntry):
-        errors += dmc_errors(entry, kwargs, cost, term, state_names, key)
+        names, n_act = task_dims(entry.domain, entry.task)
+        errors += dmc_errors(entry, kwargs, state_names, key)
+        errors += _step_fn_errors(cost, term, len(names), n_act, key)
     elif len(errors) == before:
         errors += _gym_errors(entry.gym_id, kwargs, cost, term, state_names, key)
     return errors
@@ -92,8 +94,6 @@ def _gym_errors(
     """Build a gymnasium env once (no step): its constructor takes ``kwargs``, its observation
     is a flat Box, its action a bounded float Box, ``state_names`` fit, and ``cost`` and
     ``termination`` return one value per step."""
-    from torchrl_recon.planners.planning_model import check_step_fn
-
     try:
         made = gym.make(gym_id, disable_env_checker=True, **kwargs)
     except Exception as e:  # the user's constructor: any error is theirs to fix
@@ -126,6 +126,15 @@ def _gym_errors(
             f"'{key}.state_names' must name the {n_obs} observation dims of {gym_id!r}, got "
             f"{len(state_names)} names"
         )
+    return errors + _step_fn_errors(cost, termination, n_obs, n_act, key)
+
+
+def _step_fn_errors(cost: Any, termination: Any, n_obs: int, n_act: int, key: str) -> list[str]:
+    """``cost`` and ``termination`` (where given) called on zeros of the env's sizes: one line
+    each that does not return one value per step (``check_step_fn``)."""
+    from torchrl_recon.planners.planning_model import check_step_fn
+
+    errors = []
     for name, fn, boolean in (("cost", cost, False), ("termination", termination, True)):
         try:
             if fn is not None:

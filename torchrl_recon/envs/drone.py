@@ -348,6 +348,74 @@ class DroneEnv(gym.Env):
         px, py, pz = self._state[0:3]
         return math.sqrt((px - gx) ** 2 + (py - gy) ** 2 + (pz - gz) ** 2)
 
+    def _accelerations(
+        self, a0: float, a1: float, a2: float, a3: float
+    ) -> tuple[float, float, float, float]:
+        """Return the thrust acceleration and the 3 body torques over the inertias of an action."""
+        w0, w1, w2, w3 = self._rotor_rpm(a0, a1, a2, a3)
+        w0, w1, w2, w3 = w0 * w0, w1 * w1, w2 * w2, w3 * w3
+        thrust_acc = KF * (w0 + w1 + w2 + w3) / MASS
+        # Body torques divided by the inertias (angular accelerations without gyroscopic term).
+        ax_t = ROTOR_OFFSET * KF * (w2 + w3 - w0 - w1) / IXX
+        ay_t = ROTOR_OFFSET * KF * (w1 + w2 - w0 - w3) / IYY
+        az_t = KM * (w1 + w3 - w0 - w2) / IZZ
+        return thrust_acc, ax_t, ay_t, az_t
+
+    def _integrate(self, thrust_acc: float, ax_t: float, ay_t: float, az_t: float) -> None:
+        """Advance ``self._state`` by ``physics_steps`` semi-implicit Euler steps of 1/240 s."""
+        cx, cy, cz = (IZZ - IYY) / IXX, (IXX - IZZ) / IYY, (IYY - IXX) / IZZ
+        h = 1.0 / PHYSICS_FREQUENCY
+        px, py, pz, vx, vy, vz, qx, qy, qz, qw, wx, wy, wz = self._state
+        for _ in range(self.physics_steps):
+            # Translation: v += a h, then p += v h (semi-implicit Euler).
+            vx += 2.0 * (qx * qz + qw * qy) * thrust_acc * h
+            vy += 2.0 * (qy * qz - qw * qx) * thrust_acc * h
+            vz += ((1.0 - 2.0 * (qx * qx + qy * qy)) * thrust_acc - GRAVITY) * h
+            px += vx * h
+            py += vy * h
+            pz += vz * h
+            # Rotation: J domega/dt = tau - omega x (J omega).
+            dwx = ax_t - cx * wy * wz
+            dwy = ay_t - cy * wz * wx
+            dwz = az_t - cz * wx * wy
+            wx += dwx * h
+            wy += dwy * h
+            wz += dwz * h
+            # Attitude: q <- q (x) (sin(a/2) axis, cos(a/2)), a = |omega| h, then renormalise.
+            n = math.sqrt(wx * wx + wy * wy + wz * wz)
+            if n > 0.0:
+                half = 0.5 * n * h
+                s = math.sin(half) / n
+                dx, dy, dz, dw = wx * s, wy * s, wz * s, math.cos(half)
+                qx, qy, qz, qw = (
+                    qw * dx + qx * dw + qy * dz - qz * dy,
+                    qw * dy + qy * dw + qz * dx - qx * dz,
+                    qw * dz + qz * dw + qx * dy - qy * dx,
+                    qw * dw - qx * dx - qy * dy - qz * dz,
+                )
+                inv = 1.0 / math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+                qx, qy, qz, qw = qx * inv, qy * inv, qz * inv, qw * inv
+        self._state = (px, py, pz, vx, vy, vz, qx, qy, qz, qw, wx, wy, wz)
+
+    def _termination_reason(self, r33: float, roll: float, pitch: float) -> str | None:
+        """Name why the current state ends the episode, or ``None`` while it goes on."""
+        px, py, pz, vx, vy, vz, qx, qy, qz, qw, wx, wy, wz = self._state
+        if not math.isfinite(px + py + pz + vx + vy + vz + qx + qy + qz + qw + wx + wy + wz):
+            return "non_finite"
+        if pz <= 0.0:
+            return "crash"
+        if (
+            abs(px) > self.arena_half_width
+            or abs(py) > self.arena_half_width
+            or pz > self.arena_height
+        ):
+            return "out_of_bounds"
+        if r33 <= 0.0:
+            return "flipped"
+        if self.max_tilt is not None and (abs(roll) > self.max_tilt or abs(pitch) > self.max_tilt):
+            return "tilt"
+        return None
+
     # ---------------------------------------------------------------------- API
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -407,67 +475,12 @@ class DroneEnv(gym.Env):
             ValueError: If ``action`` has the wrong shape or contains NaN or inf.
         """
         a0, a1, a2, a3 = validate_action(action, shape=(4,), env_name=_ENV_NAME).tolist()
-        w0, w1, w2, w3 = self._rotor_rpm(a0, a1, a2, a3)
-        w0, w1, w2, w3 = w0 * w0, w1 * w1, w2 * w2, w3 * w3
-        thrust_acc = KF * (w0 + w1 + w2 + w3) / MASS
-        # Body torques divided by the inertias (angular accelerations without gyroscopic term).
-        ax_t = ROTOR_OFFSET * KF * (w2 + w3 - w0 - w1) / IXX
-        ay_t = ROTOR_OFFSET * KF * (w1 + w2 - w0 - w3) / IYY
-        az_t = KM * (w1 + w3 - w0 - w2) / IZZ
-        cx, cy, cz = (IZZ - IYY) / IXX, (IXX - IZZ) / IYY, (IYY - IXX) / IZZ
-        h = 1.0 / PHYSICS_FREQUENCY
-        px, py, pz, vx, vy, vz, qx, qy, qz, qw, wx, wy, wz = self._state
-        for _ in range(self.physics_steps):
-            # Translation: v += a h, then p += v h (semi-implicit Euler).
-            vx += 2.0 * (qx * qz + qw * qy) * thrust_acc * h
-            vy += 2.0 * (qy * qz - qw * qx) * thrust_acc * h
-            vz += ((1.0 - 2.0 * (qx * qx + qy * qy)) * thrust_acc - GRAVITY) * h
-            px += vx * h
-            py += vy * h
-            pz += vz * h
-            # Rotation: J domega/dt = tau - omega x (J omega).
-            dwx = ax_t - cx * wy * wz
-            dwy = ay_t - cy * wz * wx
-            dwz = az_t - cz * wx * wy
-            wx += dwx * h
-            wy += dwy * h
-            wz += dwz * h
-            # Attitude: q <- q (x) (sin(a/2) axis, cos(a/2)), a = |omega| h, then renormalise.
-            n = math.sqrt(wx * wx + wy * wy + wz * wz)
-            if n > 0.0:
-                half = 0.5 * n * h
-                s = math.sin(half) / n
-                dx, dy, dz, dw = wx * s, wy * s, wz * s, math.cos(half)
-                qx, qy, qz, qw = (
-                    qw * dx + qx * dw + qy * dz - qz * dy,
-                    qw * dy + qy * dw + qz * dx - qx * dz,
-                    qw * dz + qz * dw + qx * dy - qy * dx,
-                    qw * dw - qx * dx - qy * dy - qz * dz,
-                )
-                inv = 1.0 / math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-                qx, qy, qz, qw = qx * inv, qy * inv, qz * inv, qw * inv
-        self._state = (px, py, pz, vx, vy, vz, qx, qy, qz, qw, wx, wy, wz)
-
+        thrust_acc, ax_t, ay_t, az_t = self._accelerations(a0, a1, a2, a3)
+        self._integrate(thrust_acc, ax_t, ay_t, az_t)
         obs, r33, roll, pitch = self._observe()
         cost = self._cost()
         info: dict[str, Any] = {"cost": cost}
-        reason = None
-        if not math.isfinite(px + py + pz + vx + vy + vz + qx + qy + qz + qw + wx + wy + wz):
-            reason = "non_finite"
-        elif pz <= 0.0:
-            reason = "crash"
-        elif (
-            abs(px) > self.arena_half_width
-            or abs(py) > self.arena_half_width
-            or pz > self.arena_height
-        ):
-            reason = "out_of_bounds"
-        elif r33 <= 0.0:
-            reason = "flipped"
-        elif self.max_tilt is not None and (
-            abs(roll) > self.max_tilt or abs(pitch) > self.max_tilt
-        ):
-            reason = "tilt"
+        reason = self._termination_reason(r33, roll, pitch)
         if reason is not None:
             info["termination"] = reason
         return obs, -cost, reason is not None, False, info

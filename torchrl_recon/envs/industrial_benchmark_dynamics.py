@@ -293,6 +293,15 @@ def operational_cost_convolution(history: Any) -> float:
     return _W0 * o0 + _W1 * o1 + _W2 * o2 + _W3 * o3 + _W4 * o4
 
 
+def _next_hidden_fatigue(hidden: float, effective: float, noise: float) -> float:
+    """Next hidden fatigue ``hv`` / ``hg``: reset, amplified or smoothed noise (spec §5.4)."""
+    if effective <= ACTION_TOLERANCE:
+        return effective
+    if hidden >= FATIGUE_AMPLIFICATION_START:
+        return min(FATIGUE_AMPLIFICATION_MAX, FATIGUE_AMPLIFICATION * hidden)
+    return 0.9 * hidden + noise / 3.0
+
+
 class IndustrialBenchmarkDynamics:
     """Full Industrial Benchmark state and its one-step transition (reference semantics).
 
@@ -411,8 +420,23 @@ class IndustrialBenchmarkDynamics:
         if not self.stationary_setpoint:
             self._update_setpoint()
         p = self.p
+        # 2.-7. the sub-models, in the reference's order of random draws
+        v, g, he = self._apply_action(a_v, a_g, a_h, p)
+        f = self._update_fatigue(v, g, p)
+        oc = self._update_operational_cost(v, g, p)
+        mc = self._update_mis_calibration(he)
+        c = self._update_consumption(oc, mc)
 
-        # 2. action application
+        # 8. cost and reward
+        cost = CRF * f + CRC * c
+        self.cost = cost
+        self.reward = -cost
+        return -cost
+
+    def _apply_action(
+        self, a_v: float, a_g: float, a_h: float, p: float
+    ) -> tuple[float, float, float]:
+        """Clip the deltas, move ``v, g, h`` and return ``(v, g, he)`` (step 2)."""
         a_v = min(max(a_v, -1.0), 1.0)
         a_g = min(max(a_g, -1.0), 1.0)
         a_h = min(max(a_h, -1.0), 1.0)
@@ -423,9 +447,10 @@ class IndustrialBenchmarkDynamics:
             max(GS_SCALE * h / 100.0 - GS_SETPOINT_DEPENDENCY * p - GS_BOUND, -GS_BOUND), GS_BOUND
         )
         self.v, self.g, self.h, self.he = v, g, h, he
+        return v, g, he
 
-        # 3. fatigue (draws 1-7)
-        ve, ge = effective_actions(v, g, p)
+    def _fatigue_noise(self, ve: float, ge: float) -> tuple[float, float]:
+        """Draw the fatigue noise ``(n_v, n_g)`` of velocity and gain (step 3, draws 1-6)."""
         e_g = self._exponential(EXP_SCALE)
         e_v = self._exponential(EXP_SCALE)
         u_g = self._rand()
@@ -436,39 +461,26 @@ class IndustrialBenchmarkDynamics:
         n_v = 2.0 * (1.0 / (1.0 + math.exp(-e_v)) - 0.5)
         n_g += (1.0 - n_g) * u_g * b_g * ge
         n_v += (1.0 - n_v) * u_v * b_v * ve
+        return n_v, n_g
 
-        hg = self.hg
-        if ge <= ACTION_TOLERANCE:
-            hg = ge
-        elif hg >= FATIGUE_AMPLIFICATION_START:
-            hg = min(FATIGUE_AMPLIFICATION_MAX, FATIGUE_AMPLIFICATION * hg)
-        else:
-            hg = 0.9 * hg + n_g / 3.0
-        hv = self.hv
-        if ve <= ACTION_TOLERANCE:
-            hv = ve
-        elif hv >= FATIGUE_AMPLIFICATION_START:
-            hv = min(FATIGUE_AMPLIFICATION_MAX, FATIGUE_AMPLIFICATION * hv)
-        else:
-            hv = 0.9 * hv + n_v / 3.0
-
+    def _update_fatigue(self, v: float, g: float, p: float) -> float:
+        """Advance the hidden fatigue state and return the fatigue ``f`` (step 3, draws 1-7)."""
+        ve, ge = effective_actions(v, g, p)
+        n_v, n_g = self._fatigue_noise(ve, ge)
+        hg = _next_hidden_fatigue(self.hg, ge, n_g)
+        hv = _next_hidden_fatigue(self.hv, ve, n_v)
         if max(hv, hg) == FATIGUE_AMPLIFICATION_MAX:  # exact test, reached through the cap
             alpha = 1.0 / (1.0 + math.exp(-self._normal(2.4, 0.4)))
         else:
             alpha = max(n_v, n_g)
         fb = max(0.0, 30000.0 / (5.0 * v + 100.0) - 0.01 * (g * g))
         f = fb * (1.0 + 2.0 * alpha) / 3.0
-        self.ve, self.ge, self.hv, self.hg, self.fb, self.f, self.alpha = (
-            ve,
-            ge,
-            hv,
-            hg,
-            fb,
-            f,
-            alpha,
-        )
+        self.ve, self.ge, self.hv, self.hg = ve, ge, hv, hg
+        self.fb, self.f, self.alpha = fb, f, alpha
+        return f
 
-        # 4./5. operational cost and its delayed convolution
+    def _update_operational_cost(self, v: float, g: float, p: float) -> float:
+        """Record this step's ``coc`` and return the delayed operational cost ``oc`` (steps 4-5)."""
         coc = math.exp((2.0 * p + 2.5 * g + 4.0 * v) / 100.0)
         o = self.o
         if self._first_step:
@@ -478,25 +490,24 @@ class IndustrialBenchmarkDynamics:
             o.append(coc)  # maxlen drops the oldest entry
         oc = _W0 * o[0] + _W1 * o[1] + _W2 * o[2] + _W3 * o[3] + _W4 * o[4]
         self.coc, self.oc = coc, oc
+        return oc
 
-        # 6. mis-calibration
+    def _update_mis_calibration(self, he: float) -> float:
+        """Advance the Goldstone state machine and return the mis-calibration ``MC`` (step 6)."""
         domain, response, phi_idx = gs_transition(
             self.gs_domain, self.gs_response, self.gs_phi_idx, he
         )
         self.gs_domain, self.gs_response, self.gs_phi_idx = domain, response, phi_idx
         mc = -gs_penalty(phi_idx, he)
         self.mc = mc
+        return mc
 
-        # 7. consumption (draw 8)
+    def _update_consumption(self, oc: float, mc: float) -> float:
+        """Draw the consumption ``c`` around its mean ``oc - 25 (MC - 1)`` (step 7, draw 8)."""
         e_mean = oc - CRGS * (mc - 1.0)
         c = e_mean - self._randn() * (1.0 + 0.005 * e_mean)
         self.c_mean, self.c = e_mean, c
-
-        # 8. cost and reward
-        cost = CRF * f + CRC * c
-        self.cost = cost
-        self.reward = -cost
-        return -cost
+        return c
 
     # ------------------------------------------------------------------ views
     def observation(self) -> list[float]:

@@ -1179,9 +1179,14 @@ case(
 
 @functools.cache
 def _tmp() -> Path:
+    """A scratch folder of this process's probes, removed when it exits."""
+    import atexit
+    import shutil
     import tempfile
 
-    return Path(tempfile.mkdtemp(prefix="api_probe_"))
+    path = Path(tempfile.mkdtemp(prefix="api_probe_"))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
 
 
 def _junk() -> Path:

@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import time
 
 import pytest
 
 from torchrl_recon.runs.interrupts import RETRY_S, redeliver_dropped_interrupts
+
+
+@pytest.fixture(autouse=True)
+def _ctrl_c_raises_keyboard_interrupt():
+    """SIGINT raises ``KeyboardInterrupt`` here, as in the CLI: a library may have put a handler
+    of its own on it in this worker (TorchRL's ``LazyMemmapStorage`` with a temporary folder
+    installs a cleanup handler that restores the one before it and signals again), and then a
+    drop is not the CLI's case; the first test failed so, once, after another test's storage."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
 
 
 class _RaisesWhenFinalised:

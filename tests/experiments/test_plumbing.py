@@ -151,11 +151,8 @@ def _own_settings(stem: str, settings: list[dict]) -> list[dict]:
 
 
 @pytest.mark.parametrize(
-    "path",  # explore and control in make test; the three control variants in make test-all
-    [
-        p if p.stem in ("explore", "control") else pytest.param(p, marks=pytest.mark.slow)
-        for p in SWEEP_RECIPES
-    ],
+    "path",  # explore's sweep in make test; the four control sweeps in make test-all
+    [p if p.stem == "explore" else pytest.param(p, marks=pytest.mark.slow) for p in SWEEP_RECIPES],
     ids=lambda p: p.name,
 )
 def test_all_envs_sweep_runs_each_env_recipe(path):

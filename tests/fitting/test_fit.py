@@ -206,7 +206,9 @@ def test_empty_buffer_is_a_clear_error():
         )
 
 
-@pytest.mark.parametrize("which", ["world_model", "uncertainty"])
+@pytest.mark.parametrize(  # the same Trainer plumbing: the estimator's loss in make test-all
+    "which", ["world_model", pytest.param("uncertainty", marks=pytest.mark.slow)]
+)
 def test_losses_train_inside_torchrl_trainer(which):
     torch.manual_seed(0)
     env = make_env("industrial_benchmark", seed=0, max_episode_steps=100)

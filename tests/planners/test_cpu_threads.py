@@ -180,7 +180,10 @@ def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members
 
 
 @needs_cpp_compiler
-@pytest.mark.parametrize("planner_class", [CEMPlanner, MPPIPlanner, ICEMPlanner])
+@pytest.mark.parametrize(  # the draw aside is the shared sampling loop's: CEM in make test
+    "planner_class",
+    [CEMPlanner, *(pytest.param(c, marks=pytest.mark.slow) for c in (MPPIPlanner, ICEMPlanner))],
+)
 def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_the_same(
     planner_class, monkeypatch, backend
 ):

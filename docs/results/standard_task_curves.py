@@ -22,7 +22,11 @@ from torchrl_recon.reports.plots import plot_seed_curves
 HERE = Path(__file__).resolve().parent / "standard_tasks"
 TASKS = {  # task -> (variant label -> folder, reference label -> return)
     "InvertedPendulum-v5": (
-        {"β = 0": "InvertedPendulum-v5_one_step", "β = 2": "InvertedPendulum-v5_one_step_beta2"},
+        {
+            "β = 0": "InvertedPendulum-v5_one_step",
+            "β = 2": "InvertedPendulum-v5_one_step_beta2",
+            "β = 2, every ended episode kept": "InvertedPendulum-v5_one_step_beta2_pad",
+        },
         {"target: 1,000 steps up": 1000.0},
     ),
     "Reacher-v5": (

@@ -271,7 +271,7 @@ PUBLISHED = ROOT / "docs" / "results"
         (
             "online_inverted_pendulum",
             "InvertedPendulum-v5",
-            "standard_tasks/InvertedPendulum-v5_one_step_beta2",
+            "standard_tasks/InvertedPendulum-v5_one_step_beta2_pad",
         ),
         (
             "online_inverted_pendulum_shaped",

@@ -215,6 +215,15 @@ def test_termination_on_non_finite_state() -> None:
     assert terminated and info["termination"] == "non_finite"
 
 
+def test_a_start_velocity_beyond_float_range_ends_the_episode_not_the_process() -> None:
+    env = DroneEnv(start_noise=0.0)
+    env.reset(seed=1, options={"velocity": (1e308, 0.0, 0.0)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the float32 observation overflows
+        _, reward, terminated, _, info = env.step(np.zeros(4, dtype=np.float32))
+    assert terminated and reward == -math.inf and info["cost"] == math.inf
+
+
 def test_truncation_at_500_steps_via_gymnasium_make() -> None:
     env = gym.make(GYM_ID)
     env.reset(seed=0)

@@ -344,9 +344,14 @@ class DroneEnv(gym.Env):
         return obs, r33, roll, pitch
 
     def _cost(self) -> float:
+        """The distance to the goal (inf, not an OverflowError, for a state beyond float range:
+        the step then ends as ``non_finite``)."""
         gx, gy, gz = self.goal
         px, py, pz = self._state[0:3]
-        return math.sqrt((px - gx) ** 2 + (py - gy) ** 2 + (pz - gz) ** 2)
+        try:
+            return math.sqrt((px - gx) ** 2 + (py - gy) ** 2 + (pz - gz) ** 2)
+        except OverflowError:  # float ** raises where * would give inf
+            return math.inf
 
     def _accelerations(
         self, a0: float, a1: float, a2: float, a3: float

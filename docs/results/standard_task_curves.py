@@ -26,6 +26,7 @@ TASKS = {  # task -> (variant label -> folder, reference label -> return)
             "β = 0": "InvertedPendulum-v5_one_step",
             "β = 2": "InvertedPendulum-v5_one_step_beta2",
             "β = 2, every ended episode kept": "InvertedPendulum-v5_one_step_beta2_pad",
+            "the same, PETS's CEM": "InvertedPendulum-v5_one_step_beta2_pets_cem",
         },
         {"target: 1,000 steps up": 1000.0},
     ),

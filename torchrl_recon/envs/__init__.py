@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchrl_recon.envs.dmc import DMCEntry
 from torchrl_recon.envs.entry_checks import entry_errors
 from torchrl_recon.envs.factory import make_env
 from torchrl_recon.envs.registry import (
@@ -20,6 +21,7 @@ from torchrl_recon.envs.threads import close_env, closing_env, keep_num_threads
 __all__ = [
     "ENVS",
     "LEARNED",
+    "DMCEntry",
     "EnvEntry",
     "GymEntry",
     "get_entry",

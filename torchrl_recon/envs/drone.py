@@ -345,7 +345,7 @@ class DroneEnv(gym.Env):
 
     def _cost(self) -> float:
         """The distance to the goal (inf, not an OverflowError, for a state beyond float range:
-        the step then ends as ``non_finite``)."""
+        the step then ends, out of bounds or non-finite)."""
         gx, gy, gz = self.goal
         px, py, pz = self._state[0:3]
         try:

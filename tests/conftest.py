@@ -48,3 +48,29 @@ def trained_models(tmp_path_factory):
         return cache[name]
 
     return get
+
+
+@pytest.fixture(params=["aot_eager", pytest.param("inductor", marks=pytest.mark.slow)])
+def compile_backend(request, monkeypatch):
+    """What ``torch.compile`` builds with in a test of a compiled fit or pass: ``aot_eager`` in
+    make test (Dynamo and AOTAutograd, forward and backward, no C++ build: seconds; the blocks of
+    a threaded pass then hold the GIL, so their logic is checked, not their speed; Inductor's
+    options and mode are dropped), Inductor as the library asks for it in make test-all (tens
+    of seconds a build with a cold cache, as on a fresh machine). The planners' kept compiled
+    passes are dropped before and after, so none built with the other backend is reused."""
+    import torch
+
+    from torchrl_recon.planners import executors
+
+    if request.param == "aot_eager":
+        real = torch.compile
+
+        def traced(fn, *, fullgraph=False, dynamic=None, **_):
+            return real(fn, fullgraph=fullgraph, dynamic=dynamic, backend="aot_eager")
+
+        monkeypatch.setattr(torch, "compile", traced)
+    for kept in (executors.compiled_pass, executors.threaded_pass):
+        kept.cache_clear()
+    yield request.param
+    for kept in (executors.compiled_pass, executors.threaded_pass):
+        kept.cache_clear()

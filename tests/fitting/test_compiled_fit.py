@@ -7,8 +7,6 @@ with a cold cache, as on a fresh machine) runs in ``make test-all``."""
 
 from __future__ import annotations
 
-import functools
-
 import pytest
 import torch
 
@@ -20,19 +18,6 @@ from torchrl_recon.fitting.fit import COMPILING
 from torchrl_recon.modules import LSTMWorldModel
 
 from .test_population_fit import FIT, M, N, _buffer
-
-BACKENDS = ["aot_eager", pytest.param("inductor", marks=pytest.mark.slow)]
-
-
-@pytest.fixture(params=BACKENDS)
-def backend(request, monkeypatch) -> str:
-    """The backend ``torch.compile`` builds the fit's step with (the library asks for the
-    default, Inductor)."""
-    if request.param != "inductor":
-        monkeypatch.setattr(
-            torch, "compile", functools.partial(torch.compile, backend=request.param)
-        )
-    return request.param
 
 
 def _world(seed: int) -> LSTMWorldModel:
@@ -48,7 +33,7 @@ def _close(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 
 
 @needs_cpp_compiler
-def test_a_compiled_fit_is_the_eager_fit_up_to_rounding(backend):
+def test_a_compiled_fit_is_the_eager_fit_up_to_rounding(compile_backend):
     rb = _buffer(0)
     eager, compiled = _world(0), _world(0)
     a = fit_world_model(eager, rb, seed=1, **FIT)
@@ -72,7 +57,7 @@ def test_a_compiled_population_fit_is_the_eager_one_up_to_rounding():
 
 
 @needs_cpp_compiler
-def test_a_compiled_fit_still_stops_on_non_finite_data(backend):
+def test_a_compiled_fit_still_stops_on_non_finite_data(compile_backend):
     """NaN inputs: the eager fit's ValueError naming the key and its buffer row (the compiled
     step leaves the input checks out; its non-finite loss has the batch checked as eager)."""
     data = _buffer(0)[:]

@@ -25,23 +25,6 @@ from torchrl_recon.planners import (
 from torchrl_recon.planners.cpu_threads import check_threads, run_aside, run_blocks
 
 
-@pytest.fixture(params=["aot_eager", pytest.param("inductor", marks=pytest.mark.slow)])
-def backend(request, monkeypatch):
-    """What builds the threaded pass: ``aot_eager`` (Dynamo's trace, no C++ build: the blocks
-    hold the GIL, so this checks the blocks' logic, not their speed; make test) or Inductor's
-    C++ wrapper, as the library builds it (~30 s with a cold cache; make test-all)."""
-    if request.param == "aot_eager":
-        real = torch.compile
-
-        def traced(fn, *, fullgraph=False, **_):
-            return real(fn, fullgraph=fullgraph, backend="aot_eager")
-
-        monkeypatch.setattr(executors.torch, "compile", traced)
-    executors.threaded_pass.cache_clear()
-    yield request.param
-    executors.threaded_pass.cache_clear()
-
-
 def _cost(s, a, s2):
     return s2.pow(2).sum(-1)
 
@@ -147,7 +130,7 @@ def test_threads_without_compile_is_refused_in_one_line_that_says_why():
 
 
 @needs_cpp_compiler
-def test_threads_predict_what_one_eager_thread_does(backend):
+def test_threads_predict_what_one_eager_thread_does(compile_backend):
     eager, threaded = _model(), _model(compile=True, threads=2)
     assert threaded.executor.blocks_in_threads(threaded)
     assert not eager.executor.blocks_in_threads(eager)
@@ -162,7 +145,7 @@ def test_threads_predict_what_one_eager_thread_does(backend):
 
 
 @needs_cpp_compiler
-def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members(backend):
+def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members(compile_backend):
     """The blocks' joined prediction has the members' mean states, not one per member."""
     torch.manual_seed(0)
     members = [
@@ -185,7 +168,7 @@ def test_threads_predict_what_one_eager_thread_does_for_a_world_model_of_members
     [CEMPlanner, *(pytest.param(c, marks=pytest.mark.slow) for c in (MPPIPlanner, ICEMPlanner))],
 )
 def test_with_threads_the_sampling_planners_draw_the_next_noise_aside_and_plan_the_same(
-    planner_class, monkeypatch, backend
+    planner_class, monkeypatch, compile_backend
 ):
     """With threads the planner compiles its pass, not its whole call. The next iteration's
     noise is drawn on a block thread while the last one is ranked; the generator gives the same

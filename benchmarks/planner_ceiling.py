@@ -3,6 +3,7 @@
 Run: python benchmarks/planner_ceiling.py --task InvertedDoublePendulum-v5 --planner cem
      [--horizon 30] [--candidates 350] [--iterations 5] [--episodes 3] [--steps N]
      [--seed 0] [--threads 1] [--kwargs '{"warm_start_uniform": 0}'] [--out ceiling.jsonl]
+     [--centre W]
 
 What it separates: when an agent with a learned model falls short on a task, is it the model or
 the planner? Here the planner (the library's CEM, MPPI, iCEM or random shooting, with the
@@ -131,8 +132,9 @@ def run_episode(env: gym.Env, planner, seed: int, steps: int) -> dict:
         if terminated or truncated:
             break
         if length % 25 == 0:  # a run stopped mid-episode still shows how far it got
-            print(f"    step {length}: return {total:.1f} so far", flush=True)
-    return {"return": total, "length": length, "plan_ms": 1000 * plan_s / length}
+            print(f"    step {length}: return {total:.1f} so far, obs[0] {obs[0]:.3f}", flush=True)
+    last = [round(float(v), 4) for v in obs]  # where it ended: IDP's cart x at the rail, say
+    return {"return": total, "length": length, "plan_ms": 1000 * plan_s / length, "last_obs": last}
 
 
 def main() -> None:
@@ -152,6 +154,13 @@ def main() -> None:
         "--kwargs", type=json.loads, default={}, help="more planner keywords, as a JSON object"
     )
     parser.add_argument("--out", type=Path, default=None, help="append the result as a JSON line")
+    parser.add_argument(
+        "--centre",
+        type=float,
+        default=0.0,
+        help="add W·x² of the cart's position (observation 0) to the pendulums' cost: the env's "
+        "own reward barely minds the cart, which a short horizon then drives into its rail",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     observe, cost, termination = TASKS[args.task]
@@ -163,6 +172,14 @@ def main() -> None:
         torch.as_tensor(b, dtype=torch.float32)
         for b in (env.action_space.low, env.action_space.high)
     )
+    if args.centre:
+        if not args.task.startswith("Inverted"):
+            parser.error("--centre is for the pendulums on a cart (InvertedPendulum-v5, ...)")
+        env_cost, weight = cost, args.centre
+
+        def cost(obs, action, next_obs):
+            return env_cost(obs, action, next_obs) + weight * next_obs[..., 0].pow(2)
+
     model = PlanningModel(sim, cost, termination_fn=termination, action_low=low, action_high=high)
     kwargs = dict(horizon=args.horizon, num_candidates=args.candidates)
     if args.planner != "shooting":

@@ -79,6 +79,20 @@ TASKS: dict[str, tuple[Callable, Callable, Callable | None]] = {
 """Each task's observation of the simulator's (qpos, qvel), its cost and its termination."""
 
 
+def centred(cost: Callable, weight: float) -> Callable:
+    """``cost`` plus ``weight``·x² of the cart's position (observation 0 of the pendulums).
+
+    Examples:
+        >>> centred(lambda s, a, s2: s2[..., 1], 2.0)(None, None, torch.tensor([[0.5, 1.0]]))
+        tensor([1.5000])
+    """
+
+    def cost_centred(obs, action, next_obs):
+        return cost(obs, action, next_obs) + weight * next_obs[..., 0].pow(2)
+
+    return cost_centred
+
+
 class SimulatorModel:
     """A planning model's world model that is the env's own MuJoCo simulator: ``imagine`` rolls
     every candidate out from the env's current exact state (``mujoco.rollout``, one call)."""
@@ -162,6 +176,8 @@ def main() -> None:
         "own reward barely minds the cart, which a short horizon then drives into its rail",
     )
     args = parser.parse_args()
+    if args.centre and not args.task.startswith("Inverted"):
+        parser.error("--centre is for the pendulums on a cart (InvertedPendulum-v5, ...)")
     torch.set_num_threads(args.threads)
     observe, cost, termination = TASKS[args.task]
     if args.steps is None:  # the task's own episodes (Reacher-v5: 50 steps; the pendulums: 1,000)
@@ -173,13 +189,7 @@ def main() -> None:
         for b in (env.action_space.low, env.action_space.high)
     )
     if args.centre:
-        if not args.task.startswith("Inverted"):
-            parser.error("--centre is for the pendulums on a cart (InvertedPendulum-v5, ...)")
-        env_cost, weight = cost, args.centre
-
-        def cost(obs, action, next_obs):
-            return env_cost(obs, action, next_obs) + weight * next_obs[..., 0].pow(2)
-
+        cost = centred(cost, args.centre)
     model = PlanningModel(sim, cost, termination_fn=termination, action_low=low, action_high=high)
     kwargs = dict(horizon=args.horizon, num_candidates=args.candidates)
     if args.planner != "shooting":

@@ -24,7 +24,7 @@ def test_a_tiny_run_prints_each_episode_and_appends_its_record(tmp_path, capsys,
     out = tmp_path / "ceiling.jsonl"
     args = ["--task", "InvertedPendulum-v5", "--planner", "cem", "--candidates", "20"]
     args += ["--iterations", "2", "--horizon", "5", "--episodes", "2", "--steps", "30"]
-    args += ["--centre", "0.5"]
+    args += ["--shape", '{"0": 0.5}']
     monkeypatch.setattr(sys, "argv", ["planner_ceiling.py", *args, "--out", str(out)])
     ceiling.main()
     printed = capsys.readouterr().out
@@ -33,18 +33,25 @@ def test_a_tiny_run_prints_each_episode_and_appends_its_record(tmp_path, capsys,
     (record,) = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(record["episodes"]) == 2 and record["steps"] == 30
     assert all(0 < e["length"] <= 30 and e["return"] > 0 for e in record["episodes"])
-    assert all(len(e["last_obs"]) == 4 for e in record["episodes"]) and record["centre"] == 0.5
+    assert all(len(e["last_obs"]) == 4 for e in record["episodes"]) and record["shape"] == {
+        "0": 0.5
+    }
 
 
-def test_centre_adds_the_carts_squared_position_and_is_refused_without_a_cart(monkeypatch, capsys):
+def test_shape_adds_the_named_squared_entries_and_refuses_an_entry_the_task_lacks(
+    monkeypatch, capsys
+):
     ceiling = load_script(SCRIPT)
-    cost = ceiling.centred(lambda s, a, s2: s2.sum(-1), 3.0)
-    torch.testing.assert_close(cost(None, None, torch.tensor([[2.0, 1.0]])), torch.tensor([15.0]))
-    args = ["planner_ceiling.py", "--task", "Reacher-v5", "--centre", "1"]
+    cost = ceiling.shaped(lambda s, a, s2: s2.sum(-1), {0: 3.0, 2: 1.0})
+    got = cost(None, None, torch.tensor([[2.0, 1.0, -1.0]]))
+    torch.testing.assert_close(got, torch.tensor([2.0 + 12.0 + 1.0]))
+    args = ["planner_ceiling.py", "--task", "InvertedPendulum-v5", "--shape", '{"4": 1}']
     monkeypatch.setattr(sys, "argv", args)
     with pytest.raises(SystemExit):
         ceiling.main()
-    assert "--centre is for the pendulums on a cart" in capsys.readouterr().err
+    assert "--shape names observation entries [4]; InvertedPendulum-v5 has 4" in (
+        capsys.readouterr().err
+    )
 
 
 def test_the_simulator_model_predicts_what_the_env_does():

@@ -61,10 +61,17 @@ def _numbers(trainer: OnlineTrainer) -> list[tuple]:
     ]
 
 
+@pytest.fixture(scope="module")
+def whole() -> OnlineTrainer:
+    """The uninterrupted run every format's resume is compared with (the same for all three:
+    trained once per worker, not once per format)."""
+    trainer = _trainer()
+    trainer.train()
+    return trainer
+
+
 @pytest.mark.parametrize("fmt", list(FORMATS), ids=list(FORMATS.values()))
-def test_a_stopped_trainer_resumes_from_its_checkpoint_to_the_same_numbers(tmp_path, fmt):
-    whole = _trainer()
-    whole.train()
+def test_a_stopped_trainer_resumes_from_its_checkpoint_to_the_same_numbers(tmp_path, fmt, whole):
     path = tmp_path / "trainer.pt"
     stopped = _trainer(path, fmt)
     stop = lambda: stopped.collected_frames >= 80 and stopped.request_stop("killed")  # noqa: E731

@@ -86,21 +86,28 @@ _OBS_DIM = {
 }
 
 
-def shaped(cost: Callable, weights: dict[int, float]) -> Callable:
+def shaped(cost: Callable, weights: dict[int | str, float]) -> Callable:
     """``cost`` plus Σ wᵢ·xᵢ² over the observation entries ``weights`` names (of the state a
-    step reaches): a quadratic shaping on top of the env's own reward, to ask whether the
-    planner's objective, not its search, is what limits it.
+    step reaches), and w·Σ a² of the action under the key ``"a"``: a quadratic shaping on top
+    of the env's own reward, to ask whether the planner's objective, not its search, is what
+    limits it.
 
     Examples:
-        >>> cost = shaped(lambda s, a, s2: s2[..., 1], {0: 2.0})
-        >>> cost(None, None, torch.tensor([[0.5, 1.0]]))
-        tensor([1.5000])
+        >>> cost = shaped(lambda s, a, s2: s2[..., 1], {0: 2.0, "a": 1.0})
+        >>> cost(None, torch.tensor([[0.5]]), torch.tensor([[0.5, 1.0]]))
+        tensor([1.7500])
     """
-    index = torch.tensor(sorted(weights))
-    weight = torch.tensor([weights[i] for i in sorted(weights)])
+    entries = sorted(k for k in weights if k != "a")
+    index, weight = (
+        torch.tensor(entries, dtype=torch.long),
+        torch.tensor([weights[i] for i in entries]),
+    )
+    action_weight = weights.get("a", 0.0)
 
     def shaped_cost(obs, action, next_obs):
         extra = (next_obs[..., index].pow(2) * weight.to(next_obs)).sum(-1)
+        if action_weight:
+            extra = extra + action_weight * action.pow(2).sum(-1)
         return cost(obs, action, next_obs) + extra
 
     return shaped_cost
@@ -186,15 +193,15 @@ def main() -> None:
         type=json.loads,
         default={},
         help="add Σ w·x² of these observation entries to the cost, as a JSON object "
-        '{"index": weight} (IDP: 0 the cart\'s x, 5-7 the speeds)',
+        '{"index": weight} (IDP: 0 the cart\'s x, 5-7 the speeds); "a": w·Σ a² of the action',
     )
     args = parser.parse_args()
     obs_dim = _OBS_DIM[args.task]
     try:
-        args.shape = {int(k): float(w) for k, w in args.shape.items()}
+        args.shape = {(k if k == "a" else int(k)): float(w) for k, w in args.shape.items()}
     except (AttributeError, TypeError, ValueError):
         parser.error(f"--shape must map observation indices to weights, got {args.shape!r}")
-    if bad := [i for i in args.shape if not 0 <= i < obs_dim]:
+    if bad := [i for i in args.shape if i != "a" and not 0 <= i < obs_dim]:
         parser.error(f"--shape names observation entries {bad}; {args.task} has {obs_dim}")
     torch.set_num_threads(args.threads)
     observe, cost, termination = TASKS[args.task]

@@ -42,9 +42,9 @@ def test_shape_adds_the_named_squared_entries_and_refuses_an_entry_the_task_lack
     monkeypatch, capsys
 ):
     ceiling = load_script(SCRIPT)
-    cost = ceiling.shaped(lambda s, a, s2: s2.sum(-1), {0: 3.0, 2: 1.0})
-    got = cost(None, None, torch.tensor([[2.0, 1.0, -1.0]]))
-    torch.testing.assert_close(got, torch.tensor([2.0 + 12.0 + 1.0]))
+    cost = ceiling.shaped(lambda s, a, s2: s2.sum(-1), {0: 3.0, 2: 1.0, "a": 0.5})
+    got = cost(None, torch.tensor([[1.0, 2.0]]), torch.tensor([[2.0, 1.0, -1.0]]))
+    torch.testing.assert_close(got, torch.tensor([2.0 + 12.0 + 1.0 + 0.5 * 5.0]))
     args = ["planner_ceiling.py", "--task", "InvertedPendulum-v5", "--shape", '{"4": 1}']
     monkeypatch.setattr(sys, "argv", args)
     with pytest.raises(SystemExit):

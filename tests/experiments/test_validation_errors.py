@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from tests.experiments.grouping import ids, pack, problems
 from torchrl_recon.cli import run_recipe
 from torchrl_recon.envs import get_entry, make_env
 from torchrl_recon.experiments.recipe import RecipeError, compose_recipe, load_recipe
@@ -146,40 +147,10 @@ ALONE = {
 }
 
 
-def _top(override: str) -> str:
-    """The top-level key an override sets: ``guided`` for ``guided.ratio=nan``."""
-    return override.lstrip("+~").split("=", 1)[0].split(".")[0]
+GROUPS = pack(BAD, ALONE)
 
 
-def _groups(cases: list[tuple[str, str, list[str]]]) -> list[tuple[str, list[tuple]]]:
-    """``cases`` packed into one run per group: a recipe's overrides of distinct top-level keys
-    (each value's check is independent of the others' there), the ``ALONE`` ones by themselves.
-    One composition per group instead of one per value (each is ~0.5 s of Hydra)."""
-    groups: list[tuple[str, list[tuple]]] = []
-    for recipe, override, words in cases:
-        free = override not in ALONE
-        home = next(
-            (
-                g
-                for r, g in groups
-                if free
-                and r == recipe
-                and all(o not in ALONE and _top(o) != _top(override) for o, _ in g)
-            ),
-            None,
-        )
-        if home is None:
-            groups.append((recipe, home := []))
-        home.append((override, words))
-    return groups
-
-
-GROUPS = _groups(BAD)
-
-
-@pytest.mark.parametrize(
-    "recipe, cases", GROUPS, ids=[f"{r.replace('/', '-')}-{len(c)}-{c[0][0]}" for r, c in GROUPS]
-)
+@pytest.mark.parametrize("recipe, cases", GROUPS, ids=ids(GROUPS))
 def test_bad_values_are_refused_before_the_run_directory_exists(recipe, cases, tmp_path, capsys):
     kind = Path(recipe).name.split("_")[0]
     out = tmp_path / "run"
@@ -190,9 +161,9 @@ def test_bad_values_are_refused_before_the_run_directory_exists(recipe, cases, t
     assert not out.exists()
     lines = [line for line in err.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and "Traceback" not in err, err
-    problems = lines[0].split("; ") if len(cases) > 1 else lines[0:1]  # one per bad value
+    parts = problems(lines[0]) if len(cases) > 1 else lines[0:1]  # one per bad value
     for override, words in cases:
-        assert any(all(w in p for w in words) for p in problems), (override, words, lines[0])
+        assert any(all(w in p for w in words) for p in parts), (override, words, lines[0])
 
 
 def test_every_problem_is_named_on_one_line():

@@ -78,13 +78,6 @@ TASKS: dict[str, tuple[Callable, Callable, Callable | None]] = {
 }
 """Each task's observation of the simulator's (qpos, qvel), its cost and its termination."""
 
-_OBS_DIM = {
-    "InvertedPendulum-v5": 4,
-    "InvertedDoublePendulum-v5": 9,
-    "Reacher-v5": 10,
-    "HalfCheetah-v5": 17,
-}
-
 
 def shaped(cost: Callable, weights: dict[int | str, float]) -> Callable:
     """``cost`` plus Σ wᵢ·xᵢ² over the observation entries ``weights`` names (of the state a
@@ -196,7 +189,7 @@ def main() -> None:
         '{"index": weight} (IDP: 0 the cart\'s x, 5-7 the speeds); "a": w·Σ a² of the action',
     )
     args = parser.parse_args()
-    obs_dim = _OBS_DIM[args.task]
+    obs_dim = gym.make(args.task).observation_space.shape[0]
     try:
         args.shape = {(k if k == "a" else int(k)): float(w) for k, w in args.shape.items()}
     except (AttributeError, TypeError, ValueError):

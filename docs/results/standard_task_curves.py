@@ -30,6 +30,10 @@ TASKS = {  # task -> (variant label -> folder, reference label -> return)
         },
         {"target: 1,000 steps up": 1000.0},
     ),
+    "InvertedDoublePendulum-v5": (
+        {"PETS's CEM 200 × 5 × H 10": "InvertedDoublePendulum-v5"},
+        {"target: 9,000": 9000.0},
+    ),
     "Reacher-v5": (
         {
             "β = 0": "Reacher-v5",

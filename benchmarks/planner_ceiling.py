@@ -189,19 +189,18 @@ def main() -> None:
         '{"index": weight} (IDP: 0 the cart\'s x, 5-7 the speeds); "a": w·Σ a² of the action',
     )
     args = parser.parse_args()
-    obs_dim = gym.make(args.task).observation_space.shape[0]
     try:
         args.shape = {(k if k == "a" else int(k)): float(w) for k, w in args.shape.items()}
     except (AttributeError, TypeError, ValueError):
         parser.error(f"--shape must map observation indices to weights, got {args.shape!r}")
-    if bad := [i for i in args.shape if i != "a" and not 0 <= i < obs_dim]:
-        parser.error(f"--shape names observation entries {bad}; {args.task} has {obs_dim}")
     torch.set_num_threads(args.threads)
     observe, cost, termination = TASKS[args.task]
     if args.steps is None:  # the task's own episodes (Reacher-v5: 50 steps; the pendulums: 1,000)
         args.steps = gym.spec(args.task).max_episode_steps
     env = gym.make(args.task, max_episode_steps=args.steps)
     sim = SimulatorModel(env, observe)
+    if bad := [i for i in args.shape if i != "a" and not 0 <= i < sim.obs_dim]:
+        parser.error(f"--shape names observation entries {bad}; {args.task} has {sim.obs_dim}")
     low, high = (
         torch.as_tensor(b, dtype=torch.float32)
         for b in (env.action_space.low, env.action_space.high)
